@@ -1,0 +1,122 @@
+"""The canonical drive log: one table, SI units, with provenance.
+
+Every reader (CSV, MCAP, CAN, MDF4) and the synthesiser end here. Raw readers first produce *streams*
+(one irregularly sampled :class:`pandas.Series` per canonical channel, index = seconds from log start,
+values in the canonical unit); :func:`calib.ingest.resample.to_drivelog` then puts them on a common time
+base without inventing data across long gaps.
+"""
+from __future__ import annotations
+
+import hashlib
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .errors import MissingChannelsError
+
+#: Canonical channels: name -> (pint unit string, description). Column names carry the unit.
+CHANNELS: dict[str, tuple[str, str]] = {
+    "speed_mps": ("m/s", "vehicle speed"),
+    "bat_current_A": ("A", "HV battery current, + = discharge"),
+    "bat_voltage_V": ("V", "HV battery terminal voltage"),
+    "soc": ("dimensionless", "battery state of charge, fraction 0..1"),
+    "bat_temp_degC": ("degC", "battery temperature"),
+    "engine_speed_rpm": ("rpm", "engine speed"),
+    "engine_torque_Nm": ("N*m", "engine brake torque"),
+    "fuel_rate_g_per_s": ("g/s", "fuel mass flow"),
+    "coolant_temp_degC": ("degC", "engine coolant temperature"),
+    "bay_temp_degC": ("degC", "engine-bay (compartment) temperature"),
+    "ambient_temp_degC": ("degC", "ambient air temperature"),
+    "cabin_temp_degC": ("degC", "cabin air temperature"),
+    "heater_power_W": ("W", "heat drawn from coolant by the heater core"),
+    "vent_temp_degC": ("degC", "vent (heater outlet) air temperature"),
+    "blower_flow_kg_per_s": ("kg/s", "blower air mass flow"),
+    "hvac_setpoint_degC": ("degC", "HVAC set point"),
+    "grade_rad": ("rad", "road grade"),
+}
+
+Streams = dict  # dict[str, pd.Series]: channel -> irregular samples (index: time_s)
+
+
+def file_sha256(path) -> str:
+    """SHA-256 of a file, read in chunks (logs can be large)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+@dataclass
+class LogMeta:
+    """Where a log came from and what was done to it."""
+
+    source: str
+    sha256: str = ""
+    format: str = ""
+    vehicle_id: str = ""
+    start_time: str | None = None
+    synthetic: bool = False
+    channel_sources: dict = field(default_factory=dict)  # channel -> original column/topic/signal
+    original_units: dict = field(default_factory=dict)  # channel -> unit as found in the file
+    notes: list = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "LogMeta":
+        return cls(**{k: v for k, v in d.items() if k in cls.__dataclass_fields__})
+
+
+@dataclass
+class DriveLog:
+    """A drive log on a uniform time base.
+
+    Attributes
+    ----------
+    data : pandas.DataFrame
+        Index ``time_s`` (seconds from the log's start, uniform step), one column per canonical channel
+        present (see :data:`CHANNELS`), SI units; NaN where a long gap left no data.
+    meta : LogMeta
+        Provenance.
+    """
+
+    data: pd.DataFrame
+    meta: LogMeta
+
+    @property
+    def name(self) -> str:
+        return Path(self.meta.source).name
+
+    @property
+    def dt(self) -> float:
+        t = self.data.index.to_numpy()
+        return float(np.median(np.diff(t))) if len(t) > 1 else 1.0
+
+    @property
+    def duration_s(self) -> float:
+        t = self.data.index.to_numpy()
+        return float(t[-1] - t[0]) if len(t) else 0.0
+
+    def channels(self) -> list[str]:
+        return [c for c in self.data.columns if c in CHANNELS and self.data[c].notna().any()]
+
+    def has(self, *channels: str) -> bool:
+        present = set(self.channels())
+        return all(c in present for c in channels)
+
+    def missing(self, channels) -> list[str]:
+        present = set(self.channels())
+        return [c for c in channels if c not in present]
+
+    def require(self, channels, purpose: str) -> None:
+        """Raise :class:`MissingChannelsError` naming what is missing for ``purpose``."""
+        miss = self.missing(channels)
+        if miss:
+            raise MissingChannelsError(miss, purpose, self.meta.source)
+
+    def label(self) -> str:
+        return f"{self.name} [SYNTHETIC]" if self.meta.synthetic else self.name

@@ -1,0 +1,58 @@
+"""``iptm``: the workbench's command line.
+
+Each subcommand lives in its own module under :mod:`iptm.commands` with ``register(subparsers)`` that
+adds its parser and sets ``func``; ``func(args)`` returns the exit status. User errors
+(:class:`calib.errors.IptmError`) are printed as one line and exit with status 2.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from calib.errors import IptmError
+
+# Order = order in `iptm --help`.
+COMMANDS = ["run", "simulate", "synth", "ingest", "calibrate", "optimize", "sweep", "bench"]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="iptm",
+        description=(
+            "Prius winter workbench: ingest drive logs, calibrate the hybrid power/thermal model, "
+            "optimise power split, engine thermal management and cabin heating by dynamic programming "
+            "(Gong et al., IEEE CCTA 2019). Every command that computes figures takes --json FILE."
+        ),
+    )
+    parser.add_argument("--version", action="version", version="iptm 0.1.0")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMANDS:
+        try:
+            mod = importlib.import_module(f"iptm.commands.{name}")
+        except ModuleNotFoundError as exc:
+            if exc.name == f"iptm.commands.{name}":
+                continue  # not built yet
+            raise
+        mod.register(sub)
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 0
+    try:
+        return int(args.func(args) or 0)
+    except IptmError as exc:
+        print(f"iptm {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"iptm {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""One module per ``iptm`` subcommand, each with ``register(subparsers)``."""
