@@ -1,0 +1,250 @@
+"""CSV drive logs: units in the header (``speed [km/h]``) or a user column map.
+
+Layout accepted::
+
+    # SYNTHETIC drive log ...            <- optional comment lines at the top ('#'),
+    # vehicle_id: prius-synth               'key: value' lines become metadata
+    time [s],speed [km/h],soc [%],coolant_temp [degC]
+    0.0,0.0,55.0,
+    0.1,0.4,,
+    ...
+
+- The time column is the one named ``time``, ``t``, ``timestamp`` or ``time_s`` (any unit of time), or
+  the column a map sends to ``time``. Times must be strictly increasing: a repeat or a step back is an
+  error naming the file line, since a CSV row has no other identity.
+- Every other column is a channel if its name (without the unit) is a canonical channel or a known
+  alias, or if the column map names it. Its unit comes from the header bracket, the map, or the
+  canonical name itself (``speed_mps`` is in m/s). A channel column with no unit is an error.
+- Unrecognised columns are ignored and listed in ``meta.notes``. Empty cells are missing samples.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import re
+
+import numpy as np
+import pandas as pd
+
+from ..drivelog import CHANNELS, LogMeta, file_sha256
+from ..errors import LogFormatError
+from ..units import UnitError, convert, parse_unit
+from .common import canonical_name, implied_unit, make_series, parse_target, sniff_text, split_spec, to_channel_unit
+
+TIME_NAMES = {"time", "t", "timestamp", "time_s", "times", "time_sec", "elapsed"}
+
+
+def _read_comments(text: str) -> tuple[list[str], int]:
+    lines = []
+    n = 0
+    for line in text.splitlines():
+        if line.startswith("#"):
+            lines.append(line[1:].strip())
+            n += 1
+        elif not line.strip() and not lines:
+            n += 1  # leading blank lines
+        else:
+            break
+    return lines, n
+
+
+def _meta_from_comments(comments: list[str], meta: LogMeta) -> None:
+    if comments and "SYNTHETIC" in comments[0].upper():
+        meta.synthetic = True
+    for c in comments:
+        if ":" not in c:
+            continue
+        key, _, val = c.partition(":")
+        key, val = key.strip().lower(), val.strip()
+        if key == "vehicle_id":
+            meta.vehicle_id = val
+        elif key == "start_time":
+            meta.start_time = val or None
+        elif key == "synthetic":
+            meta.synthetic = meta.synthetic or val.lower() in ("true", "yes", "1")
+        elif key == "note":
+            meta.notes.append(val)
+
+
+def read_csv_streams(path, column_map: dict | None = None) -> tuple[dict, LogMeta]:
+    """Read a CSV log into streams.
+
+    Parameters
+    ----------
+    path : str or Path
+        The CSV file.
+    column_map : dict, optional
+        ``{column header: "channel [unit]"}`` (or ``"channel"`` when the header carries the unit, or
+        ``"time [unit]"`` for the time column). Overrides header recognition for the columns it names.
+
+    Returns
+    -------
+    (Streams, LogMeta)
+
+    Raises
+    ------
+    LogFormatError
+        Empty or binary file, no time column, unknown unit, non-numeric cell, non-monotonic or duplicate
+        time (naming the line).
+    """
+    head = sniff_text(path, "CSV")
+    comments, n_skip = _read_comments(head)
+    meta = LogMeta(source=str(path), sha256=file_sha256(path), format="csv")
+    _meta_from_comments(comments, meta)
+    column_map = dict(column_map or {})
+
+    try:
+        df = pd.read_csv(path, skiprows=n_skip, dtype=str, keep_default_na=False, skipinitialspace=True,
+                         encoding="utf-8", on_bad_lines="error", engine="c", comment=None)
+    except pd.errors.EmptyDataError:
+        raise LogFormatError(path, "no header line (file holds only comments)") from None
+    except pd.errors.ParserError as exc:
+        msg = str(exc).strip().splitlines()[-1]
+        line = _line_from_pandas(msg, n_skip)
+        raise LogFormatError(path, f"malformed CSV: {msg}", line) from None
+    except UnicodeDecodeError as exc:
+        raise LogFormatError(path, f"binary file, not a CSV text file (byte {exc.start} is not UTF-8)") from None
+    if df.shape[1] < 2:
+        raise LogFormatError(path, "fewer than two columns: need a time column and at least one channel",
+                             f"line {n_skip + 1}", "is the delimiter a comma?")
+
+    header_line = n_skip + 1
+    first_data_line = header_line + 1
+
+    time_col, time_unit = None, None
+    channel_cols: list[tuple[str, str, str]] = []  # (column, channel, unit)
+    ignored = []
+    for col in df.columns:
+        where = f"line {header_line}, column {col!r}"
+        name, unit = split_spec(col)
+        if col in column_map:
+            target = column_map[col]
+            tname, tunit = split_spec(target) if isinstance(target, str) else (None, None)
+            if tname is not None and tname.strip().lower() in TIME_NAMES:
+                time_col, time_unit = col, tunit or unit
+                continue
+            ch, munit = parse_target(target, path, f"column map entry {col!r}")
+            unit = munit or unit
+            if unit is None:
+                raise LogFormatError(path, f"no unit for column {col!r}", where,
+                                     "write 'name [unit]' in the header or give the unit in the column map")
+            channel_cols.append((col, ch, unit))
+            continue
+        if name.strip().lower() in TIME_NAMES:
+            if time_col is None:
+                time_col, time_unit = col, unit
+            else:
+                ignored.append(col)
+            continue
+        ch = canonical_name(name)
+        if ch is None:
+            ignored.append(col)
+            continue
+        if unit is None:
+            if name.strip() == ch and ch in CHANNELS:
+                unit = implied_unit(ch)  # the canonical name carries its unit (speed_mps is m/s)
+            else:
+                raise LogFormatError(path, f"no unit for channel column {col!r}", where,
+                                     "write 'name [unit]' in the header or give the unit in a column map")
+        channel_cols.append((col, ch, unit))
+
+    missing_map = [c for c in column_map if c not in df.columns]
+    if missing_map:
+        raise LogFormatError(path, f"column map names column(s) not in the file: {', '.join(map(repr, missing_map))}",
+                             f"line {header_line}")
+    if time_col is None:
+        raise LogFormatError(path, "no time column", f"line {header_line}",
+                             "name one 'time [s]' or map a column to 'time [unit]'")
+    if time_unit is None:
+        if split_spec(time_col)[0].strip().lower() == "time_s":
+            time_unit = "s"
+        else:
+            raise LogFormatError(path, f"no unit for time column {time_col!r}", f"line {header_line}",
+                                 "write e.g. 'time [s]'")
+    try:
+        if parse_unit(time_unit).dimensionality != parse_unit("s").dimensionality:
+            raise LogFormatError(path, f"time column unit {time_unit!r} is not a time", f"line {header_line}")
+    except UnitError:
+        raise LogFormatError(path, f"unknown unit {time_unit!r}", f"line {header_line}, column {time_col!r}") from None
+    if not channel_cols:
+        raise LogFormatError(path, "no column is a known channel", f"line {header_line}",
+                             "name columns like 'speed [km/h]' or pass a column map")
+    if len(df) == 0:
+        raise LogFormatError(path, "header but no data rows", f"line {header_line}")
+
+    t_raw = _numeric(df[time_col], path, time_col, first_data_line, allow_empty=False)
+    t = np.asarray(convert(t_raw, time_unit, "s"), dtype=float)
+    d = np.diff(t)
+    bad = np.flatnonzero(~(d > 0))
+    if len(bad):
+        i = int(bad[0]) + 1
+        kind = "duplicate time" if d[bad[0]] == 0 else "time goes backwards"
+        raise LogFormatError(path, f"{kind}: {t_raw[i]!r} after {t_raw[i - 1]!r}",
+                             f"line {first_data_line + i}", "times must be strictly increasing")
+    t0 = float(t[0])
+    t = t - t0
+    if t0 != 0.0:
+        meta.notes.append(f"time shifted by {-t0:g} s so the log starts at 0")
+
+    streams = {}
+    seen = {}
+    for col, ch, unit in channel_cols:
+        if ch in seen:
+            raise LogFormatError(path, f"columns {seen[ch]!r} and {col!r} both map to channel {ch}",
+                                 f"line {header_line}", "drop one or map it elsewhere")
+        seen[ch] = col
+        v = _numeric(df[col], path, col, first_data_line, allow_empty=True)
+        v = to_channel_unit(v, unit, ch, path, f"column {col!r}")
+        s = make_series(t, v, ch)
+        if len(s):
+            streams[ch] = s
+        meta.channel_sources[ch] = col
+        meta.original_units[ch] = unit
+    if ignored:
+        meta.notes.append(f"ignored columns: {', '.join(ignored)}")
+    return streams, meta
+
+
+def _numeric(col: pd.Series, path, name: str, first_line: int, allow_empty: bool) -> np.ndarray:
+    s = col.astype(str).str.strip()
+    empty = s.isin(["", "nan", "NaN", "NA", "null", "None"])
+    num = pd.to_numeric(s.where(~empty, None), errors="coerce").to_numpy(dtype=float)
+    bad = np.flatnonzero(np.isnan(num) & ~empty.to_numpy())
+    if len(bad):
+        i = int(bad[0])
+        raise LogFormatError(path, f"not a number: {s.iloc[i][:40]!r}", f"line {first_line + i}, column {name!r}")
+    if not allow_empty and empty.any():
+        i = int(np.flatnonzero(empty.to_numpy())[0])
+        raise LogFormatError(path, "empty time cell", f"line {first_line + i}, column {name!r}")
+    if np.isinf(num).any():
+        i = int(np.flatnonzero(np.isinf(num))[0])
+        raise LogFormatError(path, "infinite value", f"line {first_line + i}, column {name!r}")
+    return num
+
+
+def _line_from_pandas(msg: str, n_skip: int) -> str | None:
+    m = re.search(r"line (\d+)", msg)
+    return f"line {int(m.group(1)) + n_skip}" if m else None
+
+
+def sniff_is_csv(path) -> bool:
+    """Heuristic used by format detection: text whose first non-comment line has a comma."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(4096)
+    except OSError:
+        return False
+    if b"\x00" in head:
+        return False
+    text = head.decode("utf-8", errors="replace")
+    for line in io.StringIO(text):
+        if line.startswith("#") or not line.strip():
+            continue
+        try:
+            return len(next(csv.reader([line]))) >= 2
+        except csv.Error:
+            return False
+    return False
+
+
+__all__ = ["read_csv_streams", "sniff_is_csv"]

@@ -1,0 +1,428 @@
+"""Parameter sets: values with units, bounds and provenance, read and written as TOML or JSON.
+
+A :class:`ParameterSet` is what the simulator, the fitters and the optimiser all take. Every
+:class:`Parameter` has a name that carries its unit where helpful (``C_eng_J_per_K``), a unit string
+(pint syntax), bounds, a source, and after a calibration its standard error and flags. Tables (U_oc over
+SOC, the cold-fuel factor over coolant temperature, engine efficiency along the optimal operating line)
+are parameters whose value is a list with breakpoints ``x``.
+
+The file format is TOML (or JSON with the same structure)::
+
+    [meta]
+    name = "2017 Toyota Prius, default"
+
+    [parameters.C_eng_J_per_K]
+    value = 80000.0
+    unit = "J/K"
+    bounds = [20000.0, 400000.0]
+    source = "spec/model.md section 5 (prior)"
+
+A value given in another but compatible unit (``unit = "kJ/K"``) is converted on load; an incompatible
+unit, an unknown name, a value outside its bounds or a non-monotonic table breakpoint is an error.
+"""
+from __future__ import annotations
+
+import copy
+import json
+import math
+import tomllib
+from collections import namedtuple
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from .errors import ParameterError
+
+DATA = resources.files("calib") / "data"
+
+
+@dataclass
+class Parameter:
+    """One model parameter (scalar or table).
+
+    Attributes
+    ----------
+    name, unit : str
+        Name (unit-bearing where helpful) and pint unit string of ``value``.
+    value : float or list of float
+        Scalar value, or table values at breakpoints ``x``.
+    bounds : (float, float)
+        Physical bounds, applied to every table entry.
+    source : str
+        Where the value comes from (a data file, the spec, a calibration).
+    description : str
+    x, x_name, x_unit : list, str, str
+        Table breakpoints (strictly increasing), their meaning and unit.
+    vary : bool
+        Whether calibration may estimate it (False for physical constants).
+    stderr : float or list, optional
+        Standard error after a calibration.
+    status : str
+        ``prior`` (not estimated), ``estimated``, ``undetermined`` (fit tried, data did not determine it:
+        left at the prior), ``fixed``.
+    note : str
+        Why (for example which channels were missing).
+    """
+
+    name: str
+    value: float | list
+    unit: str
+    bounds: tuple
+    source: str
+    description: str = ""
+    x: list | None = None
+    x_name: str = ""
+    x_unit: str = ""
+    vary: bool = True
+    stderr: float | list | None = None
+    status: str = "prior"
+    note: str = ""
+    logs: list = field(default_factory=list)
+
+    @property
+    def is_table(self) -> bool:
+        return self.x is not None
+
+    def to_dict(self) -> dict:
+        d = {"value": self.value, "unit": self.unit, "bounds": list(self.bounds), "source": self.source}
+        if self.description:
+            d["description"] = self.description
+        if self.is_table:
+            d.update(x=list(self.x), x_name=self.x_name, x_unit=self.x_unit)
+        if not self.vary:
+            d["vary"] = False
+        if self.stderr is not None:
+            d["stderr"] = self.stderr
+        d["status"] = self.status
+        if self.note:
+            d["note"] = self.note
+        if self.logs:
+            d["logs"] = list(self.logs)
+        return d
+
+
+def _p(name, value, unit, lo, hi, source, description="", **kw) -> Parameter:
+    return Parameter(name, value, unit, (lo, hi), source, description, **kw)
+
+
+def _battery_tables(T_C: int = 26, n_modules: int = 28):
+    import csv
+
+    rows = list(csv.DictReader((DATA / "battery" / "nimh_module_ocv_resistance.csv").open()))
+    rows = [r for r in rows if int(float(r["temperature_C"])) == T_C]
+    soc = [float(r["soc"]) for r in rows]
+    ocv = [round(n_modules * float(r["ocv_V"]), 4) for r in rows]
+    res = [round(n_modules * float(r["r_total_ohm"]), 5) for r in rows]
+    return soc, ocv, res
+
+
+# FASTSim 2016 Prius engine efficiency vs fraction of 71 kW (spec/model.md section 4), extended to
+# 72 kW. The optimal-operating-line speed is our choice: it passes through 142 N m at 3600 rpm and
+# 72 kW at 5200 rpm (2ZR-FXE data) and through 1000 rpm (idle) at zero power.
+_ENG_FRAC = [0.0, 0.005, 0.015, 0.04, 0.06, 0.10, 0.14, 0.20, 0.40, 0.60, 0.80, 1.00]
+_ENG_ETA = [0.08, 0.10, 0.26, 0.33, 0.355, 0.37, 0.38, 0.38, 0.35, 0.34, 0.33, 0.32]
+
+
+def default_parameters() -> "ParameterSet":
+    """The default 2017 Prius, built from the bundled reference data (sources given per parameter)."""
+    soc, ocv, res = _battery_tables(26)
+    _, _, res1 = _battery_tables(1)
+    # Temperature coefficient of R_int from the pack tables at 1 and 26 degC around SOC 0.5.
+    i5 = soc.index(0.5)
+    tc = math.log(res1[i5] / res[i5]) / 25.0
+    P_ool = [round(f * 71e3, 1) for f in _ENG_FRAC] + [72e3]
+    eta_ool = _ENG_ETA + [0.32]
+    n_ool = [1000, 1020, 1060, 1150, 1200, 1300, 1400, 1550, 2300, 3000, 3900, 5100, 5200]
+    epa = "EPA Test Car List 2022 (data/prius_facts.md)"
+    bat = "NREL ADVISOR NiMH module pulse tests x 28 modules (data/battery)"
+    plist = [
+        # road load and vehicle
+        _p("m_kg", 1531.0, "kg", 1000, 2500, f"{epa}: equivalent test weight 3375 lb", "test mass"),
+        _p("m_eq_factor", 1.03, "dimensionless", 1.0, 1.15, "spec/model.md s.1", "rotating-inertia factor"),
+        _p("A_N", 81.28, "N", 0, 400, f"{epa}: A = 18.272 lbf", "road-load constant term"),
+        _p("B_N_per_mps", 2.940, "N*s/m", 0, 30, f"{epa}: B = 0.29545 lbf/mph", "road-load linear term"),
+        _p("C_N_per_mps2", 0.3070, "N*s^2/m^2", 0.05, 1.5, f"{epa}: C = 0.013793 lbf/mph^2",
+           "road-load quadratic term"),
+        # power split
+        _p("eta_em", 0.88, "dimensionless", 0.6, 1.0, "spec/model.md s.2", "motor+inverter+gearing, lumped"),
+        _p("eta_mech", 0.96, "dimensionless", 0.8, 1.0, "spec/model.md s.2", "engine-path mechanical"),
+        _p("P_e_max_W", 72e3, "W", 30e3, 120e3, "Toyota: 2ZR-FXE 72 kW at 5200 rpm", "engine maximum"),
+        _p("P_regen_max_W", 25e3, "W", 0, 80e3, "spec/model.md s.2", "regenerative braking limit at wheels"),
+        _p("n_idle_rpm", 1000.0, "rpm", 600, 1500, "spec/model.md s.2", "idle speed"),
+        _p("P_aux_W", 400.0, "W", 0, 5000, "spec/model.md s.2", "12 V loads and blower from the HV bus"),
+        _p("P_bat_min_W", -25e3, "W", -60e3, 0, "spec/model.md s.2", "battery charge power limit"),
+        _p("P_bat_max_W", 25e3, "W", 0, 60e3, "spec/model.md s.2", "battery discharge power limit"),
+        # battery
+        _p("U_oc_V", ocv, "V", 150, 300, bat + " at 26 degC", "pack open-circuit voltage",
+           x=soc, x_name="soc", x_unit="dimensionless"),
+        _p("R_int_ohm", res, "ohm", 0.02, 2.0, bat + " at 26 degC", "pack internal resistance at T_ref",
+           x=soc, x_name="soc", x_unit="dimensionless"),
+        _p("R_int_tc_per_K", round(tc, 5), "1/K", 0.0, 0.1, bat + ": ratio of 1 and 26 degC tables at SOC 0.5",
+           "R_int(T) = R_int(T_ref) exp(-tc (T - T_ref))"),
+        _p("T_bat_ref_degC", 26.0, "degC", -40, 60, bat, "reference temperature of R_int_ohm", vary=False),
+        _p("C_bat_Ah", 6.5, "A*h", 2.0, 20.0, "Toyota: NiMH 6.5 Ah (data/prius_facts.md)", "capacity"),
+        # fuel
+        _p("eta_ool", eta_ool, "dimensionless", 0.02, 0.45,
+           "NREL FASTSim 2016 Prius engine efficiency vs fraction of 71 kW", "engine efficiency on the OOL",
+           x=P_ool, x_name="P_e", x_unit="W", vary=False),
+        _p("n_ool_rpm", n_ool, "rpm", 600, 6000, "iptm choice through 142 N m @ 3600 rpm and 72 kW @ 5200 rpm",
+           "engine speed on the optimal operating line", x=P_ool, x_name="P_e", x_unit="W", vary=False),
+        _p("fuel_scale", 1.07, "dimensionless", 0.5, 2.0,
+           "tuned to EPA warm UDDS/HWFET/US06 with the rule-based controller (calib.epa.tune_fuel_scale)",
+           "warm fuel-map scale"),
+        _p("W_idle_g_per_s", 0.10, "g/s", 0.02, 0.5, "spec/model.md s.4", "idle fuel rate, warm"),
+        _p("f_cl", [1.5, 1.2, 1.05, 1.0], "dimensionless", 1.0, 3.0, "spec/model.md s.4 (prior shape)",
+           "cold-coolant fuel factor", x=[-10.0, 20.0, 60.0, 80.0], x_name="T_cl", x_unit="degC"),
+        _p("LHV_J_per_g", 42.6e3, "J/g", 40e3, 45e3, "gasoline, 42.6 MJ/kg", "lower heating value", vary=False),
+        # engine coolant
+        _p("C_eng_J_per_K", 80e3, "J/K", 20e3, 400e3, "spec/model.md s.5 (prior)", "engine+coolant heat capacity"),
+        _p("gamma_exh", 0.5, "dimensionless", 0.2, 0.8, "spec/model.md s.5 (prior)",
+           "fraction of fuel heat (not work) leaving with the exhaust"),
+        _p("hA_eng_W_per_K", 25.0, "W/K", 1.0, 300.0, "spec/model.md s.5 (prior)", "engine-to-compartment"),
+        _p("kappa", 0.3, "dimensionless", 0.0, 0.9, "spec/model.md s.5 (prior)",
+           "compartment temperature: T_com = T_amb + kappa (T_cl - T_amb)"),
+        _p("T_open_degC", 88.0, "degC", 70.0, 105.0, "spec/model.md s.5 (prior)", "thermostat opening"),
+        _p("k_rad_W_per_K", 1500.0, "W/K", 100.0, 20000.0, "spec/model.md s.5 (prior)", "radiator gain"),
+        _p("Q_rad_max_W", 30e3, "W", 1e3, 100e3, "spec/model.md s.5 (prior)", "radiator capacity"),
+        # heater core and cabin
+        _p("eps_hc", 0.7, "dimensionless", 0.2, 1.0, "NREL ADVISOR heater effectiveness", "heater-core effectiveness"),
+        _p("W_bl_kg_per_s", 0.06, "kg/s", 0.01, 0.3, "iptm prior (mid blower)", "blower air mass flow"),
+        _p("recirc_frac", 0.0, "dimensionless", 0.0, 1.0, "iptm prior: fresh air in winter (anti-fog)",
+           "heater inlet air = recirc T_cab + (1 - recirc) T_amb"),
+        _p("cp_air_J_per_kgK", 1005.0, "J/(kg*K)", 1000, 1010, "air", "air heat capacity", vary=False),
+        _p("C_cab_J_per_K", 60e3, "J/K", 10e3, 400e3, "spec/model.md s.6 (prior)", "cabin heat capacity"),
+        _p("UA_cab_W_per_K", 50.0, "W/K", 5.0, 300.0, "spec/model.md s.6 (prior)", "cabin loss conductance"),
+        _p("Q_sun_W", 0.0, "W", -500.0, 2000.0, "spec/model.md s.6 (prior)", "solar and occupant gains"),
+    ]
+    return ParameterSet({p.name: p for p in plist}, meta={"name": "2017 Toyota Prius, default",
+                                                         "origin": "calib.params.default_parameters"})
+
+
+# The compact form the compiled model reads (numba accepts namedtuples of floats and arrays).
+ModelParams = namedtuple(
+    "ModelParams",
+    [
+        "m", "m_eq", "A", "B", "C", "eta_em", "eta_mech", "P_e_max", "P_regen_max", "w_idle", "P_aux",
+        "P_bat_min", "P_bat_max", "soc_bp", "U_oc", "soc_bp_R", "R_int", "R_tc", "T_bat_ref", "C_bat_As",
+        "P_ool", "eta_ool", "w_ool", "fuel_scale", "W_idle", "T_fcl", "f_cl", "LHV", "C_eng", "gamma_exh",
+        "hA_eng", "kappa", "T_open", "k_rad", "Q_rad_max", "eps_hc", "W_bl", "recirc", "cp_air",
+        "C_cab", "UA_cab", "Q_sun",
+    ],
+)
+
+RPM = 2.0 * math.pi / 60.0
+
+
+class ParameterSet:
+    """An ordered collection of :class:`Parameter` with file I/O and validation.
+
+    ``pset["C_eng_J_per_K"]`` returns the value; ``pset.param(name)`` the :class:`Parameter`.
+    """
+
+    def __init__(self, params: dict, meta: dict | None = None):
+        self._p = dict(params)
+        self.meta = dict(meta or {})
+
+    # --- access -----------------------------------------------------------------------------------
+    def __getitem__(self, name):
+        return self.param(name).value
+
+    def __contains__(self, name):
+        return name in self._p
+
+    def __iter__(self):
+        return iter(self._p)
+
+    def names(self) -> list[str]:
+        return list(self._p)
+
+    def param(self, name) -> Parameter:
+        try:
+            return self._p[name]
+        except KeyError:
+            raise ParameterError(f"unknown parameter {name!r}; known: {', '.join(self._p)}") from None
+
+    def copy(self) -> "ParameterSet":
+        return ParameterSet(copy.deepcopy(self._p), copy.deepcopy(self.meta))
+
+    def with_values(self, **values) -> "ParameterSet":
+        """A copy with some values replaced (validated)."""
+        new = self.copy()
+        for k, v in values.items():
+            p = new.param(k)
+            p.value = list(map(float, v)) if p.is_table else float(v)
+        new.validate()
+        return new
+
+    # --- validation -------------------------------------------------------------------------------
+    def validate(self) -> None:
+        for p in self._p.values():
+            lo, hi = p.bounds
+            vals = p.value if p.is_table else [p.value]
+            for v in vals:
+                if not isinstance(v, (int, float)) or not math.isfinite(v):
+                    raise ParameterError(f"{p.name}: value {v!r} is not a finite number")
+                if not lo <= v <= hi:
+                    raise ParameterError(f"{p.name} = {v:g} {p.unit} is outside its bounds [{lo:g}, {hi:g}]")
+            if p.is_table:
+                if len(p.x) != len(p.value):
+                    raise ParameterError(f"{p.name}: {len(p.x)} breakpoints but {len(p.value)} values")
+                if len(p.x) < 2 or any(b <= a for a, b in zip(p.x, p.x[1:])):
+                    raise ParameterError(f"{p.name}: breakpoints {p.x_name} must be strictly increasing: {p.x}")
+        f = self.param("f_cl").value
+        if any(b > a + 1e-12 for a, b in zip(f, f[1:])):
+            raise ParameterError(f"f_cl must not increase with coolant temperature: {f}")
+        u = self.param("U_oc_V").value
+        if any(b < a for a, b in zip(u, u[1:])):
+            raise ParameterError(f"U_oc_V must not decrease with SOC: {u}")
+        if self["P_bat_min_W"] >= self["P_bat_max_W"]:
+            raise ParameterError("P_bat_min_W must be below P_bat_max_W")
+
+    # --- compiled form ----------------------------------------------------------------------------
+    def model_params(self) -> ModelParams:
+        """The namedtuple of floats and float64 arrays that the compiled model functions take."""
+        a = lambda n: np.ascontiguousarray(self[n], dtype=np.float64)  # noqa: E731
+        x = lambda n: np.ascontiguousarray(self.param(n).x, dtype=np.float64)  # noqa: E731
+        g = lambda n: float(self[n])  # noqa: E731
+        return ModelParams(
+            m=g("m_kg"), m_eq=g("m_kg") * g("m_eq_factor"), A=g("A_N"), B=g("B_N_per_mps"),
+            C=g("C_N_per_mps2"), eta_em=g("eta_em"), eta_mech=g("eta_mech"), P_e_max=g("P_e_max_W"),
+            P_regen_max=g("P_regen_max_W"), w_idle=g("n_idle_rpm") * RPM, P_aux=g("P_aux_W"),
+            P_bat_min=g("P_bat_min_W"), P_bat_max=g("P_bat_max_W"), soc_bp=x("U_oc_V"), U_oc=a("U_oc_V"),
+            soc_bp_R=x("R_int_ohm"), R_int=a("R_int_ohm"), R_tc=g("R_int_tc_per_K"),
+            T_bat_ref=g("T_bat_ref_degC"), C_bat_As=g("C_bat_Ah") * 3600.0, P_ool=x("eta_ool"),
+            eta_ool=a("eta_ool"), w_ool=np.interp(x("eta_ool"), x("n_ool_rpm"), a("n_ool_rpm")) * RPM,
+            fuel_scale=g("fuel_scale"), W_idle=g("W_idle_g_per_s"), T_fcl=x("f_cl"), f_cl=a("f_cl"),
+            LHV=g("LHV_J_per_g"), C_eng=g("C_eng_J_per_K"), gamma_exh=g("gamma_exh"),
+            hA_eng=g("hA_eng_W_per_K"), kappa=g("kappa"), T_open=g("T_open_degC"), k_rad=g("k_rad_W_per_K"),
+            Q_rad_max=g("Q_rad_max_W"), eps_hc=g("eps_hc"), W_bl=g("W_bl_kg_per_s"), recirc=g("recirc_frac"),
+            cp_air=g("cp_air_J_per_kgK"), C_cab=g("C_cab_J_per_K"), UA_cab=g("UA_cab_W_per_K"), Q_sun=g("Q_sun_W"),
+        )
+
+    # --- I/O --------------------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        return {"meta": dict(self.meta), "parameters": {k: p.to_dict() for k, p in self._p.items()}}
+
+    def save(self, path) -> None:
+        """Write as TOML (``.toml``) or JSON (``.json``), atomically."""
+        from .fileio import write_json, write_text
+
+        path = Path(path)
+        d = self.to_dict()
+        if path.suffix.lower() == ".json":
+            write_json(path, d)
+        elif path.suffix.lower() == ".toml":
+            import tomli_w
+
+            write_text(path, tomli_w.dumps(_strip_none(d)))
+        else:
+            raise ParameterError(f"{path}: parameter files are .toml or .json")
+
+    @classmethod
+    def load(cls, path, base: "ParameterSet | None" = None) -> "ParameterSet":
+        """Read a TOML or JSON parameter file.
+
+        Parameters missing from the file keep the values of ``base`` (default: the default Prius), so a
+        file may hold only what it changes. Units are converted to each parameter's canonical unit.
+        """
+        path = Path(path)
+        try:
+            raw = path.read_bytes()
+        except OSError as exc:
+            raise ParameterError(f"{path}: cannot read parameter file ({exc.strerror})") from None
+        try:
+            if path.suffix.lower() == ".json":
+                d = json.loads(raw)
+            else:
+                d = tomllib.loads(raw.decode("utf-8"))
+        except (ValueError, UnicodeDecodeError) as exc:
+            raise ParameterError(f"{path}: not a valid {path.suffix.lstrip('.').upper() or 'TOML'} "
+                                 f"parameter file: {exc}") from None
+        return cls.from_dict(d, base=base, origin=str(path))
+
+    @classmethod
+    def from_dict(cls, d: dict, base: "ParameterSet | None" = None, origin: str = "<dict>") -> "ParameterSet":
+        new = (base or default_parameters()).copy()
+        if not isinstance(d, dict) or not isinstance(d.get("parameters", {}), dict):
+            raise ParameterError(f"{origin}: expected a [parameters] table")
+        new.meta.update(d.get("meta", {}))
+        new.meta["file"] = origin
+        for name, entry in d.get("parameters", {}).items():
+            if name not in new:
+                raise ParameterError(f"{origin}: unknown parameter {name!r} (known: {', '.join(new.names())})")
+            p = new.param(name)
+            if not isinstance(entry, dict):
+                entry = {"value": entry}
+            if "value" not in entry:
+                raise ParameterError(f"{origin}: parameter {name} has no value")
+            val = entry["value"]
+            if p.is_table != isinstance(val, list):
+                kind = "a table (list)" if p.is_table else "a scalar"
+                raise ParameterError(f"{origin}: parameter {name} must be {kind}")
+            unit = entry.get("unit", p.unit)
+            val = _convert(val, unit, p.unit, f"{origin}: parameter {name}")
+            p.value = [float(v) for v in val] if p.is_table else float(val)
+            if p.is_table and "x" in entry:
+                xu = entry.get("x_unit", p.x_unit)
+                p.x = [float(v) for v in _convert(entry["x"], xu, p.x_unit, f"{origin}: breakpoints of {name}")]
+            for key in ("source", "description", "status", "note"):
+                if key in entry:
+                    setattr(p, key, str(entry[key]))
+            if "stderr" in entry:
+                p.stderr = entry["stderr"]
+            if "logs" in entry:
+                p.logs = list(entry["logs"])
+            if "bounds" in entry:
+                b = entry["bounds"]
+                if not (isinstance(b, list) and len(b) == 2):
+                    raise ParameterError(f"{origin}: bounds of {name} must be [low, high]")
+                p.bounds = tuple(float(v) for v in _convert(b, unit, p.unit, f"{origin}: bounds of {name}"))
+        try:
+            new.validate()
+        except ParameterError as exc:
+            raise ParameterError(f"{origin}: {exc}") from None
+        return new
+
+    def table(self):
+        """A pandas DataFrame, one row per parameter (for reports)."""
+        import pandas as pd
+
+        rows = []
+        for p in self._p.values():
+            rows.append({"name": p.name, "value": p.value, "unit": p.unit, "stderr": p.stderr,
+                         "status": p.status, "source": p.source, "note": p.note})
+        return pd.DataFrame(rows)
+
+
+def _strip_none(o):
+    if isinstance(o, dict):
+        return {k: _strip_none(v) for k, v in o.items() if v is not None}
+    if isinstance(o, list):
+        return [_strip_none(v) for v in o]
+    return o
+
+
+_UREG = None
+
+
+def _convert(val, unit: str, target: str, what: str):
+    if unit == target:
+        return val
+    global _UREG
+    try:
+        from .units import ureg as _u  # shared registry with aliases (ingestion)
+    except ImportError:  # pragma: no cover - units module is part of the package
+        _u = None
+    import pint
+
+    if _u is None:
+        _UREG = _UREG or pint.UnitRegistry()
+        _u = _UREG
+    try:
+        arr = np.asarray(val, dtype=float)
+        q = _u.Quantity(arr, unit).to(target).magnitude
+    except (pint.errors.UndefinedUnitError, pint.errors.DimensionalityError, ValueError) as exc:
+        raise ParameterError(f"{what}: unit {unit!r} cannot be converted to {target!r} ({exc})") from None
+    return q.tolist() if isinstance(val, list) else float(q)

@@ -1,0 +1,83 @@
+"""The stock-like rule-based energy management (spec/optimization.md s.3).
+
+A load-levelling controller in the style of Liu & Peng (2005): the engine turns on above a wheel-power
+threshold, below a SOC threshold, or when the battery alone cannot meet the demand; when on it runs at
+demand plus a SOC-recovery term, never below a load-levelling minimum; it turns off below a lower threshold
+(hysteresis) once it has run a minimum time. Thermal rule (Tashiro 2016): below ``T_idle_degC`` the engine
+idles rather than stopping. The heater requests a fixed demand.
+
+It lives in ``calib`` because it is also the plant's own controller when logs are synthesised; the
+per-scenario threshold tuning lives in :mod:`optimize.rulebased`.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+from .model import IDLE, OFF, ON
+
+
+@dataclass
+class RuleParams:
+    """Thresholds of the rule-based controller (tuned per scenario by :mod:`optimize.rulebased`)."""
+
+    P_on_W: float = 9000.0  # wheel power above which the engine starts
+    P_off_W: float = 4000.0  # wheel power below which it may stop (hysteresis)
+    soc_low: float = 0.50  # engine forced on below this SOC
+    soc_target: float = 0.60  # SOC-recovery set point
+    k_soc_W: float = 150e3  # recovery gain: W of extra engine power per unit SOC below target
+    P_e_min_W: float = 10000.0  # load levelling: engine never runs below this (W)
+    t_min_on_s: float = 8.0  # minimum on-time
+    T_idle_degC: float = 40.0  # thermal rule: idle instead of off below this coolant temperature
+    Q_heat_W: float = 1500.0  # heater demand
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+class RuleBasedController:
+    """Callable ``(k, soc, T_cl, T_cab, P_trac) -> (e_mode, P_bat_mg, Q_heat_cmd)`` with memory.
+
+    Parameters
+    ----------
+    mp : ModelParams
+        Compiled parameters (for efficiencies and limits).
+    rp : RuleParams
+    """
+
+    def __init__(self, mp, rp: RuleParams | None = None):
+        self.mp = mp
+        self.rp = rp or RuleParams()
+        self.reset()
+
+    def reset(self) -> None:
+        self.on = False
+        self.on_time = 0.0
+
+    def describe(self) -> str:
+        return "rule-based " + ", ".join(f"{k}={v:g}" for k, v in self.rp.to_dict().items())
+
+    def __call__(self, k, soc, T_cl, T_cab, P_trac, Ts=1.0):
+        p, r = self.mp, self.rp
+        bat_only = (P_trac / p.eta_em if P_trac > 0 else 0.0) + p.P_aux
+        must = bat_only > 0.95 * p.P_bat_max or soc < r.soc_low
+        if self.on:
+            stop = P_trac <= 0.0 or (P_trac < r.P_off_W and self.on_time >= r.t_min_on_s)
+            if stop and not must:
+                self.on = False
+        elif must or P_trac > r.P_on_W:
+            self.on, self.on_time = True, 0.0
+        if self.on:
+            self.on_time += Ts
+            P_chg = r.k_soc_W * (r.soc_target - soc)
+            P_e = (max(P_trac, 0.0) + P_chg) / p.eta_mech
+            P_e = min(max(P_e, r.P_e_min_W), p.P_e_max)
+            P_em = P_trac - p.eta_mech * P_e
+            P_bat_mg = P_em / p.eta_em if P_em >= 0.0 else P_em * p.eta_em
+            lo, hi = p.P_bat_min - p.P_aux, p.P_bat_max - p.P_aux
+            P_bat_mg = min(max(P_bat_mg, lo), hi)
+            P_em = P_bat_mg * p.eta_em if P_bat_mg >= 0.0 else P_bat_mg / p.eta_em
+            if P_trac - P_em > 0.0:
+                return ON, P_bat_mg, r.Q_heat_W
+            # hard braking while forced on: nothing left for the engine to do, so it idles
+            return IDLE, 0.0, r.Q_heat_W
+        return (IDLE if T_cl < r.T_idle_degC else OFF), 0.0, r.Q_heat_W

@@ -1,0 +1,250 @@
+"""Forward simulation of the model over a drive cycle under a controller, with energy bookkeeping.
+
+:func:`simulate` returns a :class:`SimResult` (in the style of python-control's ``TimeResponseData``):
+every state, control and power/heat flow as arrays, ``.to_pandas()``, ``.plot()``, ``.summary()`` and
+``.energy_balance()``. The balances close to rounding error because every flow is the one the explicit
+Euler step used.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+
+from .cycles import Cycle, load_cycle
+from .errors import ScenarioError
+from .model import INFEASIBLE_REASONS, OFF, ON, OUTPUTS, IDLE, battery_ocv_r, step, traction_power
+
+GASOLINE_KG_PER_L = 0.74
+KM_PER_L_PER_MPG = 0.4251
+
+
+@dataclass
+class SimResult:
+    """Time series of one simulated (or DP-optimised) drive.
+
+    Attributes
+    ----------
+    t : ndarray (N+1,)
+        Time (s).
+    soc, T_cl, T_cab : ndarray (N+1,)
+        States at every time.
+    e_mode, P_bat_mg_cmd, Q_heat_cmd : ndarray (N,)
+        Controls applied during each step.
+    flows : dict of ndarray (N,)
+        Every output of :func:`calib.model.step` during each step.
+    info : dict
+        Scenario and controller description.
+    """
+
+    t: np.ndarray
+    soc: np.ndarray
+    T_cl: np.ndarray
+    T_cab: np.ndarray
+    e_mode: np.ndarray
+    P_bat_mg_cmd: np.ndarray
+    Q_heat_cmd: np.ndarray
+    flows: dict
+    v: np.ndarray
+    mp: object = None
+    info: dict = field(default_factory=dict)
+
+    @property
+    def Ts(self) -> float:
+        return float(self.t[1] - self.t[0])
+
+    @property
+    def fuel_g(self) -> float:
+        return float(np.sum(self.flows["W_f"]) * self.Ts)
+
+    @property
+    def distance_km(self) -> float:
+        return float(np.sum(0.5 * (self.v[1:] + self.v[:-1])) * self.Ts / 1e3)
+
+    def to_pandas(self) -> pd.DataFrame:
+        """One row per step k (states at the start of the step, flows during it) plus the final state."""
+        n = len(self.e_mode)
+        df = pd.DataFrame({"time_s": self.t, "speed_mps": self.v, "soc": self.soc, "T_cl_degC": self.T_cl,
+                           "T_cab_degC": self.T_cab})
+        cols = {"e_mode": self.e_mode, "P_bat_mg_cmd_W": self.P_bat_mg_cmd, "Q_heat_cmd_W": self.Q_heat_cmd}
+        cols.update({k: v for k, v in self.flows.items() if k not in ("soc_next", "T_cl_next", "T_cab_next")})
+        for k, v in cols.items():
+            df[k] = np.append(np.asarray(v, dtype=float), np.nan)[: n + 1]
+        df["fuel_cum_g"] = np.concatenate([[0.0], np.cumsum(self.flows["W_f"]) * self.Ts])
+        return df.set_index("time_s")
+
+    # --- bookkeeping ------------------------------------------------------------------------------
+    def energy_balance(self) -> dict:
+        """Energy balances over the drive (J) and their residuals.
+
+        - coolant: fuel energy = engine work + exhaust + engine-bay loss + radiator + heater + stored heat;
+        - wheels: eta_mech * engine work + electric wheel power + friction brakes = traction energy;
+        - battery: electrochemical energy U_oc I = terminal energy + resistive loss;
+        - cabin: heater + load + sun = stored heat.
+        """
+        f, Ts, p = self.flows, self.Ts, self.mp
+        E = lambda a: float(np.sum(a) * Ts)  # noqa: E731
+        fuel = E(f["Q_fuel"])
+        stored_cl = p.C_eng * (self.T_cl[-1] - self.T_cl[0])
+        out_cl = E(f["P_e"]) + E(f["Q_exh"]) + E(f["Q_air"]) + E(f["Q_rad"]) + E(f["Q_heat"])
+        wheel_in = E(p.eta_mech * f["P_e"] + f["P_em"] + f["P_brake"])
+        wheel = E(f["P_trac"])
+        chem = E(f["U_oc"] * f["I_bat"])
+        term = E(f["P_bat"])
+        loss = E(f["R_int"] * f["I_bat"] ** 2)
+        stored_cab = p.C_cab * (self.T_cab[-1] - self.T_cab[0])
+        cab_in = E(f["Q_heat"] + f["Q_cab_load"]) + p.Q_sun * Ts * len(self.e_mode)
+        return {
+            "fuel_energy_J": fuel, "engine_work_J": E(f["P_e"]), "exhaust_J": E(f["Q_exh"]),
+            "engine_bay_loss_J": E(f["Q_air"]), "radiator_J": E(f["Q_rad"]), "heater_J": E(f["Q_heat"]),
+            "coolant_stored_J": stored_cl, "traction_J": wheel, "friction_brake_J": E(f["P_brake"]),
+            "battery_chemical_J": chem, "battery_terminal_J": term, "battery_loss_J": loss,
+            "cabin_stored_J": stored_cab,
+            "residual_coolant_rel": (fuel - out_cl - stored_cl) / max(fuel, 1.0),
+            "residual_wheel_rel": (wheel_in - wheel) / max(abs(wheel), 1.0),
+            "residual_battery_rel": (chem - term - loss) / max(abs(chem), 1.0),
+            "residual_cabin_rel": (cab_in - stored_cab) / max(abs(cab_in), 1.0),
+        }
+
+    def fuel_equivalents(self) -> dict:
+        """Fuel (g) equivalent to the change of stored electric and thermal energy over the drive.
+
+        Conversion (stated once, used everywhere): electric energy ``C_bat U_oc(SOC) dSOC`` is valued at
+        the fuel the engine would burn to put it there at its best efficiency through the generator
+        (``max eta_ool * eta_mech * eta_em``); coolant heat ``C_eng dT_cl`` and cabin heat ``C_cab dT_cab``
+        at the fuel an idling engine would burn to supply it (``LHV (1 - gamma_exh)`` per gram).
+        """
+        p = self.mp
+        U0, _ = battery_ocv_r(p, 0.5 * (self.soc[0] + self.soc[-1]), p.T_bat_ref)
+        eta_chain = float(np.max(p.eta_ool)) * p.eta_mech * p.eta_em
+        d_el = p.C_bat_As * U0 * (self.soc[-1] - self.soc[0])
+        heat = p.LHV * (1.0 - p.gamma_exh)
+        return {"electric_g": d_el / (p.LHV * eta_chain),
+                "coolant_g": p.C_eng * (self.T_cl[-1] - self.T_cl[0]) / heat,
+                "cabin_g": p.C_cab * (self.T_cab[-1] - self.T_cab[0]) / heat}
+
+    def summary(self) -> dict:
+        """Headline figures: fuel, economy, final states, starts, idle time, heater shortfall, balances."""
+        f, Ts = self.flows, self.Ts
+        fuel = self.fuel_g
+        eq = self.fuel_equivalents()
+        corr = fuel - eq["electric_g"] - eq["coolant_g"] - eq["cabin_g"]
+        fuel_el = fuel - eq["electric_g"]
+        litres = fuel / 1e3 / GASOLINE_KG_PER_L
+        dist = self.distance_km
+        running = self.e_mode != OFF
+        starts = int(np.sum(running[1:] & ~running[:-1]) + (1 if running[0] else 0))
+        short = np.clip(self.Q_heat_cmd - f["Q_heat"], 0.0, None)
+        bal = self.energy_balance()
+        mpg = lambda g: (dist / (g / 1e3 / GASOLINE_KG_PER_L)) / KM_PER_L_PER_MPG if g > 0 else float("inf")  # noqa
+        return {
+            **self.info,
+            "duration_s": float(self.t[-1] - self.t[0]), "distance_km": dist, "fuel_g": fuel,
+            "fuel_L": litres, "L_per_100km": litres / dist * 100 if dist > 0 else float("nan"),
+            "mpg": mpg(fuel), "mpg_soc_corrected": mpg(fuel_el),
+            "fuel_soc_corrected_g": fuel_el, "fuel_corrected_g": corr, "fuel_equivalents_g": eq,
+            "soc_initial": float(self.soc[0]), "soc_final": float(self.soc[-1]),
+            "T_cl_initial_degC": float(self.T_cl[0]), "T_cl_final_degC": float(self.T_cl[-1]),
+            "T_cl_mean_degC": float(np.mean(self.T_cl)), "T_cab_final_degC": float(self.T_cab[-1]),
+            "T_cab_mean_degC": float(np.mean(self.T_cab)), "engine_starts": starts,
+            "engine_on_s": float(np.sum(self.e_mode == ON) * Ts), "idle_s": float(np.sum(self.e_mode == IDLE) * Ts),
+            "heater_delivered_J": float(np.sum(f["Q_heat"]) * Ts), "heater_shortfall_J": float(np.sum(short) * Ts),
+            "energy_balance_residual_rel": max(abs(bal[k]) for k in bal if k.startswith("residual")),
+        }
+
+    def plot(self, path=None, title=None):
+        """States, powers and fuel over time; saves to ``path`` when given. Returns the Figure."""
+        import matplotlib
+
+        if path is not None:
+            matplotlib.use("Agg", force=False)
+        import matplotlib.pyplot as plt
+
+        f = self.flows
+        tt = self.t[:-1]
+        fig, ax = plt.subplots(6, 1, figsize=(9, 12), sharex=True)
+        ax[0].plot(self.t, self.v * 3.6, "k", lw=0.8)
+        ax[0].set_ylabel("speed [km/h]")
+        ax[1].plot(self.t, self.soc, "C0")
+        ax[1].set_ylabel("SOC [-]")
+        ax[2].plot(self.t, self.T_cl, "C3", label="coolant")
+        ax[2].plot(self.t, self.T_cab, "C2", label="cabin")
+        ax[2].set_ylabel("temperature [degC]")
+        ax[2].legend(loc="best", fontsize=8)
+        ax[3].plot(tt, f["P_e"] / 1e3, "C1", lw=0.8, label="engine")
+        ax[3].plot(tt, f["P_bat"] / 1e3, "C0", lw=0.8, label="battery")
+        ax[3].set_ylabel("power [kW]")
+        ax[3].legend(loc="best", fontsize=8)
+        ax[4].step(tt, self.e_mode, "C4", where="post")
+        ax[4].set_yticks([1, 2, 3], ["off", "idle", "on"])
+        ax[4].set_ylabel("engine mode")
+        ax[5].plot(self.t, np.concatenate([[0], np.cumsum(f["W_f"]) * self.Ts]), "C5")
+        ax[5].set_ylabel("cumulative fuel [g]")
+        ax[5].set_xlabel("time [s]")
+        fig.suptitle(title or f"{self.info.get('cycle', '')} at {self.info.get('T_amb_degC', '')} degC, "
+                     f"{self.info.get('controller', '')[:60]}", fontsize=10)
+        fig.tight_layout()
+        if path is not None:
+            from .fileio import atomic_path
+
+            with atomic_path(path) as tmp:
+                fig.savefig(tmp, dpi=110, format=str(path).rsplit(".", 1)[-1])
+            plt.close(fig)
+        return fig
+
+
+def simulate(params, cycle, controller=None, *, T_amb=-10.0, soc0=0.6, T_cl0=70.0, T_cab0=20.0,
+             Q_heat=1500.0, T_bat=None, W_bl=None, rule_params=None) -> SimResult:
+    """Run the model over a cycle.
+
+    Parameters
+    ----------
+    params : ParameterSet
+    cycle : str, path, Cycle or DriveLog
+    controller : callable, optional
+        ``controller(k, soc, T_cl, T_cab, P_trac, Ts) -> (e_mode, P_bat_mg, Q_heat_cmd)``; default the
+        rule-based controller with ``rule_params`` (its heater demand set to ``Q_heat``).
+    T_amb, soc0, T_cl0, T_cab0 : float
+        Ambient temperature and initial states.
+    T_bat : float or array, optional
+        Battery temperature (default: the resistance table's reference temperature).
+    """
+    from .rulebased import RuleBasedController, RuleParams
+
+    cyc: Cycle = load_cycle(cycle)
+    mp = params.model_params() if hasattr(params, "model_params") else params
+    if controller is None:
+        rp = rule_params or RuleParams(Q_heat_W=Q_heat)
+        controller = RuleBasedController(mp, rp)
+    if hasattr(controller, "reset"):
+        controller.reset()
+    N, Ts = cyc.n_steps, cyc.Ts
+    v = cyc.v
+    grade = cyc.grade if cyc.grade is not None else np.zeros(N + 1)
+    T_amb_a = np.broadcast_to(np.asarray(T_amb, float), (N + 1,))
+    T_bat_a = np.broadcast_to(np.asarray(mp.T_bat_ref if T_bat is None else T_bat, float), (N + 1,))
+    W_bl = mp.W_bl if W_bl is None else W_bl
+    x = np.empty((N + 1, 3))
+    x[0] = soc0, T_cl0, T_cab0
+    u = np.empty((N, 3))
+    out = np.empty((N, len(OUTPUTS)))
+    for k in range(N):
+        P_trac = traction_power(mp, v[k], v[k + 1], grade[k], Ts)
+        e, pb, qh = controller(k, x[k, 0], x[k, 1], x[k, 2], P_trac, Ts)
+        r = step(mp, x[k, 0], x[k, 1], x[k, 2], int(e), float(pb), float(qh), v[k], v[k + 1], grade[k],
+                 T_amb_a[k], T_bat_a[k], W_bl, Ts)
+        if r[3] != 0:
+            raise ScenarioError(
+                f"step {k} (t={cyc.t[k]:.0f} s, v={v[k] * 3.6:.1f} km/h): the controller's choice is infeasible: "
+                f"{INFEASIBLE_REASONS[int(r[3])]} (mode {int(e)}, P_trac {P_trac / 1e3:.1f} kW) - the cycle may "
+                "ask more than the vehicle can deliver; check the cycle and P_bat / P_e limits")
+        u[k] = e, pb, qh
+        out[k] = r
+        x[k + 1] = r[0], r[1], r[2]
+    flows = {name: out[:, j] for j, name in enumerate(OUTPUTS)}
+    desc = controller.describe() if hasattr(controller, "describe") else getattr(controller, "__name__", "custom")
+    info = {"cycle": cyc.name, "T_amb_degC": float(np.mean(T_amb_a)), "controller": desc,
+            "params": (params.meta.get("name", "") if hasattr(params, "meta") else "")}
+    return SimResult(cyc.t.copy(), x[:, 0].copy(), x[:, 1].copy(), x[:, 2].copy(), u[:, 0].astype(int),
+                     u[:, 1].copy(), u[:, 2].copy(), flows, v.copy(), mp, info)

@@ -1,0 +1,204 @@
+"""Units: one shared pint registry, the aliases loggers write, and a checked ``convert``.
+
+Every unit conversion in the workbench goes through :func:`convert` so that factors are never written by
+hand. Unit strings are normalised first (``kph`` -> ``km/h``, ``°C`` -> ``degC``, ``%`` -> ``percent``,
+``Nm`` -> ``N*m``, ``L/h`` stays a volume flow...), then parsed by pint.
+
+Fuel flow logged as a volume (``L/h``, ``mL/s``, ``gal/h``) converts to a mass flow (``g/s``) through a
+density: gasoline, :data:`GASOLINE_DENSITY_KG_PER_L` = 0.74 kg/L (a typical E0-E10 pump fuel at 15 degC;
+see ``calib/data/prius_facts.md``). Pass ``density=`` (kg/L) to override it.
+"""
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pint
+
+from .errors import IptmError
+
+#: The registry shared by the whole project (quantities from different registries cannot be mixed).
+ureg = pint.UnitRegistry(autoconvert_offset_to_baseunit=True)
+
+#: Density used to turn a volume flow of fuel into a mass flow, kg/L (gasoline at 15 degC).
+GASOLINE_DENSITY_KG_PER_L = 0.74
+
+# Spellings found in logger headers and DBCs -> pint spellings. Keys are compared case-sensitively
+# first, then lower-cased (so "KPH" and "Kph" work, but "mA" vs "MA" stay distinct).
+ALIASES: dict[str, str] = {
+    "kph": "km/h",
+    "kmh": "km/h",
+    "km/hr": "km/h",
+    "kmph": "km/h",
+    "mph": "mile/hour",
+    "mi/h": "mile/hour",
+    "m/sec": "m/s",
+    "mps": "m/s",
+    "°c": "degC",
+    "ºc": "degC",
+    "deg c": "degC",
+    "degc": "degC",
+    "celsius": "degC",
+    "c": "degC",  # a bare C in a temperature header means Celsius, never coulomb
+    "°f": "degF",
+    "ºf": "degF",
+    "deg f": "degF",
+    "degf": "degF",
+    "fahrenheit": "degF",
+    "f": "degF",
+    "k": "kelvin",
+    "%": "percent",
+    "pct": "percent",
+    "percent": "percent",
+    "fraction": "dimensionless",
+    "frac": "dimensionless",
+    "ratio": "dimensionless",
+    "1": "dimensionless",
+    "rpm": "rpm",
+    "1/min": "rpm",  # in a logger header 1/min is an engine speed (pint would drop the 2 pi)
+    "r/min": "rpm",
+    "rev/min": "rpm",
+    "nm": "N*m",
+    "n.m": "N*m",
+    "n m": "N*m",
+    "n*m": "N*m",
+    "l/h": "L/h",
+    "l/hr": "L/h",
+    "lph": "L/h",
+    "ml/s": "mL/s",
+    "ml/min": "mL/min",
+    "gal/h": "gallon/hour",
+    "gph": "gallon/hour",
+    "g/s": "g/s",
+    "g/h": "g/h",
+    "kg/h": "kg/h",
+    "kg/s": "kg/s",
+    "s": "s",
+    "sec": "s",
+    "secs": "s",
+    "ms": "ms",
+    "us": "us",
+    "ns": "ns",
+    "min": "minute",
+    "h": "hour",
+    "hr": "hour",
+    "w": "W",
+    "kw": "kW",
+    "v": "V",
+    "a": "A",
+    "ma": "mA",
+    "ah": "A*h",
+    "rad": "rad",
+    "deg": "degree",
+}
+
+
+class UnitError(IptmError):
+    """A unit string cannot be parsed, or two units are not convertible."""
+
+
+def normalize_unit(unit: str) -> str:
+    """Map a logger's spelling of a unit to one pint understands.
+
+    Parameters
+    ----------
+    unit : str
+        As written in a header, a DBC or a map (``"km/h"``, ``"kph"``, ``"°C"``, ``"%"``...).
+
+    Returns
+    -------
+    str
+        The pint spelling (the input, stripped, when no alias applies).
+    """
+    u = str(unit).strip()
+    if u in ALIASES:
+        return ALIASES[u]
+    low = re.sub(r"\s+", " ", u.lower())
+    return ALIASES.get(low, u)
+
+
+def parse_unit(unit: str) -> pint.Unit:
+    """Parse ``unit`` (after alias normalisation) into a pint unit.
+
+    Raises
+    ------
+    UnitError
+        Empty or unknown unit.
+    """
+    if unit is None or not str(unit).strip():
+        raise UnitError("empty unit")
+    norm = normalize_unit(unit)
+    try:
+        return ureg.Unit(norm)
+    except (pint.errors.UndefinedUnitError, pint.errors.DefinitionSyntaxError, AttributeError,
+            TypeError, ValueError, AssertionError, KeyError) as exc:
+        # pint raises a zoo of types for garbage input; all mean "not a unit".
+        raise UnitError(f"unknown unit {unit!r}") from exc
+    except Exception as exc:  # noqa: BLE001 - pint's tokenizer can raise anything on odd strings
+        raise UnitError(f"unknown unit {unit!r} ({type(exc).__name__})") from exc
+
+
+def is_known_unit(unit: str) -> bool:
+    """True when :func:`parse_unit` accepts ``unit``."""
+    try:
+        parse_unit(unit)
+        return True
+    except UnitError:
+        return False
+
+
+def _is_volume_flow(u: pint.Unit) -> bool:
+    return u.dimensionality == ureg.Unit("L/h").dimensionality
+
+
+def _is_mass_flow(u: pint.Unit) -> bool:
+    return u.dimensionality == ureg.Unit("g/s").dimensionality
+
+
+def convert(values, from_unit: str, to_unit: str, *, density: float | None = None):
+    """Convert ``values`` from ``from_unit`` to ``to_unit``.
+
+    Parameters
+    ----------
+    values : float or array_like
+        Magnitudes in ``from_unit``.
+    from_unit, to_unit : str
+        Unit strings; aliases such as ``kph``, ``mph``, ``L/h``, ``degF``, ``%``, ``rpm`` are accepted.
+    density : float, optional
+        Fuel density in kg/L, used only to convert a volume flow into a mass flow or back. Defaults to
+        :data:`GASOLINE_DENSITY_KG_PER_L`.
+
+    Returns
+    -------
+    float or numpy.ndarray
+        Magnitudes in ``to_unit`` (a float for scalar input).
+
+    Raises
+    ------
+    UnitError
+        Unknown unit, or units of different dimensions (e.g. ``km/h`` to ``degC``).
+    """
+    src = parse_unit(from_unit)
+    dst = parse_unit(to_unit)
+    scalar = np.ndim(values) == 0
+    arr = np.asarray(values, dtype=float)
+    if src == dst:
+        out = arr.copy()
+        return float(out) if scalar else out
+    q = ureg.Quantity(arr, src)
+    if _is_volume_flow(src) and _is_mass_flow(dst):
+        rho = ureg.Quantity(GASOLINE_DENSITY_KG_PER_L if density is None else density, "kg/L")
+        q = q * rho
+    elif _is_mass_flow(src) and _is_volume_flow(dst):
+        rho = ureg.Quantity(GASOLINE_DENSITY_KG_PER_L if density is None else density, "kg/L")
+        q = q / rho
+    try:
+        out = np.asarray(q.to(dst).magnitude, dtype=float)
+    except pint.errors.DimensionalityError as exc:
+        raise UnitError(f"cannot convert {from_unit!r} to {to_unit!r}: different dimensions") from exc
+    return float(out) if scalar else out
+
+
+def check_convertible(from_unit: str, to_unit: str) -> None:
+    """Raise :class:`UnitError` unless ``from_unit`` converts to ``to_unit`` (fuel density allowed)."""
+    convert(1.0, from_unit, to_unit)

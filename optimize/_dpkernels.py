@@ -1,0 +1,285 @@
+"""Compiled (numba) kernels of the generic DP engine; see :mod:`optimize.dp` for the public API.
+
+Everything here is private. The kernels take the user's ``@njit`` transition and precompute functions
+as first-class arguments: numba compiles one specialisation of each kernel per distinct user function
+(static dispatch, so LLVM can inline the user's code into the inner loop).
+
+Grid description (per state dimension ``d``; states are flattened in C order, last dimension fastest):
+
+* ``lo[d]``, ``inv_dx[d]``: first point and 1/spacing (used when ``uniform[d]``: O(1) lookup);
+* ``n[d]``: number of points (>= 2);
+* ``pts[d, :n[d]]``: the points (used for non-uniform grids: binary search);
+* ``strides[d]``: flat-index stride.
+"""
+from __future__ import annotations
+
+import numpy as np
+import numba
+from numba import njit, prange
+
+# Snap tolerance in grid-index units: a query within 1e-9 of a grid point is treated as exactly on it,
+# so that zero-weight corners (which may be +inf) never contaminate an on-grid lookup.
+_SNAP = 1e-9
+
+
+@njit(cache=True)
+def no_precompute(k, w_k, p, tab):  # pragma: no cover - compiled
+    """Default per-step hook: does nothing."""
+    return
+
+
+@njit(inline="always", cache=True)
+def _locate(x, d, lo, inv_dx, n, uniform, pts, clip, ib, tb):
+    """Cell index and fraction of ``x`` along dimension ``d`` into ib[d], tb[d]; False if off-grid."""
+    nd = n[d]
+    if uniform[d]:
+        r = (x - lo[d]) * inv_dx[d]
+    else:
+        if x <= pts[d, 0]:
+            r = (x - pts[d, 0]) / (pts[d, 1] - pts[d, 0])
+        elif x >= pts[d, nd - 1]:
+            r = nd - 1 + (x - pts[d, nd - 1]) / (pts[d, nd - 1] - pts[d, nd - 2])
+        else:
+            a = 0
+            b = nd - 1
+            while b - a > 1:
+                m = (a + b) >> 1
+                if pts[d, m] <= x:
+                    a = m
+                else:
+                    b = m
+            r = a + (x - pts[d, a]) / (pts[d, a + 1] - pts[d, a])
+    ri = np.floor(r + 0.5)
+    if abs(r - ri) < _SNAP:
+        r = ri
+    if not (r >= 0.0):  # also catches NaN
+        if clip and r == r:
+            r = 0.0
+        else:
+            return False
+    if r > nd - 1:
+        if clip:
+            r = float(nd - 1)
+        else:
+            return False
+    i = int(r)
+    if i > nd - 2:
+        i = nd - 2
+    ib[d] = i
+    tb[d] = r - i
+    return True
+
+
+@njit(inline="always", cache=True)
+def _locate_all(xq, nx, lo, inv_dx, n, uniform, pts, clip, ib, tb):
+    for d in range(nx):
+        if not _locate(xq[d], d, lo, inv_dx, n, uniform, pts, clip, ib, tb):
+            return False
+    return True
+
+
+@njit(cache=True)
+def _interp_slow(V, nx, strides, ib, tb):
+    """Exact multilinear interpolation that ignores zero-weight corners; +inf if any
+    positive-weight corner is +inf."""
+    acc = 0.0
+    for c in range(1 << nx):
+        wgt = 1.0
+        off = 0
+        for d in range(nx):
+            if (c >> d) & 1:
+                wgt *= tb[d]
+                off += (ib[d] + 1) * strides[d]
+            else:
+                wgt *= 1.0 - tb[d]
+                off += ib[d] * strides[d]
+        if wgt == 0.0:
+            continue
+        v = np.float64(V[off])
+        if not (v < np.inf):
+            return np.inf
+        acc += wgt * v
+    return acc
+
+
+@njit(inline="always", cache=True)
+def _interp(V, nx, strides, ib, tb):
+    """Multilinear interpolation of the flat array V at the located point (ib, tb).
+
+    Fast path specialised for 1, 2 and 3 dimensions; falls back to :func:`_interp_slow` whenever the
+    fast result is not finite (an +inf corner, possibly with zero weight)."""
+    if nx == 1:
+        i0 = ib[0]
+        t0 = tb[0]
+        r = (1.0 - t0) * V[i0] + t0 * V[i0 + 1]
+    elif nx == 2:
+        s0 = strides[0]
+        t0 = tb[0]
+        t1 = tb[1]
+        o = ib[0] * s0 + ib[1]
+        r = (1.0 - t0) * ((1.0 - t1) * V[o] + t1 * V[o + 1]) + t0 * (
+            (1.0 - t1) * V[o + s0] + t1 * V[o + s0 + 1])
+    elif nx == 3:
+        s0 = strides[0]
+        s1 = strides[1]
+        t0 = tb[0]
+        t1 = tb[1]
+        t2 = tb[2]
+        o = ib[0] * s0 + ib[1] * s1 + ib[2]
+        a = (1.0 - t2) * V[o] + t2 * V[o + 1]
+        b = (1.0 - t2) * V[o + s1] + t2 * V[o + s1 + 1]
+        c = (1.0 - t2) * V[o + s0] + t2 * V[o + s0 + 1]
+        e = (1.0 - t2) * V[o + s0 + s1] + t2 * V[o + s0 + s1 + 1]
+        r = (1.0 - t0) * ((1.0 - t1) * a + t1 * b) + t0 * ((1.0 - t1) * c + t1 * e)
+    else:
+        return _interp_slow(V, nx, strides, ib, tb)
+    if np.isfinite(r):
+        return r
+    return _interp_slow(V, nx, strides, ib, tb)
+
+
+@njit(parallel=True, cache=True)
+def backward(transition, precompute, N, X, controls, w, p, tab, VT, LT, use_level, level_tol,
+             lo, inv_dx, n, uniform, pts, strides, clip, policy, store_policy):
+    """Backward pass. VT[N] (and LT[N] when use_level) must hold the terminal data; fills VT[0..N-1],
+    LT[0..N-1] and, when store_policy, policy[0..N-1] (argmin control index, -1 if none)."""
+    n_states = X.shape[0]
+    nx = X.shape[1]
+    nu = controls.shape[0]
+    nthreads = numba.get_num_threads()
+    nchunks = nthreads * 8
+    if nchunks > n_states:
+        nchunks = n_states
+    csize = (n_states + nchunks - 1) // nchunks
+    nchunks = (n_states + csize - 1) // csize
+    for k in range(N - 1, -1, -1):
+        precompute(k, w[k], p, tab)
+        Vn = VT[k + 1]
+        Ln = LT[k + 1]
+        Vk = VT[k]
+        Lk = LT[k]
+        wk = w[k]
+        for c in prange(nchunks):
+            x = np.empty(nx)
+            xn = np.empty(nx)
+            ix = np.empty(nx, np.int64)
+            ib = np.empty(nx, np.int64)
+            tb = np.empty(nx)
+            s_end = min(n_states, (c + 1) * csize)
+            for s in range(c * csize, s_end):
+                rem = s
+                for d in range(nx):
+                    x[d] = X[s, d]
+                    q = rem // strides[d]
+                    ix[d] = q
+                    rem -= q * strides[d]
+                best = np.inf
+                bestL = np.inf
+                bi = -1
+                if use_level:
+                    for iu in range(nu):
+                        cst = transition(k, x, controls[iu], wk, p, tab, iu, ix, xn)
+                        if not (cst < np.inf):
+                            continue
+                        if not _locate_all(xn, nx, lo, inv_dx, n, uniform, pts, clip, ib, tb):
+                            continue
+                        lv = _interp(Ln, nx, strides, ib, tb)
+                        if not (lv < np.inf):
+                            continue
+                        if lv <= level_tol:
+                            lv = 0.0
+                        if lv > bestL:
+                            continue
+                        v = cst + _interp(Vn, nx, strides, ib, tb)
+                        if lv < bestL or v < best:
+                            best = v
+                            bestL = lv
+                            bi = iu
+                    Lk[s] = bestL
+                else:
+                    for iu in range(nu):
+                        cst = transition(k, x, controls[iu], wk, p, tab, iu, ix, xn)
+                        if not (cst < np.inf):
+                            continue
+                        if not _locate_all(xn, nx, lo, inv_dx, n, uniform, pts, clip, ib, tb):
+                            continue
+                        v = cst + _interp(Vn, nx, strides, ib, tb)
+                        if v < best:
+                            best = v
+                            bi = iu
+                Vk[s] = best
+                if store_policy:
+                    policy[k, s] = bi
+
+
+@njit(cache=True)
+def forward(transition, precompute, N, x0, controls, w, p, tab, VT, LT, use_level, level_tol,
+            lo, inv_dx, n, uniform, pts, strides, clip, X_out, U_idx, stage, pred):
+    """Forward pass from the true (off-grid) state x0. Returns the number of steps completed
+    (N unless no admissible control was found at some step)."""
+    nx = x0.shape[0]
+    nu = controls.shape[0]
+    x = x0.copy()
+    xn = np.empty(nx)
+    ix = np.full(nx, -1, np.int64)
+    ib = np.empty(nx, np.int64)
+    tb = np.empty(nx)
+    for d in range(nx):
+        X_out[0, d] = x[d]
+    for k in range(N):
+        precompute(k, w[k], p, tab)
+        wk = w[k]
+        Vn = VT[k + 1]
+        Ln = LT[k + 1]
+        best = np.inf
+        bestL = np.inf
+        bi = -1
+        for iu in range(nu):
+            cst = transition(k, x, controls[iu], wk, p, tab, iu, ix, xn)
+            if not (cst < np.inf):
+                continue
+            if not _locate_all(xn, nx, lo, inv_dx, n, uniform, pts, clip, ib, tb):
+                continue
+            if use_level:
+                lv = _interp(Ln, nx, strides, ib, tb)
+                if not (lv < np.inf):
+                    continue
+                if lv <= level_tol:
+                    lv = 0.0
+                if lv > bestL:
+                    continue
+                v = cst + _interp(Vn, nx, strides, ib, tb)
+                if lv < bestL or v < best:
+                    best = v
+                    bestL = lv
+                    bi = iu
+            else:
+                v = cst + _interp(Vn, nx, strides, ib, tb)
+                if v < best:
+                    best = v
+                    bi = iu
+        if bi < 0:
+            return k
+        cst = transition(k, x, controls[bi], wk, p, tab, bi, ix, xn)
+        U_idx[k] = bi
+        stage[k] = cst
+        pred[k] = best
+        for d in range(nx):
+            x[d] = xn[d]
+            X_out[k + 1, d] = xn[d]
+    return N
+
+
+@njit(cache=True)
+def interp_points(V, Q, lo, inv_dx, n, uniform, pts, strides, clip):
+    """Interpolate flat V at each row of Q (m, nx); +inf off-grid."""
+    m, nx = Q.shape
+    out = np.empty(m)
+    ib = np.empty(nx, np.int64)
+    tb = np.empty(nx)
+    for j in range(m):
+        if _locate_all(Q[j], nx, lo, inv_dx, n, uniform, pts, clip, ib, tb):
+            out[j] = _interp(V, nx, strides, ib, tb)
+        else:
+            out[j] = np.inf
+    return out
