@@ -74,6 +74,11 @@ def load_cycle(spec, Ts: float = 1.0) -> Cycle:
         s = spec.data["speed_mps"].interpolate(limit_direction="both")
         return _resample(f"{spec.name} (from log)", s.index.to_numpy(float), s.to_numpy(float), Ts)
     name = str(spec)
+    if "+" in name and not Path(name).is_file():
+        # "udds+hwfet": cycles driven back to back
+        parts = [load_cycle(n.strip(), Ts) for n in name.split("+")]
+        v = np.concatenate([parts[0].v] + [c.v[1:] for c in parts[1:]])
+        return Cycle(name, np.arange(v.size) * Ts, v)
     path = Path(name)
     if not path.suffix and (CYCLE_DIR / f"{name}.csv").is_file():
         path = Path(str(CYCLE_DIR / f"{name}.csv"))

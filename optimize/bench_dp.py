@@ -38,7 +38,8 @@ def hybrid_step(k, x, u, w_k, p, tab, iu, ix, x_next):  # pragma: no cover - com
     fcl = 1.0 + 0.004 * (90.0 - tcl) if tcl < 90.0 else 1.0
     fuel = (0.0 if peng == 0.0 else (0.1 + 0.065 * peng + 0.0004 * peng * peng)) * fcl
     x_next[0] = soc - (pbat + 0.02 * pbat * pbat) / p[0]
-    x_next[1] = tcl + p[1] * fuel * 40.0 - p[2] * (tcl - w_k[1])
+    tn = tcl + p[1] * fuel * 40.0 - p[2] * (tcl - w_k[1])
+    x_next[1] = min(max(tn, 0.0), 100.0)  # block heater / thermostat keep the coolant in [0, 100]
     return fuel
 
 
@@ -49,7 +50,7 @@ def make_problem(N: int = 1000, n_soc: int = 41, n_tcl: int = 101, n_pbat: int =
     pdem = np.round(pdem * 2) / 2  # on the 0.5 kW grid, so engine-off modes can be matched
     w = np.column_stack([pdem, np.full(N, -10.0)])
     controls = cartesian([0.0, 1.0, 2.0], np.linspace(-15, 18, n_pbat) // 0.5 * 0.5)
-    params = np.array([3600.0 * 1.3 * 0.5 / 1.0 / 10.0, 0.004, 0.01])
+    params = np.array([3600.0 * 1.3, 0.004, 0.01])  # 1.3 kWh usable battery
     return DPProblem(grids=[np.linspace(0.4, 0.8, n_soc), np.linspace(0, 100, n_tcl)], controls=controls,
                      N=N, w=w, params=params, transition=hybrid_step,
                      terminal_bounds=[(0.6, None), (None, None)], boundary="levelset", clip=False)

@@ -1,0 +1,238 @@
+"""Log ingestion: CSV, MCAP, CAN dumps (candump -L, .asc, .blf, .trc) and MDF4 into one canonical log.
+
+Public API
+----------
+read_streams(path, fmt=None, dbc=None, column_map=None, topic_map=None) -> (Streams, LogMeta)
+to_drivelog(streams, meta, rate_hz=1.0, max_gap_s=5.0) -> DriveLog
+read_log(path, ...) -> DriveLog
+channel_report(log, streams=None) -> DataFrame ; format_report(report) -> str
+write_canonical(log, path) ; read_canonical(path) -> DriveLog
+load_map(path) -> dict  (column/topic/signal maps from TOML or JSON)
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pandas as pd
+
+from ..drivelog import CHANNELS, DriveLog, LogMeta
+from ..errors import LogFormatError
+from ..fileio import atomic_path, write_json
+from .canlog import CAN_FORMATS, DEFAULT_SIGNAL_MAP, PRIUS_DBC, TOYOTA_2017_DBC, decode_can_signals, read_can_streams
+from .csvlog import read_csv_streams, sniff_is_csv
+from .mcaplog import DEFAULT_TOPIC_MAP, read_mcap_streams
+from .mdflog import read_mdf_streams
+from .report import channel_report, format_report
+from .resample import to_drivelog
+
+FORMATS = ("csv", "mcap", "candump", "asc", "blf", "trc", "mf4")
+_EXT = {".csv": "csv", ".txt": "csv", ".mcap": "mcap", ".log": "candump", ".candump": "candump",
+        ".asc": "asc", ".blf": "blf", ".trc": "trc", ".mf4": "mf4", ".mdf": "mf4"}
+_MAGIC = {b"\x89MCAP": "mcap", b"LOGG": "blf", b"MDF ": "mf4"}
+
+__all__ = [
+    "FORMATS", "DEFAULT_SIGNAL_MAP", "DEFAULT_TOPIC_MAP", "PRIUS_DBC", "TOYOTA_2017_DBC",
+    "detect_format", "read_streams", "to_drivelog", "read_log", "channel_report", "format_report",
+    "write_canonical", "read_canonical", "load_map", "decode_can_signals",
+]
+
+
+def detect_format(path) -> str:
+    """Format of a log from its first bytes, else its extension.
+
+    Raises
+    ------
+    LogFormatError
+        Missing/empty file, or neither content nor extension tells.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise LogFormatError(path, "no such file")
+    if p.is_dir():
+        raise LogFormatError(path, "is a folder, not a log file")
+    with open(p, "rb") as fh:
+        head = fh.read(64)
+    if not head:
+        raise LogFormatError(path, "empty file")
+    for magic, fmt in _MAGIC.items():
+        if head.startswith(magic):
+            return fmt
+    ext = p.suffix.lower()
+    if ext in _EXT:
+        return _EXT[ext]
+    if head.lstrip().startswith(b"(") and b"#" in head:
+        return "candump"
+    if sniff_is_csv(p):
+        return "csv"
+    raise LogFormatError(path, f"cannot tell the log format from extension {ext or '(none)'!r} or content",
+                         hint=f"pass the format explicitly: one of {', '.join(FORMATS)}")
+
+
+def read_streams(path, *, fmt: str | None = None, dbc=None, column_map: dict | None = None,
+                 topic_map: dict | None = None, signal_map: dict | None = None):
+    """Read a log file into raw canonical streams.
+
+    Parameters
+    ----------
+    path : str or Path
+        The log.
+    fmt : str, optional
+        One of :data:`FORMATS`; detected from content/extension when omitted.
+    dbc : str or Path, optional
+        DBC for CAN formats (default: our Prius DBC, ``calib/data/can/prius_iptm.dbc``).
+    column_map : dict, optional
+        CSV/MDF: ``{column: "channel [unit]"}``.
+    topic_map : dict, optional
+        MCAP: ``{topic: {field: "channel [unit]"}}``.
+    signal_map : dict, optional
+        CAN: ``{"MESSAGE.SIGNAL": "channel"}`` added over the default map.
+
+    Returns
+    -------
+    (Streams, LogMeta)
+        Streams in canonical units, time in seconds from the log's first record.
+
+    Raises
+    ------
+    LogFormatError
+        Any unreadable input; the message names the file and, where it applies, the line/message/channel.
+    """
+    fmt = (fmt or detect_format(path)).lower().lstrip(".")
+    if fmt == "log":
+        fmt = "candump"
+    if fmt == "csv":
+        return read_csv_streams(path, column_map=column_map)
+    if fmt == "mcap":
+        return read_mcap_streams(path, topic_map=topic_map)
+    if fmt in CAN_FORMATS:
+        return read_can_streams(path, fmt=fmt, dbc=dbc, signal_map=signal_map)
+    if fmt in ("mf4", "mdf"):
+        return read_mdf_streams(path, column_map=column_map)
+    raise LogFormatError(path, f"unknown log format {fmt!r}", hint=f"one of {', '.join(FORMATS)}")
+
+
+def read_log(path, *, fmt: str | None = None, dbc=None, column_map: dict | None = None,
+             topic_map: dict | None = None, signal_map: dict | None = None,
+             rate_hz: float = 1.0, max_gap_s: float = 5.0) -> DriveLog:
+    """:func:`read_streams` then :func:`to_drivelog`."""
+    streams, meta = read_streams(path, fmt=fmt, dbc=dbc, column_map=column_map, topic_map=topic_map,
+                                 signal_map=signal_map)
+    if not streams:
+        raise LogFormatError(path, "no samples of any canonical channel in the log")
+    return to_drivelog(streams, meta, rate_hz=rate_hz, max_gap_s=max_gap_s)
+
+
+def _sidecar(path: Path) -> Path:
+    return path.with_name(path.name + ".meta.json")
+
+
+def write_canonical(log: DriveLog, path) -> Path:
+    """Write the canonical table: Parquet (metadata inside, key ``iptm``) or CSV (+ ``<file>.meta.json``).
+
+    Both files are written atomically. Returns the table's path.
+    """
+    path = Path(path)
+    df = log.data.copy()
+    df.index.name = "time_s"
+    meta_json = json.dumps(log.meta.to_dict(), default=str)
+    ext = path.suffix.lower()
+    if ext == ".parquet":
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        table = pa.Table.from_pandas(df.reset_index(), preserve_index=False)
+        md = dict(table.schema.metadata or {})
+        md[b"iptm"] = meta_json.encode()
+        table = table.replace_schema_metadata(md)
+        with atomic_path(path) as tmp:
+            pq.write_table(table, tmp)
+    elif ext == ".csv":
+        with atomic_path(path) as tmp:
+            with open(tmp, "w", newline="") as fh:
+                if log.meta.synthetic:
+                    fh.write("# SYNTHETIC drive log (canonical table)\n")
+                df.to_csv(fh, float_format="%.10g")
+        write_json(_sidecar(path), log.meta.to_dict())
+    else:
+        raise LogFormatError(path, f"cannot write a canonical table as {ext or '(no extension)'}",
+                             hint="use .parquet or .csv")
+    return path
+
+
+def read_canonical(path) -> DriveLog:
+    """Read a table written by :func:`write_canonical`."""
+    path = Path(path)
+    if not path.exists():
+        raise LogFormatError(path, "no such file")
+    ext = path.suffix.lower()
+    try:
+        if ext == ".parquet":
+            import pyarrow.parquet as pq
+
+            table = pq.read_table(path)
+            md = (table.schema.metadata or {}).get(b"iptm")
+            if md is None:
+                raise LogFormatError(path, "not an iptm canonical table (no 'iptm' metadata)")
+            meta = LogMeta.from_dict(json.loads(md))
+            df = table.to_pandas()
+        elif ext == ".csv":
+            side = _sidecar(path)
+            if not side.exists():
+                raise LogFormatError(path, f"metadata sidecar {side.name} is missing")
+            meta = LogMeta.from_dict(json.loads(side.read_text()))
+            df = pd.read_csv(path, comment="#")
+        else:
+            raise LogFormatError(path, f"not a canonical table extension {ext!r}", hint="use .parquet or .csv")
+    except LogFormatError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - pyarrow/pandas/json errors on a damaged file
+        raise LogFormatError(path, f"cannot read canonical table: {str(exc).splitlines()[0][:160]}") from None
+    if "time_s" not in df.columns:
+        raise LogFormatError(path, "no time_s column")
+    unknown = [c for c in df.columns if c != "time_s" and c not in CHANNELS]
+    if unknown:
+        raise LogFormatError(path, f"not canonical channels: {', '.join(unknown)}")
+    df = df.set_index("time_s").astype(float)
+    df.index = pd.Index(df.index.to_numpy(dtype=float), name="time_s")
+    return DriveLog(data=df, meta=meta)
+
+
+def load_map(path) -> dict:
+    """Load a map file (TOML or JSON) with optional tables ``columns``, ``topics``, ``signals``.
+
+    Example (TOML)::
+
+        [columns]
+        "Vehicle Speed" = "speed_mps [km/h]"
+        [topics."/obd"]
+        rpm = "engine_speed_rpm [rpm]"
+        [signals]
+        "MY_MSG.SOC" = "soc"
+
+    Returns ``{"columns": {...}, "topics": {...}, "signals": {...}}``.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise LogFormatError(path, "map file not found")
+    text = p.read_text(encoding="utf-8", errors="replace")
+    try:
+        if p.suffix.lower() == ".json":
+            d = json.loads(text)
+        else:
+            import tomllib
+
+            d = tomllib.loads(text)
+    except Exception as exc:  # noqa: BLE001 - json/toml decode errors carry line numbers in the text
+        raise LogFormatError(path, f"cannot parse map: {str(exc).splitlines()[0][:160]}") from None
+    if not isinstance(d, dict):
+        raise LogFormatError(path, "map must be a table/object")
+    extra = set(d) - {"columns", "topics", "signals"}
+    if extra:
+        raise LogFormatError(path, f"unknown map section(s): {', '.join(sorted(extra))}",
+                             hint="use [columns], [topics.\"/topic\"], [signals]")
+    return {"columns": dict(d.get("columns", {})), "topics": dict(d.get("topics", {})),
+            "signals": dict(d.get("signals", {}))}
+
+
+

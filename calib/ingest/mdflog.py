@@ -1,0 +1,71 @@
+"""MDF4 (.mf4) logs through asammdf (optional extra: ``pip install iptm[mdf]``).
+
+Channels are matched by name like CSV headers (canonical names, human names, aliases) or through a
+``column_map`` ``{mdf channel name: "channel [unit]"}``; the unit comes from the map, else from the MDF
+channel's own unit, and a mapped channel with neither is an error.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..drivelog import LogMeta, file_sha256
+from ..errors import LogFormatError
+from .common import canonical_name, check_nonempty, make_series, parse_target, split_spec, to_channel_unit
+
+
+def read_mdf_streams(path, column_map: dict | None = None):
+    """Read an MDF4 file into streams. See the module docstring.
+
+    Raises
+    ------
+    LogFormatError
+        asammdf missing, corrupt file, a matched channel without a unit, no known channel.
+    """
+    check_nonempty(path)
+    try:
+        from asammdf import MDF
+    except ImportError:
+        raise LogFormatError(path, "reading MDF4 needs asammdf", hint="pip install 'iptm[mdf]'") from None
+    meta = LogMeta(source=str(path), sha256=file_sha256(path), format="mf4")
+    column_map = dict(column_map or {})
+    try:
+        mdf = MDF(str(path))
+    except Exception as exc:  # noqa: BLE001 - asammdf raises many types on a bad file
+        raise LogFormatError(path, f"corrupt or unreadable MDF file: {str(exc).splitlines()[0][:160] if str(exc) else type(exc).__name__}") from None
+    parts = {}
+    t_first = np.inf
+    try:
+        names = list(mdf.channels_db)
+        for name in names:
+            base, unit_in_name = split_spec(name)
+            if name in column_map:
+                ch, unit = parse_target(column_map[name], path, f"column map entry {name!r}")
+            else:
+                ch, unit = canonical_name(base), unit_in_name
+                if ch is None:
+                    continue
+            sig = mdf.get(name)
+            unit = unit or (sig.unit or None)
+            if not unit:
+                raise LogFormatError(path, f"MDF channel {name!r} has no unit", hint="give one in a column map")
+            t = np.asarray(sig.timestamps, dtype=float)
+            v = np.asarray(sig.samples, dtype=float)
+            if len(t):
+                t_first = min(t_first, float(t[0]))
+            parts[ch] = (t, to_channel_unit(v, unit, ch, path, f"channel {name!r}"), name, unit)
+    except LogFormatError:
+        raise
+    except Exception as exc:  # noqa: BLE001
+        raise LogFormatError(path, f"cannot read MDF channels: {str(exc)[:160]}") from None
+    finally:
+        mdf.close()
+    if not parts:
+        raise LogFormatError(path, "no MDF channel is a known channel", hint="pass a column map")
+    streams = {}
+    for ch, (t, v, name, unit) in parts.items():
+        s = make_series(t - t_first, v, ch)
+        if len(s):
+            streams[ch] = s
+        meta.channel_sources[ch] = name
+        meta.original_units[ch] = unit
+    return streams, meta
