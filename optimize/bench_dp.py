@@ -18,7 +18,7 @@ from .dp import DPProblem, cartesian, solve
 
 @njit(cache=True)
 def hybrid_step(k, x, u, w_k, p, tab, iu, ix, x_next):  # pragma: no cover - compiled
-    """SOC / coolant-temperature toy: w_k = (P_dem [kW], T_amb); u = (mode, P_bat [kW]).
+    """SOC / coolant-temperature toy: w_k = (P_dem [kW], T_amb); u = (mode, P_bat [kW], discharge > 0).
 
     mode 0 engine off (battery supplies P_dem), 1 engine on, 2 engine idle (for heat, battery drives)."""
     soc = x[0]
@@ -27,7 +27,11 @@ def hybrid_step(k, x, u, w_k, p, tab, iu, ix, x_next):  # pragma: no cover - com
     pbat = u[1]
     pdem = w_k[0]
     if mode == 0.0 or mode == 2.0:
-        if abs(pbat - pdem) > 0.25:  # battery must cover the demand (within one P_bat step / 2)
+        # the battery covers the demand (up to 1 kW over, dissipated); regen may be partly friction-braked
+        if pdem >= 0.0:
+            if pbat < pdem or pbat > pdem + 1.0:
+                return np.inf
+        elif pbat < pdem or pbat > 0.0:
             return np.inf
         peng = 0.3 if mode == 2.0 else 0.0
     else:

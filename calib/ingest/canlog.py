@@ -54,6 +54,8 @@ DEFAULT_SIGNAL_MAP: dict[str, str] = {
 }
 
 CAN_FORMATS = ("candump", "asc", "blf", "trc")
+#: iptm-defined log-information message (SYNTHETIC flag), see calib/data/can/README.md.
+LOG_INFO_ID = 0x6FF
 #: A timestamp stepping back by more than this is an error; smaller steps are sorted (bus/driver jitter).
 MAX_BACKSTEP_S = 1.0
 
@@ -133,6 +135,7 @@ class FrameCollector:
         self.n_frames = 0
         self.n_backsteps = 0
         self.max_backstep = 0.0
+        self.synthetic_comment = False
 
     def time(self, t: float, path, where: str):
         """Account a frame time (every frame, wanted or not): start of log and ordering checks."""
@@ -171,7 +174,11 @@ def _parse_candump(path, col: FrameCollector, ids_cache: dict):
         lineno = 0
         try:
             for lineno, line in enumerate(fh, 1):
-                if not line or line.isspace() or line[0] == "#":
+                if not line or line.isspace():
+                    continue
+                if line[0] == "#":
+                    if "SYNTHETIC" in line.upper():
+                        col.synthetic_comment = True
                     continue
                 parts = line.split()
                 if len(parts) < 3 or parts[0][0] != "(" or parts[0][-1] != ")":
@@ -323,6 +330,8 @@ def decode_can_signals(path, *, fmt: str, dbc=None, signals=None, signal_map=Non
             raise LogFormatError(dbc_path, "no signal of this DBC maps to a canonical channel",
                                  hint="pass a signal map (MESSAGE.SIGNAL = 'channel')")
         wanted_pairs = list(smap)
+        if ("IPTM_LOG_INFO", "SYNTHETIC") in {(m.name, sg.name) for m in db.messages for sg in m.signals}:
+            wanted_pairs.append(("IPTM_LOG_INFO", "SYNTHETIC"))
     else:
         smap = {}
         wanted_pairs = []
@@ -347,7 +356,7 @@ def decode_can_signals(path, *, fmt: str, dbc=None, signals=None, signal_map=Non
         raise LogFormatError(path, f"not a CAN log format: {fmt}")
     if col.n_frames == 0:
         raise LogFormatError(path, "no CAN frames in the file")
-    if not col.acc and not col.long:
+    if not (set(col.acc) | set(col.long)) - {LOG_INFO_ID}:
         ids = ", ".join(f"0x{i:X}" for i in sorted(msgs))
         raise LogFormatError(path, f"no frame matches the DBC {dbc_path.name}: none of its decoded messages "
                                    f"({ids}) is on this bus", hint="pass the DBC for this vehicle with --dbc")
@@ -388,7 +397,7 @@ def decode_can_signals(path, *, fmt: str, dbc=None, signals=None, signal_map=Non
                 vs.append(vv)
             if ts:
                 out[(msg.name, sname)] = (np.concatenate(ts), np.concatenate(vs))
-    return {"signals": out, "t0": col.t_first, "n_frames": col.n_frames, "n_backsteps": col.n_backsteps,
+    return {"signals": out, "t0": col.t_first, "synthetic_comment": col.synthetic_comment, "n_frames": col.n_frames, "n_backsteps": col.n_backsteps,
             "max_backstep": col.max_backstep, "map": smap, "db": db, "dbc_path": dbc_path}
 
 
@@ -428,6 +437,9 @@ def read_can_streams(path, *, fmt: str, dbc=None, signal_map=None):
         import datetime as _dt
 
         meta.start_time = _dt.datetime.fromtimestamp(t0, tz=_dt.timezone.utc).isoformat()
+    info = res["signals"].get(("IPTM_LOG_INFO", "SYNTHETIC"))
+    if res["synthetic_comment"] or (info is not None and np.any(info[1] == 1)):
+        meta.synthetic = True
     parts: dict[str, list] = {}
     for (m, s), (ch, unit) in res["map"].items():
         if (m, s) not in res["signals"]:

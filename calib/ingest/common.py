@@ -153,8 +153,12 @@ def check_nonempty(path) -> None:
 
 
 def make_series(t, v, channel: str) -> pd.Series:
-    """A stream: finite samples of ``channel`` indexed by ``time_s``, sorted by time, duplicates averaged."""
-    t = np.asarray(t, dtype=float)
+    """A stream: finite samples of ``channel`` indexed by ``time_s``, sorted by time, duplicates averaged.
+
+    Times are rounded to the microsecond (candump's resolution), so the same sample read from formats
+    with different clock representations lands at the same time and in the same resampling bin.
+    """
+    t = np.round(np.asarray(t, dtype=float), 6)
     v = np.asarray(v, dtype=float)
     ok = np.isfinite(t) & np.isfinite(v)
     t, v = t[ok], v[ok]

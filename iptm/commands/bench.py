@@ -1,0 +1,47 @@
+"""``iptm bench``: benchmarks that print speed and memory figures (never asserted in tests)."""
+from __future__ import annotations
+
+import importlib
+
+SUITES = {
+    "sim": "iptm.benchmarks.sim",
+    "ingest": "iptm.benchmarks.ingest",
+    "calib": "iptm.benchmarks.calib",
+    "dp": "iptm.benchmarks.dp",
+    "sweep": "iptm.benchmarks.sweep",
+}
+
+
+def register(sub):
+    p = sub.add_parser("bench", help="run benchmarks and print time, memory and throughput",
+                       description="Benchmarks: sim (simulation speed, EPA table), ingest (30-min CAN dump), "
+                                   "calib (full calibration of bundled-size logs), dp (three DP formulations on "
+                                   "paper grids), sweep (distributed study speed-up).")
+    p.add_argument("suite", nargs="*", default=["sim", "dp"], help=f"any of {', '.join(SUITES)} or 'all' "
+                                                                    "(default: sim dp)")
+    p.add_argument("--quick", action="store_true", help="smaller sizes, for a smoke check")
+    p.add_argument("--json", metavar="FILE", help="write all figures as JSON")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from calib.errors import IptmError
+    from calib.fileio import write_json
+
+    names = list(SUITES) if "all" in args.suite else args.suite
+    results = {}
+    for n in names:
+        if n not in SUITES:
+            raise IptmError(f"unknown benchmark {n!r}; choose from {', '.join(SUITES)} or all")
+        try:
+            mod = importlib.import_module(SUITES[n])
+        except ModuleNotFoundError as exc:
+            if exc.name == SUITES[n]:
+                print(f"== {n}: not available in this version")
+                continue
+            raise
+        print(f"== {n}")
+        results[n] = mod.run(quick=args.quick)
+    if args.json:
+        write_json(args.json, results)
+    return 0

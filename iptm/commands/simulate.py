@@ -1,0 +1,56 @@
+"""``iptm simulate``: run the model over a cycle under the rule-based controller."""
+from __future__ import annotations
+
+
+def register(sub):
+    p = sub.add_parser("simulate", help="simulate a drive cycle under the rule-based controller",
+                       description="Run the vehicle model over a drive cycle under the rule-based controller; "
+                                   "print fuel, final states and the energy-balance residual.")
+    p.add_argument("--params", metavar="FILE", help="parameter set or calibration artifact (TOML/JSON); "
+                                                     "default: the default 2017 Prius")
+    p.add_argument("--cycle", default="artemis_urban", help="bundled cycle name, CSV file, or 'a+b' "
+                                                            "(default: artemis_urban)")
+    p.add_argument("--ambient", type=float, default=-10.0, metavar="DEGC", help="ambient temperature (default -10)")
+    p.add_argument("--soc0", type=float, default=0.6, help="initial SOC (default 0.6)")
+    p.add_argument("--tcl0", type=float, default=70.0, metavar="DEGC", help="initial coolant temperature (70)")
+    p.add_argument("--tcab0", type=float, default=20.0, metavar="DEGC", help="initial cabin temperature (20)")
+    p.add_argument("--heater", type=float, default=1500.0, metavar="W", help="heater demand (default 1500 W)")
+    p.add_argument("--plot", metavar="FILE", help="write a time-series plot (PNG/PDF/SVG)")
+    p.add_argument("--csv", metavar="FILE", help="write every time series as CSV")
+    p.add_argument("--json", metavar="FILE", help="write the summary figures as JSON")
+    p.set_defaults(func=run)
+
+
+def load_params(path):
+    from calib.params import ParameterSet, default_parameters
+
+    return ParameterSet.load(path) if path else default_parameters()
+
+
+def run(args) -> int:
+    from calib.fileio import atomic_path, write_json
+    from calib.simulate import simulate
+
+    ps = load_params(args.params)
+    res = simulate(ps, args.cycle, T_amb=args.ambient, soc0=args.soc0, T_cl0=args.tcl0, T_cab0=args.tcab0,
+                   Q_heat=args.heater)
+    s = res.summary()
+    print(f"cycle {s['cycle']}: {s['distance_km']:.2f} km in {s['duration_s']:.0f} s at {args.ambient:g} degC")
+    print(f"fuel            {s['fuel_g']:.1f} g ({s['L_per_100km']:.2f} L/100 km, {s['mpg']:.1f} mpg)")
+    print(f"fuel corrected  {s['fuel_corrected_g']:.1f} g (for final SOC, coolant and cabin energy)")
+    print(f"final SOC       {s['soc_final']:.3f} (start {s['soc_initial']:.3f})")
+    print(f"final coolant   {s['T_cl_final_degC']:.1f} degC, cabin {s['T_cab_final_degC']:.1f} degC "
+          f"(mean {s['T_cab_mean_degC']:.1f})")
+    print(f"engine starts   {s['engine_starts']}, on {s['engine_on_s']:.0f} s, idle {s['idle_s']:.0f} s")
+    print(f"heater shortfall {s['heater_shortfall_J'] / 1e3:.0f} kJ (coolant too cold to deliver the demand)")
+    print(f"energy balance residual {s['energy_balance_residual_rel']:.1e} (relative)")
+    if args.plot:
+        res.plot(args.plot)
+        print(f"plot: {args.plot}")
+    if args.csv:
+        with atomic_path(args.csv) as tmp:
+            res.to_pandas().to_csv(tmp)
+        print(f"time series: {args.csv}")
+    if args.json:
+        write_json(args.json, {**s, "energy_balance": res.energy_balance()})
+    return 0

@@ -1,0 +1,57 @@
+"""Parameter sets: defaults from the bundled data, file round trips, validation errors."""
+import pytest
+
+from calib.errors import ParameterError
+from calib.params import ParameterSet, default_parameters
+
+
+def test_defaults_validate_and_carry_provenance(params):
+    params.validate()
+    for name in params:
+        p = params.param(name)
+        assert p.unit and p.source, name
+        assert p.bounds[0] <= min(p.value if p.is_table else [p.value]) <= p.bounds[1]
+
+
+@pytest.mark.parametrize("suffix", [".toml", ".json"])
+def test_round_trip(tmp_path, params, suffix):
+    path = tmp_path / f"p{suffix}"
+    params.save(path)
+    back = ParameterSet.load(path)
+    for n in params:
+        assert back[n] == pytest.approx(params[n]), n
+        assert back.param(n).unit == params.param(n).unit
+
+
+def test_partial_file_with_unit_conversion(tmp_path):
+    f = tmp_path / "p.toml"
+    f.write_text('[parameters.C_eng_J_per_K]\nvalue = 120.0\nunit = "kJ/K"\n'
+                 '[parameters.T_open_degC]\nvalue = 190.4\nunit = "degF"\n')
+    ps = ParameterSet.load(f)
+    assert ps["C_eng_J_per_K"] == pytest.approx(120e3)
+    assert ps["T_open_degC"] == pytest.approx(88.0, abs=1e-6)
+    assert ps["m_kg"] == default_parameters()["m_kg"]  # untouched values come from the defaults
+
+
+@pytest.mark.parametrize("body, words", [
+    ('[parameters.C_eng_J]\nvalue = 1.0\n', "unknown parameter 'C_eng_J'"),
+    ('[parameters.C_eng_J_per_K]\nvalue = 80.0\nunit = "kg"\n', "cannot be converted"),
+    ('[parameters.C_eng_J_per_K]\nvalue = 1.0\n', "outside its bounds"),
+    ('[parameters.f_cl]\nvalue = [1.5, 1.2, 1.05, 1.0]\nx = [-10.0, 60.0, 20.0, 80.0]\n', "strictly increasing"),
+    ('[parameters.f_cl]\nvalue = [1.0, 1.2, 1.05, 1.0]\n', "must not increase"),
+    ('[parameters.f_cl]\nvalue = 1.2\n', "must be a table"),
+    ('[parameters\n', "not a valid TOML"),
+])
+def test_invalid_files_give_one_clear_error(tmp_path, body, words):
+    f = tmp_path / "bad.toml"
+    f.write_text(body)
+    with pytest.raises(ParameterError) as ei:
+        ParameterSet.load(f)
+    msg = str(ei.value)
+    assert words in msg and "bad.toml" in msg and "\n" not in msg
+
+
+def test_with_values_validates(params):
+    with pytest.raises(ParameterError):
+        params.with_values(eta_em=1.5)
+    assert params.with_values(eta_em=0.9)["eta_em"] == 0.9

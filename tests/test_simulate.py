@@ -1,0 +1,73 @@
+"""Forward simulation: energy balances, EPA comparison, rule-based behaviour, results object."""
+import numpy as np
+import pytest
+
+from calib.epa import epa_comparison
+from calib.errors import ScenarioError
+from calib.model import IDLE, OFF, ON
+from calib.rulebased import RuleParams
+from calib.simulate import simulate
+
+
+@pytest.fixture(scope="module")
+def winter(params):
+    return simulate(params, "artemis_urban", T_amb=-10.0, soc0=0.6, T_cl0=70.0, T_cab0=20.0, Q_heat=1500.0)
+
+
+def test_energy_balances_close(winter):
+    bal = winter.energy_balance()
+    for k, v in bal.items():
+        if k.startswith("residual"):
+            assert abs(v) < 1e-9, k
+    assert bal["fuel_energy_J"] > 0 and bal["heater_J"] > 0
+
+
+def test_cold_start_balances_close_with_heater_shortfall(params):
+    r = simulate(params, "nycc", T_amb=-10.0, soc0=0.6, T_cl0=-10.0, T_cab0=-10.0, Q_heat=1500.0)
+    s = r.summary()
+    assert s["energy_balance_residual_rel"] < 1e-9
+    assert s["heater_shortfall_J"] > 0  # the cold core cannot deliver 1500 W at first
+    assert np.all(r.flows["Q_heat"] <= r.flows["Q_heat_max"] + 1e-9)
+    # thermal rule: below 40 degC the engine idles rather than stops
+    cold = r.T_cl[:-1] < 40.0
+    assert np.all(r.e_mode[cold] != OFF)
+    assert np.any(r.e_mode == IDLE)
+
+
+def test_epa_within_10_percent(params):
+    df = epa_comparison(params)
+    assert (df["error_pct"].abs() < 10.0).all(), df.to_string()
+
+
+def test_results_object(winter, tmp_path):
+    df = winter.to_pandas()
+    assert len(df) == len(winter.t)
+    assert {"soc", "T_cl_degC", "P_e", "W_f", "fuel_cum_g"} <= set(df.columns)
+    assert df["fuel_cum_g"].iloc[-1] == pytest.approx(winter.fuel_g)
+    winter.plot(tmp_path / "x.png")
+    assert (tmp_path / "x.png").stat().st_size > 10_000
+    s = winter.summary()
+    assert s["engine_starts"] > 0 and s["distance_km"] == pytest.approx(4.87, abs=0.05)
+
+
+def test_soc_correction_sign(params):
+    low = simulate(params, "nycc", rule_params=RuleParams(soc_target=0.5, soc_low=0.45), T_amb=24.0, soc0=0.6,
+                   T_cl0=90.0, T_cab0=22.0, Q_heat=0.0).summary()
+    assert low["soc_final"] < 0.6
+    assert low["fuel_soc_corrected_g"] > low["fuel_g"]  # ending with less charge costs fuel
+
+
+def test_infeasible_controller_is_reported(params):
+    def greedy(k, soc, T_cl, T_cab, P_trac, Ts):
+        return ON, 30e3, 0.0  # above the battery's discharge limit
+
+    with pytest.raises(ScenarioError, match="step 0 .*infeasible: engine power outside"):
+        simulate(params, "nycc", greedy)
+
+
+def test_custom_cycle_file(params, tmp_path):
+    f = tmp_path / "c.csv"
+    t = np.arange(0, 121)
+    f.write_text("time_s,speed_kph\n" + "\n".join(f"{a},{min(a, 60) * 0.8:.2f}" for a in t))
+    r = simulate(params, str(f), T_amb=0.0)
+    assert len(r.t) == 121
