@@ -248,3 +248,29 @@ def simulate(params, cycle, controller=None, *, T_amb=-10.0, soc0=0.6, T_cl0=70.
             "params": (params.meta.get("name", "") if hasattr(params, "meta") else "")}
     return SimResult(cyc.t.copy(), x[:, 0].copy(), x[:, 1].copy(), x[:, 2].copy(), u[:, 0].astype(int),
                      u[:, 1].copy(), u[:, 2].copy(), flows, v.copy(), mp, info)
+
+
+def sim_to_arrays(res: SimResult) -> dict:
+    """Flatten a :class:`SimResult` into named numpy arrays (for ``.npz`` storage without pickle)."""
+    import json
+
+    d = {"t": res.t, "soc": res.soc, "T_cl": res.T_cl, "T_cab": res.T_cab, "e_mode": res.e_mode,
+         "P_bat_mg_cmd": res.P_bat_mg_cmd, "Q_heat_cmd": res.Q_heat_cmd, "v": res.v,
+         "info_json": np.array(json.dumps(res.info, default=str))}
+    d.update({f"flow__{k}": v for k, v in res.flows.items()})
+    for k, v in res.mp._asdict().items():
+        d[f"mp__{k}"] = np.asarray(v, dtype=np.float64)
+    return d
+
+
+def sim_from_arrays(d: dict) -> SimResult:
+    """Inverse of :func:`sim_to_arrays`."""
+    import json
+
+    from .params import ModelParams
+
+    mp = ModelParams(**{f: (d[f"mp__{f}"] if d[f"mp__{f}"].ndim else float(d[f"mp__{f}"]))
+                        for f in ModelParams._fields})
+    flows = {k[6:]: d[k] for k in d if k.startswith("flow__")}
+    return SimResult(d["t"], d["soc"], d["T_cl"], d["T_cab"], d["e_mode"].astype(int), d["P_bat_mg_cmd"],
+                     d["Q_heat_cmd"], flows, d["v"], mp, json.loads(str(d["info_json"])))

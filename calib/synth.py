@@ -31,7 +31,7 @@ class Sensor:
 SENSORS: dict[str, Sensor] = {
     "speed_mps": Sensor(10.0, 0.03, 0.01 / 3.6, False),
     "bat_current_A": Sensor(10.0, 0.4, 0.1, True),
-    "bat_voltage_V": Sensor(10.0, 0.3, 0.1, True),
+    "bat_voltage_V": Sensor(10.0, 0.3, 1.0, True),  # 1 V steps, as on the Prius bus
     "soc": Sensor(1.0, 0.0, 0.005, False),
     "bat_temp_degC": Sensor(1.0, 0.0, 1.0, False),
     "engine_speed_rpm": Sensor(10.0, 5.0, 1.0, True),

@@ -159,7 +159,7 @@ def _write_mcap(streams, meta: LogMeta, path: Path) -> None:
     for ch in streams:
         by_topic.setdefault(layout[ch][0], []).append(ch)
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        w = Writer(fh, compression=CompressionType.NONE)
+        w = Writer(fh, compression=CompressionType.ZSTD)  # zstd: real loggers compress
         w.start(profile="", library="iptm")
         schema = json.dumps({"type": "object", "additionalProperties": {"type": "number"}}).encode()
         sid = w.register_schema(name="iptm.Sample", encoding="jsonschema", data=schema)

@@ -28,7 +28,7 @@ def no_precompute(k, w_k, p, tab):  # pragma: no cover - compiled
     return
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _locate(x, d, lo, inv_dx, n, uniform, pts, clip, ib, tb):
     """Cell index and fraction of ``x`` along dimension ``d`` into ib[d], tb[d]; False if off-grid."""
     nd = n[d]
@@ -70,7 +70,7 @@ def _locate(x, d, lo, inv_dx, n, uniform, pts, clip, ib, tb):
     return True
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _locate_all(xq, nx, lo, inv_dx, n, uniform, pts, clip, ib, tb):
     for d in range(nx):
         if not _locate(xq[d], d, lo, inv_dx, n, uniform, pts, clip, ib, tb):
@@ -102,7 +102,7 @@ def _interp_slow(V, nx, strides, ib, tb):
     return acc
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _interp(V, nx, strides, ib, tb):
     """Multilinear interpolation of the flat array V at the located point (ib, tb).
 
@@ -138,7 +138,7 @@ def _interp(V, nx, strides, ib, tb):
     return _interp_slow(V, nx, strides, ib, tb)
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=False)  # no disk cache: kernels specialised on a user function never hit it
 def backward(transition, precompute, N, X, controls, w, p, tab, VT, LT, use_level, level_tol,
              lo, inv_dx, n, uniform, pts, strides, clip, policy, store_policy):
     """Backward pass. VT[N] (and LT[N] when use_level) must hold the terminal data; fills VT[0..N-1],
@@ -212,7 +212,7 @@ def backward(transition, precompute, N, X, controls, w, p, tab, VT, LT, use_leve
                     policy[k, s] = bi
 
 
-@njit(cache=True)
+@njit(cache=False)
 def forward(transition, precompute, N, x0, controls, w, p, tab, VT, LT, use_level, level_tol,
             lo, inv_dx, n, uniform, pts, strides, clip, X_out, U_idx, stage, pred):
     """Forward pass from the true (off-grid) state x0. Returns the number of steps completed

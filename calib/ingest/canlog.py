@@ -224,6 +224,11 @@ def _parse_python_can(path, fmt: str, col: FrameCollector):
     i = 0
     try:
         with reader_cls(str(path)) as reader:
+            if fmt == "blf":
+                # python-can stops quietly at a truncated container: check the header's own size.
+                actual = Path(path).stat().st_size
+                if reader.file_size and actual < reader.file_size:
+                    raise LogFormatError(path, f"truncated BLF file: {actual} of {reader.file_size} bytes")
             for i, msg in enumerate(reader, 1):
                 if msg.is_error_frame:
                     continue

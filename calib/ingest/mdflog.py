@@ -6,11 +6,42 @@ channel's own unit, and a mapped channel with neither is an error.
 """
 from __future__ import annotations
 
+import gc
+import sys
+
 import numpy as np
 
 from ..drivelog import LogMeta, file_sha256
 from ..errors import LogFormatError
 from .common import canonical_name, check_nonempty, make_series, parse_target, split_spec, to_channel_unit
+
+
+def _quiet_asammdf_del(unraisable, _prev=None):
+    """Drop the exception asammdf's ``__del__`` raises on a half-built object; pass any other on."""
+    if str(getattr(unraisable.object, "__module__", "")).startswith("asammdf"):
+        return
+    (_prev or sys.__unraisablehook__)(unraisable)
+
+
+def _open_mdf(MDF, path):
+    """Open with asammdf; a corrupt file becomes a :class:`LogFormatError` (returned, not raised).
+
+    asammdf leaves a half-initialised object behind when its constructor fails, and that object's
+    ``__del__`` then raises AttributeError at collection time; that known asammdf bug is silenced here
+    (only for asammdf objects, only while the failed object is being collected).
+    """
+    prev = sys.unraisablehook
+    sys.unraisablehook = lambda u: _quiet_asammdf_del(u, prev)
+    try:
+        try:
+            return MDF(str(path)), None
+        except Exception as exc:  # noqa: BLE001 - asammdf raises many types on a bad file
+            text = str(exc).splitlines()[0][:160] if str(exc) else type(exc).__name__
+            err = LogFormatError(path, f"corrupt or unreadable MDF file: {text}")
+        gc.collect()
+        return None, err
+    finally:
+        sys.unraisablehook = prev
 
 
 def read_mdf_streams(path, column_map: dict | None = None):
@@ -28,10 +59,13 @@ def read_mdf_streams(path, column_map: dict | None = None):
         raise LogFormatError(path, "reading MDF4 needs asammdf", hint="pip install 'iptm[mdf]'") from None
     meta = LogMeta(source=str(path), sha256=file_sha256(path), format="mf4")
     column_map = dict(column_map or {})
-    try:
-        mdf = MDF(str(path))
-    except Exception as exc:  # noqa: BLE001 - asammdf raises many types on a bad file
-        raise LogFormatError(path, f"corrupt or unreadable MDF file: {str(exc).splitlines()[0][:160] if str(exc) else type(exc).__name__}") from None
+    with open(path, "rb") as fh:
+        head = fh.read(64)
+    if len(head) < 64 or not head.startswith(b"MDF "):
+        raise LogFormatError(path, "not an MDF file (no 'MDF' identification block)")
+    mdf, err = _open_mdf(MDF, path)
+    if err is not None:
+        raise err
     parts = {}
     t_first = np.inf
     try:

@@ -1,0 +1,360 @@
+"""Battery fit (spec/model.md s.3 and s.8): U_oc(SOC), R_int(SOC) tables, capacity, R_int(T).
+
+- Tables: the terminal voltage ``V = U_oc(SOC) - R_int(SOC) exp(-tc (T_bat - T_ref)) I`` is linear in the
+  table values given SOC, current and temperature. With the piecewise-linear (hat-function) basis
+  ``h_j(SOC)`` of the breakpoints, ``V = sum_j h_j U_j - sum_j h_j g I R_j`` is solved by direct linear
+  least squares over all logs. Only breakpoints the data covers (sum of hat weights >= 30 samples, and
+  for R also a current spread) are unknowns; the others stay at the prior and are flagged undetermined.
+- Capacity: Coulomb counting. The logged SOC (0.5 % steps) is regressed on the integrated current,
+  ``SOC(t) = SOC0_log - Q(t) / (3600 C_bat)``, one intercept per log and one common slope, over every
+  sample of the whole log (the quantisation averages out over long windows; the standard error is
+  inflated for the autocorrelated quantisation error).
+- ``R_int_tc_per_K``: only when the logged battery temperatures span >= 10 K; profile of the table fit's
+  residual sum of squares over the coefficient (golden section), standard error from its curvature.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .calibrate import (MIN_SAMPLES, REL_SE_MAX, U_OC_SE_MAX_V, ParamEstimate, SubsystemFit, inflation, judge,
+                        not_fitted, usable_logs)
+
+NEEDS = ("bat_current_A", "bat_voltage_V", "soc")
+PARAMS = ("U_oc_V", "R_int_ohm", "C_bat_Ah", "R_int_tc_per_K")
+MIN_COVER = 30.0  # sum of hat weights for a breakpoint to be an unknown
+MIN_T_SPAN = 10.0  # K, for the temperature coefficient
+
+
+def hat_basis(x, bp):
+    """Matrix (len(x), len(bp)) of piecewise-linear interpolation weights (flat beyond the ends)."""
+    x = np.clip(np.asarray(x, float), bp[0], bp[-1])
+    j = np.clip(np.searchsorted(bp, x, side="right") - 1, 0, len(bp) - 2)
+    w = (x - bp[j]) / (bp[j + 1] - bp[j])
+    H = np.zeros((x.size, len(bp)))
+    H[np.arange(x.size), j] = 1.0 - w
+    H[np.arange(x.size), j + 1] += w
+    return H
+
+
+def _gather(logs, T_ref):
+    rows = []
+    for lg in logs:
+        d = lg.data
+        I = d["bat_current_A"].to_numpy(float)
+        V = d["bat_voltage_V"].to_numpy(float)
+        s = d["soc"].to_numpy(float)
+        T = d["bat_temp_degC"].to_numpy(float) if "bat_temp_degC" in d and d["bat_temp_degC"].notna().any() \
+            else np.full(I.size, np.nan)
+        T_given = np.isfinite(T).any()
+        if T_given:
+            idx = np.arange(T.size)
+            okT = np.isfinite(T)
+            T = np.interp(idx, idx[okT], T[okT])
+        else:
+            T = np.full(I.size, T_ref)
+        rows.append(dict(name=lg.label(), I=I, V=V, soc=s, T=T, T_logged=T_given, dt=lg.dt))
+    return rows
+
+
+def steady(I, tol_A=2.0):
+    """Samples whose current differs from both neighbours by < tol_A (+2 %): the 1 s bin means of
+    current and voltage then describe the same operating point even when the two channels were sampled
+    at different instants."""
+    I = np.asarray(I, float)
+    ok = np.isfinite(I)
+    d = np.full(I.size, np.inf)
+    d[1:-1] = np.maximum(np.abs(I[1:-1] - I[:-2]), np.abs(I[2:] - I[1:-1]))
+    return ok & (d < tol_A + 0.02 * np.abs(I))
+
+
+def _table_fit(rows, bpU, bpR, U0, R0, tc, T_ref, varyU, varyR):
+    """Linear LS for the table entries flagged in varyU/varyR; returns (U, R, cov, resid per log, sse, n)."""
+    A_parts, y_parts, seg_len = [], [], []
+    for r in rows:
+        ok = steady(r["I"]) & np.isfinite(r["V"]) & np.isfinite(r["soc"])
+        HU = hat_basis(r["soc"][ok], bpU)
+        HR = hat_basis(r["soc"][ok], bpR)
+        gI = (np.exp(-tc * (r["T"][ok] - T_ref)) * r["I"][ok])[:, None]
+        y = r["V"][ok] - HU[:, ~varyU] @ U0[~varyU] + (HR[:, ~varyR] * gI) @ R0[~varyR]
+        A = np.hstack([HU[:, varyU], -HR[:, varyR] * gI])
+        A_parts.append(A)
+        y_parts.append(y)
+        seg_len.append(int(ok.sum()))
+    A = np.vstack(A_parts)
+    y = np.concatenate(y_parts)
+    theta, *_ = np.linalg.lstsq(A, y, rcond=None)
+    res = y - A @ theta
+    sse = float(res @ res)
+    nu = max(A.shape[0] - A.shape[1], 1)
+    s2 = sse / nu
+    try:
+        cov = s2 * np.linalg.inv(A.T @ A)
+    except np.linalg.LinAlgError:
+        cov = np.full((A.shape[1], A.shape[1]), np.nan)
+    segs = np.split(res, np.cumsum(seg_len)[:-1])
+    nU = int(varyU.sum())
+    U = U0.copy()
+    R = R0.copy()
+    U[varyU] = theta[:nU]
+    R[varyR] = theta[nU:]
+    return U, R, cov, segs, sse, A.shape[0]
+
+
+def _capacity(rows):
+    """Common slope 1/(3600 C_Ah) and per-log intercepts: Coulomb counting against logged SOC.
+
+    A quantised SOC signal is exact where it *changes*: between two consecutive samples with different
+    values the true SOC crossed the midpoint of the two levels. The regression therefore uses the
+    level crossings (midpoint value against the charge integrated up to the crossing, half a sample
+    between the two), which spans the whole log (a long window) and is free of the quantisation error;
+    for an unquantised signal every sample is a crossing and this is ordinary Coulomb counting.
+    """
+    X_parts, y_parts, segs_len = [], [], []
+    L = len(rows)
+    n_cross = 0
+    for i, r in enumerate(rows):
+        I = r["I"].copy()
+        idx = np.arange(I.size)
+        okI = np.isfinite(I)
+        if okI.sum() < 2:
+            continue
+        I = np.interp(idx, idx[okI], I[okI])
+        Q = np.concatenate([[0.0], np.cumsum(0.5 * (I[1:] + I[:-1]) * r["dt"])])  # A s
+        s = r["soc"]
+        k = np.flatnonzero(np.isfinite(s[:-1]) & np.isfinite(s[1:]) & (s[1:] != s[:-1]))
+        if k.size < 3:
+            continue
+        yv = 0.5 * (s[k] + s[k + 1])
+        Qc = 0.5 * (Q[k] + Q[k + 1])
+        X = np.zeros((k.size, L + 1))
+        X[:, i] = 1.0
+        X[:, L] = -Qc / 3600.0  # slope b = 1/C_Ah
+        X_parts.append(X)
+        y_parts.append(yv)
+        segs_len.append(k.size)
+        n_cross += k.size
+    if not X_parts:
+        return None, None, None, None, 0
+    X = np.vstack(X_parts)
+    y = np.concatenate(y_parts)
+    keep = np.any(X[:, :L] != 0, axis=0).tolist() + [True]
+    X = X[:, keep]
+    theta, *_ = np.linalg.lstsq(X, y, rcond=None)
+    res = y - X @ theta
+    nu = max(X.shape[0] - X.shape[1], 1)
+    s2 = float(res @ res) / nu
+    try:
+        cov = s2 * np.linalg.inv(X.T @ X)
+    except np.linalg.LinAlgError:
+        return None, None, None, None, n_cross
+    segs = np.split(res, np.cumsum(segs_len)[:-1])
+    f = inflation(segs, X.shape[1])
+    b, sb = theta[-1], math.sqrt(cov[-1, -1]) * f
+    return b, sb, segs, f, n_cross
+
+
+def _join_prior(U, U0, est):
+    """Table with estimated entries, and undetermined ones at the prior unless that breaks monotonicity,
+    in which case the prior's shape is shifted to join the nearest estimated entry (interior gaps are
+    interpolated)."""
+    out = np.where(est, U, U0).astype(float)
+    e = np.flatnonzero(est)
+    e0, e1 = e[0], e[-1]
+    if np.any(U0[e1 + 1:] < U[e1]):
+        out[e1 + 1:] = U0[e1 + 1:] + (U[e1] - U0[e1])
+    if np.any(U0[:e0] > U[e0]):
+        out[:e0] = U0[:e0] + (U[e0] - U0[e0])
+    for a, b in zip(e[:-1], e[1:]):
+        if b > a + 1 and np.any(np.diff(out[a:b + 1]) < 0):
+            out[a + 1:b] = np.interp(np.arange(a + 1, b), [a, b], [U[a], U[b]])
+    return np.maximum.accumulate(out)
+
+
+def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
+    """Fit the battery parameters from every log with current, voltage and SOC.
+
+    Parameters
+    ----------
+    logs : list of DriveLog
+    base : ParameterSet
+        Priors (values kept where undetermined).
+    allowed : set of str, optional
+        Parameters that may be estimated (default all of :data:`PARAMS`).
+
+    Returns
+    -------
+    SubsystemFit
+    """
+    allowed = set(PARAMS) if allowed is None else set(allowed)
+    fit = SubsystemFit("battery", NEEDS)
+    use, fit.skipped = usable_logs(logs, NEEDS, "fit the battery")
+    names = [n for n in PARAMS if n in allowed]
+    if not names:
+        return fit
+    if not use:
+        return not_fitted(fit, base, names, "no log has battery current, voltage and SOC ("
+                          + "; ".join(f"{k}: {v}" for k, v in fit.skipped.items()) + ")")
+    fit.logs = [lg.label() for lg in use]
+    T_ref = float(base["T_bat_ref_degC"])
+    rows = _gather(use, T_ref)
+    pU, pR = base.param("U_oc_V"), base.param("R_int_ohm")
+    bpU, bpR = np.array(pU.x), np.array(pR.x)
+    U0, R0 = np.array(pU.value, float), np.array(pR.value, float)
+    tc = float(base["R_int_tc_per_K"])
+    # coverage
+    oks = [np.isfinite(r["soc"]) & np.isfinite(r["V"]) & steady(r["I"]) for r in rows]
+    socs = np.concatenate([r["soc"][ok] for r, ok in zip(rows, oks)])
+    Is = np.concatenate([r["I"][ok] for r, ok in zip(rows, oks)])
+    coverU = hat_basis(socs, bpU).sum(axis=0)
+    HR = hat_basis(socs, bpR)
+    coverR = HR.sum(axis=0)
+    spreadR = np.sqrt((HR * Is[:, None] ** 2).sum(axis=0) / np.maximum(coverR, 1e-9))
+    fitU = "U_oc_V" in allowed
+    fitR = "R_int_ohm" in allowed
+    varyU = (coverU >= 1.0) & fitU
+    varyR = (coverR >= 1.0) & (spreadR >= 1.0) & fitR
+    whyU = {j: f"SOC {bpU[j]:g} not covered by the data (hat weight {coverU[j]:.1f} < {MIN_COVER:g})"
+            for j in range(len(bpU)) if not varyU[j]}
+    whyR = {j: f"SOC {bpR[j]:g} not covered (hat weight {coverR[j]:.1f}, rms current {spreadR[j]:.1f} A)"
+            for j in range(len(bpR)) if not varyR[j]}
+
+    # temperature coefficient (profile), only with a wide enough temperature span
+    T_all = np.concatenate([r["T"] for r in rows])
+    T_span = float(np.nanmax(T_all) - np.nanmin(T_all)) if any(r["T_logged"] for r in rows) else 0.0
+    tc_est = None
+    if "R_int_tc_per_K" in allowed:
+        if not any(r["T_logged"] for r in rows):
+            fit.estimates["R_int_tc_per_K"] = ParamEstimate(
+                "R_int_tc_per_K", tc, None, "undetermined", "no battery temperature logged: tables fitted at "
+                f"T_ref assumed; coefficient left at prior", prior=tc)
+        elif T_span < MIN_T_SPAN:
+            fit.estimates["R_int_tc_per_K"] = ParamEstimate(
+                "R_int_tc_per_K", tc, None, "undetermined",
+                f"battery temperature spans {T_span:.1f} K < {MIN_T_SPAN:g} K: left at prior", prior=tc)
+        else:
+            lo, hi = base.param("R_int_tc_per_K").bounds
+            sse = lambda c: _table_fit(rows, bpU, bpR, U0, R0, c, T_ref, varyU, varyR)[4]  # noqa: E731
+            gr = (math.sqrt(5) - 1) / 2
+            a, b = lo, min(hi, 0.08)
+            c1, c2 = b - gr * (b - a), a + gr * (b - a)
+            f1, f2 = sse(c1), sse(c2)
+            for _ in range(40):
+                if f1 < f2:
+                    b, c2, f2 = c2, c1, f1
+                    c1 = b - gr * (b - a)
+                    f1 = sse(c1)
+                else:
+                    a, c1, f1 = c1, c2, f2
+                    c2 = a + gr * (b - a)
+                    f2 = sse(c2)
+            c = 0.5 * (a + b)
+            h = max(1e-4, 0.02 * abs(c))
+            U_, R_, cov_, segs_, s0, n0 = _table_fit(rows, bpU, bpR, U0, R0, c, T_ref, varyU, varyR)
+            curv = (sse(c + h) - 2 * s0 + sse(c - h)) / h ** 2
+            s2 = s0 / max(n0 - int(varyU.sum() + varyR.sum()) - 1, 1)
+            se = math.sqrt(2 * s2 / curv) * inflation(segs_, 1) if curv > 0 else None
+            ok, why = judge("R_int_tc_per_K", c, se, (lo, hi))
+            if ok:
+                tc_est = c
+                fit.estimates["R_int_tc_per_K"] = ParamEstimate("R_int_tc_per_K", c, se, "estimated",
+                                                                f"battery temperature span {T_span:.0f} K", prior=tc)
+            else:
+                fit.estimates["R_int_tc_per_K"] = ParamEstimate("R_int_tc_per_K", tc, None, "undetermined",
+                                                                why, prior=tc)
+    tc_use = tc_est if tc_est is not None else tc
+
+    # tables: every entry the data touches is an unknown (so a poorly covered neighbour left at its
+    # prior cannot bias the others); each is then judged, and undetermined ones are reported at the prior.
+    U, R, cov, segs, sse_, n = _table_fit(rows, bpU, bpR, U0, R0, tc_use, T_ref, varyU, varyR)
+    f = inflation(segs, int(varyU.sum() + varyR.sum()))
+    se_all = np.sqrt(np.clip(np.diag(cov), 0, None)) * f if cov.size else np.array([])
+    nU = int(varyU.sum())
+    seU = np.full(len(bpU), np.nan)
+    seR = np.full(len(bpR), np.nan)
+    seU[varyU] = se_all[:nU]
+    seR[varyR] = se_all[nU:]
+    if tc_est is not None:  # the tables are conditional on tc: add its uncertainty
+        se_tc = fit.estimates["R_int_tc_per_K"].stderr
+        h = max(1e-5, 0.05 * se_tc)
+        U2, R2 = _table_fit(rows, bpU, bpR, U0, R0, tc_use + h, T_ref, varyU, varyR)[:2]
+        seU = np.sqrt(seU ** 2 + ((U2 - U) / h * se_tc) ** 2)
+        seR = np.sqrt(seR ** 2 + ((R2 - R) / h * se_tc) ** 2)
+    estU, estR = varyU.copy(), varyR.copy()
+    for j in np.flatnonzero(varyU):
+        ok, why = judge("U_oc_V", U[j], seU[j], pU.bounds)
+        if ok and seU[j] > U_OC_SE_MAX_V:
+            ok, why = False, f"standard error {seU[j]:.2g} V > {U_OC_SE_MAX_V} V"
+        if ok and coverU[j] < MIN_COVER:
+            ok, why = False, f"hat weight {coverU[j]:.1f} < {MIN_COVER:g} samples"
+        if not ok:
+            estU[j] = False
+            whyU[j] = f"SOC {bpU[j]:g}: {why}"
+    for j in np.flatnonzero(varyR):
+        ok, why = judge("R_int_ohm", R[j], seR[j], pR.bounds)
+        if ok and coverR[j] < MIN_COVER:
+            ok, why = False, f"hat weight {coverR[j]:.1f} < {MIN_COVER:g} samples"
+        if not ok:
+            estR[j] = False
+            whyR[j] = f"SOC {bpR[j]:g}: {why}"
+    for _ in range(len(bpU)):  # estimated U_oc entries must not decrease: revert the less certain one
+        e = np.flatnonzero(estU)
+        bad = [(e[i], e[i + 1]) for i in range(e.size - 1) if U[e[i + 1]] < U[e[i]]]
+        if not bad:
+            break
+        k = max(bad[0], key=lambda k: seU[k])
+        estU[k] = False
+        whyU[k] = f"SOC {bpU[k]:g}: estimate {U[k]:.2f} V breaks the monotonicity of U_oc"
+    U_fill = _join_prior(U, U0, estU) if estU.any() else U0.copy()
+    shifted = [j for j in range(len(bpU)) if not estU[j] and abs(U_fill[j] - U0[j]) > 1e-9]
+    if shifted:
+        whyU["shift"] = ("U_oc must not decrease with SOC, so undetermined entries at SOC "
+                         + ", ".join(f"{bpU[j]:g}" for j in shifted)
+                         + " keep the prior's shape shifted to join the nearest estimated entry (still undetermined)")
+    varyU, varyR = estU, estR
+    fit.metrics.update(table_rmse_V=math.sqrt(sse_ / max(n, 1)), table_samples=n, se_inflation=f,
+                       soc_min=float(socs.min()), soc_max=float(socs.max()), bat_temp_span_K=T_span)
+
+    def table_est(name, vals, prior, se, vary, why, fill=None):
+        st = ["estimated" if v else "undetermined" for v in vary]
+        fill = prior if fill is None else fill
+        val = [float(v) if vary[j] else float(fill[j]) for j, v in enumerate(vals)]
+        ses = [float(s) if vary[j] else float("nan") for j, s in enumerate(se)]
+        status = "estimated" if any(vary) else "undetermined"
+        keys = sorted(k for k in why if not isinstance(k, str))
+        note = ("entries not determined: " + "; ".join(why[j] for j in keys)) if keys else ""
+        if "shift" in why:
+            note += ". " + why["shift"]
+        return ParamEstimate(name, val, ses, status, note, prior=list(map(float, prior)), entry_status=st)
+
+    if fitU:
+        fit.estimates["U_oc_V"] = table_est("U_oc_V", U, U0, seU, varyU, whyU, fill=U_fill)
+    if fitR:
+        fit.estimates["R_int_ohm"] = table_est("R_int_ohm", R, R0, seR, varyR, whyR)
+
+    if "C_bat_Ah" in allowed:
+        Cp = float(base["C_bat_Ah"])
+        b, sb, segs, fcap, n_cross = _capacity(rows)
+        span = max((np.nanmax(r["soc"]) - np.nanmin(r["soc"])) for r in rows)
+        if b is None or not (b > 0):
+            fit.estimates["C_bat_Ah"] = ParamEstimate("C_bat_Ah", Cp, None, "undetermined",
+                                                      "Coulomb counting gave no positive slope", prior=Cp)
+        else:
+            C = 1.0 / b
+            se = C * sb / b
+            ok, why = judge("C_bat_Ah", C, se, base.param("C_bat_Ah").bounds)
+            if ok and n_cross < 20:
+                ok, why = False, f"only {n_cross} SOC level crossings"
+            fit.metrics.update(capacity_soc_span=float(span), capacity_se_inflation=fcap,
+                               capacity_soc_crossings=n_cross)
+            if ok:
+                fit.estimates["C_bat_Ah"] = ParamEstimate("C_bat_Ah", C, se, "estimated",
+                                                          f"Coulomb counting over SOC span {span:.3f} "
+                                                          f"({n_cross} level crossings)", prior=Cp)
+            else:
+                fit.estimates["C_bat_Ah"] = ParamEstimate(
+                    "C_bat_Ah", Cp, None, "undetermined",
+                    f"Coulomb counting estimate {C:.3g} Ah not determined: {why} (SOC span {span:.3f} in 0.5 % "
+                    "steps is too short a window)", prior=Cp)
+    return fit

@@ -1,0 +1,86 @@
+"""A content-keyed result store: results are filed under a hash of everything that determines them.
+
+Used by the main pipeline's cache (ingested logs, calibrations, DP results) and by parameter sweeps
+(a case already computed is never recomputed; an interrupted study resumes). Files are written atomically
+and are JSON, TOML, Parquet or ``.npz`` (loaded with ``allow_pickle=False``): nothing a user hands us is
+unpickled.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from .fileio import atomic_path, write_json
+
+
+def _canon(o):
+    if isinstance(o, dict):
+        return {str(k): _canon(v) for k, v in sorted(o.items(), key=lambda kv: str(kv[0]))}
+    if isinstance(o, (list, tuple)):
+        return [_canon(v) for v in o]
+    if isinstance(o, np.ndarray):
+        return [_canon(v) for v in o.tolist()]
+    if isinstance(o, (np.floating, float)):
+        f = float(o)
+        return repr(f) if math.isfinite(f) else str(f)
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, Path):
+        return str(o)
+    if hasattr(o, "_asdict"):
+        return _canon(o._asdict())
+    return o
+
+
+def content_key(*parts, length: int = 20) -> str:
+    """A stable hash of JSON-like parts (dicts, lists, numbers, strings, numpy arrays, namedtuples)."""
+    blob = json.dumps(_canon(list(parts)), sort_keys=True, separators=(",", ":")).encode()
+    return hashlib.sha256(blob).hexdigest()[:length]
+
+
+class Store:
+    """Files under ``root/<kind>/<key>.<ext>``."""
+
+    def __init__(self, root):
+        self.root = Path(root)
+
+    def path(self, kind: str, key: str, ext: str) -> Path:
+        return self.root / kind / f"{key}.{ext}"
+
+    def has(self, kind: str, key: str, ext: str = "json") -> bool:
+        return self.path(kind, key, ext).is_file()
+
+    def get_json(self, kind: str, key: str):
+        p = self.path(kind, key, "json")
+        if not p.is_file():
+            return None
+        try:
+            return json.loads(p.read_text())
+        except (OSError, ValueError):
+            return None  # a damaged entry is recomputed, never trusted
+
+    def put_json(self, kind: str, key: str, obj) -> Path:
+        p = self.path(kind, key, "json")
+        write_json(p, obj)
+        return p
+
+    def get_npz(self, kind: str, key: str):
+        p = self.path(kind, key, "npz")
+        if not p.is_file():
+            return None
+        try:
+            with np.load(p, allow_pickle=False) as z:
+                return {k: z[k] for k in z.files}
+        except (OSError, ValueError):
+            return None
+
+    def put_npz(self, kind: str, key: str, arrays: dict) -> Path:
+        p = self.path(kind, key, "npz")
+        with atomic_path(p) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez_compressed(fh, **arrays)
+        return p
