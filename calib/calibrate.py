@@ -35,13 +35,26 @@ Identifiability criteria (a parameter is *determined* only if all hold)
 3. Relative standard error <= :data:`REL_SE_MAX` = 1/30, i.e. the 3-sigma interval lies within +-10 %
    of the value (the accuracy the issue asks of an identified parameter). Table entries of ``U_oc_V``
    must in addition have a standard error <= :data:`U_OC_SE_MAX_V` (the whole table spans only ~20 V).
-4. Not nearly collinear with another fitted parameter: ``|corr| > CORR_MAX = 0.98`` flags the less
-   precise of the two unless its relative standard error is below ``REL_SE_MAX / 2``.
+4. Not nearly collinear with another fitted parameter: ``|corr| > CORR_MAX = 0.999`` flags the less
+   precise of the two unless its relative standard error is below ``REL_SE_MAX / 2`` (the standard errors
+   already account for correlation; this catches fits where only a combination is determined).
 5. Not stuck at a bound.
 
+The logged *inputs* of the output-error fits (heater power, fuel rate, engine power) carry calibration
+errors too: each is scaled by one sd of :data:`INPUT_REL_SD` = 1 %, the fit repeated, and the shifts added
+in quadrature to the standard errors.
+
+Parameters held at their prior are not known exactly either: the other estimates are conditional on
+them. Their prior uncertainty (:data:`PRIOR_REL_SD` = 25 % of the value, or the absolute
+:data:`PRIOR_ABS_SD`) is therefore propagated: each is moved by one prior sd, the fit repeated, and the
+shift of every estimate added in quadrature to its standard error before it is judged. An estimate that
+leans on a doubtful prior thus becomes undetermined too.
+
 A parameter failing any of these is *undetermined*: it keeps its prior value, its status is
-``undetermined`` and its note says which criterion failed; the fit is repeated with it fixed, so the
-other estimates are conditional on the prior. Parameters of a subsystem whose channels no log carries
+``undetermined`` and its note says which criterion failed. In the output-error and fuel fits it stays free
+in the fit as a nuisance parameter (so a wrong prior cannot bias the others, and their standard errors
+include the correlation with it); a parameter with no sensitivity at all, or stuck at a bound, or
+without data in its regime (criterion 1) is held at its prior instead. Parameters of a subsystem whose channels no log carries
 keep status ``prior`` with a note naming the missing channels. Fixed parameters (``fix=``) keep status
 ``fixed``.
 
@@ -58,7 +71,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 REL_SE_MAX = 1.0 / 30.0
-CORR_MAX = 0.98
+CORR_MAX = 0.999
+#: Prior uncertainty (1 sd) of parameters left at their prior, propagated into the others' standard
+#: errors: relative to the value, except where an absolute value (unit of the parameter) is given.
+PRIOR_REL_SD = 0.25
+#: Calibration uncertainty (1 sd, relative) of logged inputs of the output-error fits: heater power,
+#: fuel rate, engine power (speed x torque, resampled to 1 s bins). Propagated into the standard errors.
+INPUT_REL_SD = 0.01
+PRIOR_ABS_SD = {"T_open_degC": 4.0, "kappa": 0.1, "Q_sun_W": 100.0}
 U_OC_SE_MAX_V = 0.5
 MIN_SAMPLES = 60
 
@@ -134,9 +154,10 @@ def not_fitted(fit: SubsystemFit, base, names, reason):
 def neff(residual_segments) -> tuple[int, float]:
     """(n, n_eff) over per-log residual arrays.
 
-    ``n_eff = n / tau`` per log with the integrated autocorrelation time
-    ``tau = 1 + 2 sum_k rho_k``, summed until the autocorrelation first drops below 0.05 (at most n/5
-    lags; at least the AR(1) value ``(1 + rho_1) / (1 - rho_1)``).
+    ``n_eff = n / tau`` per log with ``tau`` the largest of: the integrated autocorrelation time
+    ``1 + 2 sum_k rho_k`` (summed until the autocorrelation first drops below 0.05, at most n/5 lags), the
+    batch-means estimate ``B var(block means) / var(residual)`` with blocks of ``B = max(20, sqrt(n))``
+    samples (sensitive to slow drifts), and the AR(1) value ``(1 + rho_1) / (1 - rho_1)``.
     """
     n_tot, n_eff = 0, 0.0
     for r in residual_segments:
@@ -157,7 +178,15 @@ def neff(residual_segments) -> tuple[int, float]:
         K = int(below[0]) + 1 if below.size else kmax
         tau = 1.0 + 2.0 * float(np.sum(rho[1:K]))
         r1 = min(max(float(rho[1]), 0.0), 0.995)
-        tau = max(tau, (1.0 + r1) / (1.0 - r1), 1.0)
+        # batch means (blocks of ~sqrt(n) samples) catch slow drifts that carry little variance
+        B = max(20, int(math.sqrt(m)))
+        nb = m // B
+        if nb >= 4:
+            bm = r0[: nb * B].reshape(nb, B).mean(axis=1)
+            tau_bm = B * float(np.var(bm)) / (ac[0] / m)
+        else:
+            tau_bm = 1.0
+        tau = max(tau, tau_bm, (1.0 + r1) / (1.0 - r1), 1.0)
         n_tot += m
         n_eff += m / tau
     return n_tot, max(n_eff, 1.0)
@@ -201,14 +230,15 @@ def collinear(names, stderr, values, correl):
     return flagged
 
 
-def lmfit_identify(make_params, residual, candidates, *, bounds, segments, min_rounds=1, conf_keys=(),
-                   fixed_reason=None):
-    """Fit with lmfit, flag undetermined parameters, refit without them until none is flagged.
+def lmfit_identify(make_params, residual, candidates, *, bounds, segments, conf_keys=(), fixed_reason=None,
+                   perturbed=()):
+    """Fit with lmfit and judge every candidate parameter (criteria of the module docstring).
 
     Parameters
     ----------
     make_params : callable(vary: set) -> lmfit.Parameters
-        Builds the parameters with ``vary`` True exactly for the names given (plus nuisance parameters).
+        Builds the parameters (at their priors) with ``vary`` True exactly for the names given (plus
+        nuisance parameters such as initial states, always varied).
     residual : callable(params) -> ndarray
         Residual vector over all logs.
     candidates : list of str
@@ -216,57 +246,119 @@ def lmfit_identify(make_params, residual, candidates, *, bounds, segments, min_r
     bounds : dict name -> (lo, hi)
     segments : callable(params) -> list of ndarray
         Per-log residuals (for the autocorrelation inflation).
-    conf_keys : names whose lmfit confidence intervals are wanted.
-    fixed_reason : dict name -> reason, pre-set undetermined parameters.
+    conf_keys : names whose lmfit confidence intervals are wanted (when estimated).
+    fixed_reason : dict name -> reason
+        Parameters known beforehand to be undetermined (no data in their regime): held at the prior,
+        whose uncertainty is propagated into the others' standard errors.
+    perturbed : sequence of callable(params) -> ndarray
+        Residual functions with one logged input scaled by one standard deviation of its calibration
+        uncertainty (:data:`INPUT_REL_SD`); the shift of the estimates when refitted is added in
+        quadrature to their standard errors (errors in the inputs, not only in the output).
+
+    Notes
+    -----
+    Parameters that the data reaches but does not determine (large relative standard error, near
+    collinearity) stay *free* in the fit, as nuisance parameters, so that the estimates of the others
+    are not biased by a wrong prior and their standard errors include the correlation; they are then
+    reported undetermined at their prior. A parameter with no sensitivity at all (singular covariance)
+    or stuck at a bound is instead held at its prior and the fit repeated.
 
     Returns
     -------
     dict with ``result`` (lmfit MinimizerResult), ``stderr``, ``values``, ``correl`` (inflated se,
-    pairwise correlations of fitted model parameters), ``undetermined`` {name: reason}, ``factor``,
-    ``conf`` {name: {sigma: [lo, hi]}}, ``n``, ``n_eff``.
+    pairwise correlations of the free model parameters), ``undetermined`` {name: reason}, ``vary``
+    (estimated names), ``factor``, ``conf`` {name: {sigma: [lo, hi]}}, ``n``, ``n_eff``.
     """
     import lmfit
 
-    und = dict(fixed_reason or {})
-    vary = [c for c in candidates if c not in und]
+    fixed = dict(fixed_reason or {})
+    free = [c for c in candidates if c not in fixed]
+    res = mini = None
+    stderr, values, correl, factor, segs = {}, {}, {}, 1.0, []
     for _ in range(len(candidates) + 1):
-        params = make_params(set(vary))
+        params = make_params(set(free))
         mini = lmfit.Minimizer(residual, params)
         res = mini.minimize(method="leastsq")
         segs = segments(res.params)
-        nvarys = res.nvarys
-        factor = inflation(segs, nvarys)
-        values = {n: float(res.params[n].value) for n in vary}
+        factor = inflation(segs, res.nvarys)
+        values = {n: float(res.params[n].value) for n in free}
         stderr = {}
-        for n in vary:
+        for n in free:
             se = res.params[n].stderr
             stderr[n] = float(se) * factor if se is not None and np.isfinite(se) else None
-        correl = {}
-        for i, a in enumerate(vary):
-            ca = res.params[a].correl or {}
-            for b in vary[i + 1:]:
-                if b in ca:
-                    correl[f"{a}|{b}"] = float(ca[b])
-        new = {}
-        for n in vary:
-            ok, why = judge(n, values[n], stderr[n], bounds[n])
-            if not ok:
-                new[n] = why
-        if not new:
-            okse = {n: s for n, s in stderr.items() if s is not None}
-            new = collinear([n for n in vary if n in okse], okse, values, correl)
-        if not new:
+        # no sensitivity / at a bound: hold at the prior and refit
+        drop = {}
+        for n in free:
+            lo, hi = bounds[n]
+            span = hi - lo
+            if span > 0 and (values[n] - lo < 1e-4 * span or hi - values[n] < 1e-4 * span):
+                drop[n] = f"estimate {values[n]:.6g} stuck at its bound [{lo:g}, {hi:g}]"
+        if not drop and any(stderr[n] is None for n in free):
+            # covariance singular: drop the candidate with the largest relative step to explain it
+            n = next(n for n in free if stderr[n] is None) if all(stderr[m] is None for m in free) else \
+                next(n for n in free if stderr[n] is None)
+            drop[n] = "no finite standard error (the data is not sensitive to it / singular covariance)"
+        if not drop:
             break
-        # drop the worst one at a time (others may become determined once it is fixed)
-        worst = max(new, key=lambda n: (stderr[n] or math.inf) / (abs(values[n]) or 1e-300))
-        und[worst] = new[worst]
-        vary = [v for v in vary if v != worst]
-        if not vary:
+        fixed.update(drop)
+        free = [c for c in free if c not in drop]
+        if not free:
             break
-    n, ne = neff(segs)
+    correl = {}
+    for i, a in enumerate(free):
+        ca = res.params[a].correl or {}
+        for b in free[i + 1:]:
+            if b in ca:
+                correl[f"{a}|{b}"] = float(ca[b])
+    # prior uncertainty of the parameters held at their prior
+    if fixed and free:
+        shift = {n: 0.0 for n in free}
+        for u in fixed:
+            if u not in bounds:
+                continue
+            p0 = make_params(set(free))
+            if u not in p0:
+                continue
+            v0 = float(p0[u].value)
+            sd = PRIOR_ABS_SD.get(u, PRIOR_REL_SD * abs(v0))
+            lo, hi = bounds[u]
+            v1 = v0 + sd if v0 + sd <= hi else v0 - sd
+            if sd == 0 or not lo <= v1 <= hi:
+                continue
+            p0[u].set(value=v1)
+            for n in res.params:
+                if res.params[n].vary and n in p0:
+                    p0[n].set(value=res.params[n].value)
+            r1 = lmfit.Minimizer(residual, p0).minimize(method="leastsq")
+            for n in free:
+                shift[n] += (float(r1.params[n].value) - values[n]) ** 2
+        for n in free:
+            if stderr[n] is not None and shift[n] > 0:
+                stderr[n] = math.sqrt(stderr[n] ** 2 + shift[n])
+    # calibration uncertainty of the logged inputs
+    for rfun in perturbed:
+        if not free:
+            break
+        p0 = make_params(set(free))
+        for n in res.params:
+            if res.params[n].vary and n in p0:
+                p0[n].set(value=res.params[n].value)
+        r1 = lmfit.Minimizer(rfun, p0).minimize(method="leastsq")
+        for n in free:
+            if stderr[n] is not None:
+                stderr[n] = math.sqrt(stderr[n] ** 2 + (float(r1.params[n].value) - values[n]) ** 2)
+    und = dict(fixed)
+    for n in free:
+        ok, why = judge(n, values[n], stderr[n], bounds[n])
+        if not ok:
+            und[n] = why
+    okse = {n: stderr[n] for n in free if n not in und}
+    und.update(collinear(list(okse), okse, values, correl))
+    est = [n for n in free if n not in und]
+    n_tot, ne = neff(segs)
     conf = {}
-    keys = [k for k in conf_keys if k in vary]
-    if keys and vary:
+    keys = [k for k in conf_keys if k in est]
+    if keys:
         try:
             res.nfree = max(int(ne) - res.nvarys, 1)
             ci = lmfit.conf_interval(mini, res, p_names=keys, sigmas=[1, 2])
@@ -280,7 +372,7 @@ def lmfit_identify(make_params, residual, candidates, *, bounds, segments, min_r
         except Exception as exc:  # noqa: BLE001 - lmfit raises plain exceptions on degenerate profiles
             conf["_error"] = f"conf_interval failed: {str(exc)[:120]}"
     return {"result": res, "stderr": stderr, "values": values, "correl": correl, "undetermined": und,
-            "factor": factor, "conf": conf, "n": n, "n_eff": ne, "vary": vary}
+            "factor": factor, "conf": conf, "n": n_tot, "n_eff": float(ne), "vary": est}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -403,7 +495,7 @@ class CalibrationResult:
                 if k.startswith("_"):
                     L.append(f"  {v}")
                 else:
-                    L.append(f"  CI {k}: " + ", ".join(f"{s} [{a:.5g}, {b:.5g}]" for s, (a, b) in v.items()
+                    L.append(f"  CI {k}: " + ", ".join(f"{s} [{ab[0]:.5g}, {ab[1]:.5g}]" for s, ab in v.items()
                                                          if s != "best"))
         if self.validation:
             L.append("")

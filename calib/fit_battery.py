@@ -18,7 +18,7 @@ import math
 
 import numpy as np
 
-from .calibrate import (MIN_SAMPLES, REL_SE_MAX, U_OC_SE_MAX_V, ParamEstimate, SubsystemFit, inflation, judge,
+from .calibrate import (U_OC_SE_MAX_V, ParamEstimate, SubsystemFit, inflation, judge,
                         not_fitted, usable_logs)
 
 NEEDS = ("bat_current_A", "bat_voltage_V", "soc")

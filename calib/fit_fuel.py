@@ -4,13 +4,18 @@ The model is ``W_f = max(fuel_scale * P_e / (eta_ool(P_e) LHV), W_idle) f_cl(T_c
 ``W_idle f_cl(T_cl)`` idling (:func:`calib.model.fuel_rate`). One lmfit least-squares fit over the
 *stable* 1 s bins of all logs (engine mode the same in the bin and both neighbours, see
 :func:`calib.validate.stable_mode`, and engine power within 3 % of both neighbours, so that the bin's mean
-speed and torque describe one operating point):
+speed and torque describe one operating point; when the engine follows the optimal operating line,
+bins whose mean speed is off the line by > 0.5 % are mixtures of two operating points and are dropped):
 
 - warm engine-on bins (coolant >= 80 degC, where ``f_cl`` is 1 by definition) determine ``fuel_scale``;
 - idle bins determine ``W_idle`` (through ``f_cl`` when cold);
-- cold bins determine the ``f_cl`` entries (the ratio of measured to nominal fuel rate), each entry only
+- cold bins determine the ``f_cl`` entries (at the coolant temperature smoothed over 21 s, which removes
+  most of its 1 degC quantisation) (the ratio of measured to nominal fuel rate), each entry only
   if its hat-function weight over the cold bins is >= 30 samples; the last breakpoint (80 degC) is the
   warm reference and stays 1.
+
+Standard errors include the calibration uncertainty of the inputs (engine power 1 %, coolant
+temperature 0.5 K), propagated by refitting with each input moved by one sd.
 
 Every evaluation calls :func:`calib.model.fuel_rate` in a compiled loop
 (:func:`calib.validate.fuel_replay`).
@@ -19,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .calibrate import MIN_SAMPLES, ParamEstimate, SubsystemFit, lmfit_identify, not_fitted, usable_logs
+from .calibrate import INPUT_REL_SD, MIN_SAMPLES, ParamEstimate, SubsystemFit, lmfit_identify, not_fitted, usable_logs
 from .fit_battery import hat_basis
 from .model import IDLE, ON
 from .validate import fuel_replay, log_arrays
@@ -28,6 +33,21 @@ NEEDS = ("engine_speed_rpm", "engine_torque_Nm", "fuel_rate_g_per_s", "coolant_t
 PARAMS = ("fuel_scale", "W_idle_g_per_s", "f_cl")
 WARM_DEGC = 80.0
 MIN_COVER = 30.0
+OOL_TOL = 0.005
+T_SD = 0.5  # degC, calibration uncertainty of the coolant temperature sensor
+RPM = 2.0 * np.pi / 60.0
+
+
+def smooth(x, n=21):
+    """Centred moving average over ``n`` samples ignoring NaN (NaN stays NaN): removes most of the 1 degC
+    quantisation of a slowly varying temperature before it is used as a regressor."""
+    x = np.asarray(x, float)
+    ok = np.isfinite(x)
+    k = np.ones(n)
+    num = np.convolve(np.where(ok, x, 0.0), k, mode="same")
+    den = np.convolve(ok.astype(float), k, mode="same")
+    out = np.where(ok & (den > 0), num / np.maximum(den, 1.0), np.nan)
+    return out
 
 
 def _steady_power(P, rel=0.03, abs_W=300.0):
@@ -67,11 +87,21 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
     fit.logs = [lg.label() for lg in use]
     mp0 = base.model_params()
     mode, P, T, W, seg = [], [], [], [], []
+    ool_filtered = []
     for lg in use:
         la = log_arrays(lg, mp0)
-        T_cl = la.ch["coolant_temp_degC"]
+        T_cl = smooth(la.ch["coolant_temp_degC"], 21)
         ok = la.stable & np.isin(la.mode, (ON, IDLE)) & np.isfinite(la.ch["fuel_rate_g_per_s"]) & np.isfinite(T_cl)
         ok &= np.isfinite(la.P_e) & _steady_power(la.P_e)
+        # bins whose mean speed and torque lie off the optimal operating line mix two operating points
+        # (mean speed x mean torque is then not the mean power): drop them, when the engine follows its
+        # line at all (it does in the model; a real engine that does not keeps all its bins)
+        w = la.ch["engine_speed_rpm"] * RPM
+        dev = np.abs(np.interp(np.nan_to_num(la.P_e), mp0.P_ool, mp0.w_ool) / np.maximum(w, 1e-9) - 1.0)
+        on_ok = ok & (la.mode == ON)
+        if on_ok.sum() and np.mean(dev[on_ok] < OOL_TOL) >= 0.5:
+            ok &= (la.mode != ON) | (dev < OOL_TOL)
+            ool_filtered.append(lg.label())
         mode.append(la.mode[ok])
         P.append(np.nan_to_num(la.P_e[ok]))
         T.append(T_cl[ok])
@@ -88,7 +118,7 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
     f0 = np.array(pf.value, float)
     cold = T < WARM_DEGC
     cover = hat_basis(T[cold], Tbp).sum(axis=0)
-    fit.metrics.update(samples=int(P.size), warm_on_samples=warm_on, idle_samples=n_idle,
+    fit.metrics.update(ool_filtered_logs=len(ool_filtered), samples=int(P.size), warm_on_samples=warm_on, idle_samples=n_idle,
                        cold_samples=int(cold.sum()))
 
     pre = {}
@@ -125,17 +155,20 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
             ps.add(nm, value=prior[nm], min=lo, max=hi, vary=nm in vary)
         return ps
 
-    def model_of(ps):
+    def model_of(ps, sP=1.0, dT=0.0):
         v = ps.valuesdict()
         f = f0.copy()
         for j, nm in enumerate(fcl_names):
             f[j] = v[nm]
         mp = mp0._replace(fuel_scale=float(v.get("fuel_scale", mp0.fuel_scale)),
                           W_idle=float(v.get("W_idle_g_per_s", mp0.W_idle)), f_cl=f)
-        return fuel_replay(mp, mode, P, T)
+        return fuel_replay(mp, mode, sP * P, T + dT)
 
     def residual(ps):
         return model_of(ps) - W
+
+    # input calibration uncertainty: engine power (1 %), coolant temperature (0.5 K)
+    perturbed = [lambda ps: model_of(ps, sP=1.0 + INPUT_REL_SD) - W, lambda ps: model_of(ps, dT=T_SD) - W]
 
     def segments(ps):
         return np.split(residual(ps), bounds_idx)
@@ -144,7 +177,8 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
         out = {"undetermined": pre, "values": {}, "stderr": {}, "correl": {}, "vary": [], "n": P.size,
                "n_eff": float("nan"), "factor": float("nan"), "conf": {}}
     else:
-        out = lmfit_identify(make_params, residual, cand, bounds=bnd, segments=segments, fixed_reason=pre)
+        out = lmfit_identify(make_params, residual, cand, bounds=bnd, segments=segments, fixed_reason=pre,
+                             perturbed=perturbed)
         r = residual(out["result"].params)
         fit.metrics.update(rmse_g_per_s=float(np.sqrt(np.mean(r ** 2))), n_eff=out["n_eff"],
                            se_inflation=out["factor"])

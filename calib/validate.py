@@ -11,7 +11,8 @@ The replay drives the model of :mod:`calib.model` with the *inputs* a log record
   (eq. 3 fed with the *simulated* fuel rate, so the cold factor acts on the simulated coolant), cabin
   temperature (eq. 10), fuel rate (eqs. 4-5) and cumulative fuel.
 
-The initial states are the first valid logged values. The loop is compiled (``numba``) and calls the same
+The initial states are the mean of the first five valid logged values. The measured fuel rate is taken
+as zero where the engine is stopped (speed below 150 rpm). The loop is compiled (``numba``) and calls the same
 equation functions as the simulator and the fitters.
 
 Also here: :func:`log_arrays`, the per-log input arrays every fitter uses (engine mode classification,
@@ -87,11 +88,22 @@ def stable_mode(mode):
 def operating_point(n_rpm, tau_Nm, mode, stable, mp):
     """Split every 1 s bin into engine-on (power ``P_on``), idle and off fractions.
 
-    A resampled bin that straddles an engine start or stop holds the *means* of speed and torque over the
-    bin, so ``mean(n) * mean(tau)`` is not the engine power. In such a bin the engine is taken to run on
-    its optimal operating line for a fraction ``f`` of the bin and to be off or idling (as its neighbour
-    bin) for the rest; ``f`` and the power solve ``n_mean = f w_ool(P) + (1 - f) n_other`` and
-    ``tau_mean = f P / w_ool(P)`` (bisection). Bins with a stable mode are taken as they are.
+    A resampled bin holds the *means* of speed and torque over the bin, so ``mean(n) * mean(tau)`` is
+    not the engine power when the operating point changed within it (an engine start or stop, or a
+    controller that toggles the engine every second). The engine is taken to follow the model's optimal
+    operating line (OOL) when at least half of the engine-on bins have their mean speed within 0.5 % of
+    ``w_ool(n tau)``. Then:
+
+    - a bin on the line is one operating point, its power read from its mean speed along the line;
+    - a bin near the line (torque within 10 % of the line's at its mean speed) mixes nearby on-line
+      points: its mean power is read from its mean speed;
+    - a bin far off the line is a mixture: the engine ran on the line for a fraction ``f`` of the bin and was
+      off or idling (as a neighbour bin) for the rest; ``f`` and the power solve
+      ``n_mean = f w_ool(P) + (1 - f) n_other`` and ``tau_mean = f P / w_ool(P)``; when no such
+      solution exists the bin mixes two on-line points and its power is read from its mean speed.
+
+    An engine that does not follow the line (a real engine with its own calibration) keeps
+    ``P = n tau``, with the mixture solution only for bins next to an off/idle bin.
 
     Returns
     -------
@@ -103,52 +115,75 @@ def operating_point(n_rpm, tau_Nm, mode, stable, mp):
     f_on = np.zeros(n)
     P_on = np.zeros(n)
     f_idle = np.zeros(n)
+    valid = np.isfinite(w) & np.isfinite(tq)
+    onb = valid & (tq >= 2.0) & (w > 500 * RPM)
+    increasing = bool(np.all(np.diff(mp.w_ool) > 0))
+    dev = np.full(n, np.inf)
+    dev[onb] = np.abs(np.interp(w[onb] * tq[onb], mp.P_ool, mp.w_ool) / w[onb] - 1.0)
+    follows = increasing and onb.sum() >= 10 and np.mean(dev[onb] < OOL_TOL) >= 0.5
     for k in range(n):
         wk, tk = w[k], tq[k]
-        if not (np.isfinite(wk) and np.isfinite(tk)) or wk < 50 * RPM:
+        if not valid[k] or wk < 50 * RPM:
             continue
         if tk < 1.0:
             f_idle[k] = min(wk / mp.w_idle, 1.0)
             continue
         nb = [mode[j] for j in (k - 1, k + 1) if 0 <= j < n]
-        if (stable[k] and mode[k] == ON) or not any(m in (OFF, IDLE) for m in nb):
+        if follows:
+            P_w = np.interp(wk, mp.w_ool, mp.P_ool)  # power on the line at the mean speed
+            if dev[k] < OOL_TOL or abs(wk * tk / max(P_w, 1.0) - 1.0) < 0.1:
+                # on the line, or two nearby on-line points: the mean speed gives the mean power
+                f_on[k], P_on[k] = 1.0, P_w
+                continue
+        elif (stable[k] and mode[k] == ON) or not any(m in (OFF, IDLE) for m in nb):
             f_on[k], P_on[k] = 1.0, wk * tk
             continue
         w_o = mp.w_idle if IDLE in nb else 0.0
-
-        def g(f):
-            om = (wk - (1.0 - f) * w_o) / f
-            P = tk * om / f
-            return om - np.interp(P, mp.P_ool, mp.w_ool), P
-
-        # the root with the largest on-fraction (and a feasible power): scan down from f = 1
-        fs = np.linspace(1.0, 0.05, 96)
-        prev_f, prev_g = 1.0, g(1.0)[0]
-        lo = hi = -1.0
-        for fc in fs[1:]:
-            gc, Pc = g(fc)
-            if Pc > mp.P_e_max:
-                break
-            if gc * prev_g <= 0.0:
-                lo, hi = fc, prev_f
-                break
-            prev_f, prev_g = fc, gc
-        if lo < 0:
-            f_on[k], P_on[k] = 1.0, wk * tk
+        f, P = _mixture(wk, tk, w_o, mp)
+        if f < 0:
+            f_on[k] = 1.0
+            P_on[k] = np.interp(wk, mp.w_ool, mp.P_ool) if follows else wk * tk
             continue
-        glo = g(lo)[0]
-        for _ in range(30):
-            mid = 0.5 * (lo + hi)
-            gm = g(mid)[0]
-            if gm * glo > 0:
-                lo, glo = mid, gm
-            else:
-                hi = mid
-        f = 0.5 * (lo + hi)
-        f_on[k], P_on[k] = f, g(f)[1]
+        f_on[k], P_on[k] = f, P
         if w_o > 0:
             f_idle[k] = 1.0 - f
     return f_on, P_on, f_idle
+
+
+def _mixture(wk, tk, w_o, mp):
+    """(f, P) of a bin mixing the OOL point P (fraction f) with speed w_o at zero torque; (-1, 0) if none."""
+
+    def g(f):
+        om = (wk - (1.0 - f) * w_o) / f
+        P = tk * om / f
+        return om - np.interp(P, mp.P_ool, mp.w_ool), P
+
+    # the root with the largest on-fraction (and a feasible power): scan down from f = 1
+    prev_f, prev_g = 1.0, g(1.0)[0]
+    lo = hi = -1.0
+    for fc in np.linspace(1.0, 0.05, 96)[1:]:
+        gc, Pc = g(fc)
+        if Pc > mp.P_e_max:
+            break
+        if gc * prev_g <= 0.0:
+            lo, hi = fc, prev_f
+            break
+        prev_f, prev_g = fc, gc
+    if lo < 0:
+        return -1.0, 0.0
+    glo = g(lo)[0]
+    for _ in range(30):
+        mid = 0.5 * (lo + hi)
+        gm = g(mid)[0]
+        if gm * glo > 0:
+            lo, glo = mid, gm
+        else:
+            hi = mid
+    f = 0.5 * (lo + hi)
+    return f, g(f)[1]
+
+
+OOL_TOL = 0.005
 
 
 @dataclass
@@ -353,8 +388,11 @@ def replay(log, params) -> Replay:
     T_cab0 = first_valid_mean(c["cabin_temp_degC"], 5, float(T_amb[0]))
     soc, T_cl, T_cab, W = full_replay(mp, la.dt, soc0, T_cl0, T_cab0, la.f_on, la.P_on, la.f_idle, P_bat, T_bat,
                                       T_amb, Q_heat)
+    # a stopped engine burns nothing: zero the fuel-flow reading there (sensor noise clipped at zero
+    # would otherwise count as fuel)
+    W_meas = np.where((la.f_on + la.f_idle > 0) | ~np.isfinite(c["engine_speed_rpm"]), c["fuel_rate_g_per_s"], 0.0)
     measured = {"soc": c["soc"], "coolant_temp": c["coolant_temp_degC"], "cabin_temp": c["cabin_temp_degC"],
-                "fuel_rate": c["fuel_rate_g_per_s"]}
+                "fuel_rate": W_meas}
     simulated = {"soc": soc, "coolant_temp": T_cl, "cabin_temp": T_cab, "fuel_rate": W}
     for k in list(measured):
         if not np.isfinite(measured[k]).any():

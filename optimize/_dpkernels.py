@@ -28,7 +28,7 @@ def no_precompute(k, w_k, p, tab):  # pragma: no cover - compiled
     return
 
 
-@njit(cache=True)
+@njit(inline="always", cache=True)
 def _locate(x, d, lo, inv_dx, n, uniform, pts, clip, ib, tb):
     """Cell index and fraction of ``x`` along dimension ``d`` into ib[d], tb[d]; False if off-grid."""
     nd = n[d]
@@ -70,7 +70,7 @@ def _locate(x, d, lo, inv_dx, n, uniform, pts, clip, ib, tb):
     return True
 
 
-@njit(cache=True)
+@njit(inline="always", cache=True)
 def _locate_all(xq, nx, lo, inv_dx, n, uniform, pts, clip, ib, tb):
     for d in range(nx):
         if not _locate(xq[d], d, lo, inv_dx, n, uniform, pts, clip, ib, tb):
@@ -102,7 +102,7 @@ def _interp_slow(V, nx, strides, ib, tb):
     return acc
 
 
-@njit(cache=True)
+@njit(inline="always", cache=True)
 def _interp(V, nx, strides, ib, tb):
     """Multilinear interpolation of the flat array V at the located point (ib, tb).
 
@@ -152,6 +152,9 @@ def backward(transition, precompute, N, X, controls, w, p, tab, VT, LT, use_leve
         nchunks = n_states
     csize = (n_states + nchunks - 1) // nchunks
     nchunks = (n_states + csize - 1) // csize
+    # dynamic scheduling of the chunks (one chunk per grab): robust against a thread being descheduled
+    # by other load on the machine, where numba's default static split would stall every step
+    old_chunk = numba.set_parallel_chunksize(1)
     for k in range(N - 1, -1, -1):
         precompute(k, w[k], p, tab)
         Vn = VT[k + 1]
@@ -176,13 +179,14 @@ def backward(transition, precompute, N, X, controls, w, p, tab, VT, LT, use_leve
                 best = np.inf
                 bestL = np.inf
                 bi = -1
-                if use_level:
-                    for iu in range(nu):
-                        cst = transition(k, x, controls[iu], wk, p, tab, iu, ix, xn)
-                        if not (cst < np.inf):
-                            continue
-                        if not _locate_all(xn, nx, lo, inv_dx, n, uniform, pts, clip, ib, tb):
-                            continue
+                for iu in range(nu):
+                    cst = transition(k, x, controls[iu], wk, p, tab, iu, ix, xn)
+                    if not (cst < np.inf):
+                        continue
+                    if not _locate_all(xn, nx, lo, inv_dx, n, uniform, pts, clip, ib, tb):
+                        continue
+                    lv = 0.0
+                    if use_level:
                         lv = _interp(Ln, nx, strides, ib, tb)
                         if not (lv < np.inf):
                             continue
@@ -190,26 +194,19 @@ def backward(transition, precompute, N, X, controls, w, p, tab, VT, LT, use_leve
                             lv = 0.0
                         if lv > bestL:
                             continue
-                        v = cst + _interp(Vn, nx, strides, ib, tb)
-                        if lv < bestL or v < best:
-                            best = v
-                            bestL = lv
-                            bi = iu
+                    v = cst + _interp(Vn, nx, strides, ib, tb)
+                    if not (v < np.inf):
+                        continue
+                    if lv < bestL or v < best:
+                        best = v
+                        bestL = lv
+                        bi = iu
+                if use_level:
                     Lk[s] = bestL
-                else:
-                    for iu in range(nu):
-                        cst = transition(k, x, controls[iu], wk, p, tab, iu, ix, xn)
-                        if not (cst < np.inf):
-                            continue
-                        if not _locate_all(xn, nx, lo, inv_dx, n, uniform, pts, clip, ib, tb):
-                            continue
-                        v = cst + _interp(Vn, nx, strides, ib, tb)
-                        if v < best:
-                            best = v
-                            bi = iu
                 Vk[s] = best
                 if store_policy:
                     policy[k, s] = bi
+    numba.set_parallel_chunksize(old_chunk)
 
 
 @njit(cache=False)

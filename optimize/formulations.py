@@ -41,9 +41,15 @@ Common choices
       ``ix``; in the forward pass (``ix = -1``) it calls the model functions at the true state.
     * One compiled transition (:func:`hev_transition`) serves all three formulations (the state count is
       read from the parameters), so the engine's kernels compile once.
-    * Thermal-Cabin-DP uses a fused kernel (:mod:`optimize._cabinkernel`) by default; it gives the same
-      value functions and trajectory as the generic engine (``engine="generic"``), cross-checked in
-      ``tests/test_formulations.py``.
+    * Thermal-DP and Thermal-Cabin-DP use fused backward kernels (:mod:`optimize._fused`) by default and
+      the engine's forward pass; they give the same value functions and trajectory as the generic engine
+      (``engine="generic"``), cross-checked in ``tests/test_formulations.py``.
+    * State constraints (SOC, T_cl and T_cab boxes, the cabin lower-bound trajectory) are a documented
+      penalty, :data:`PENALTY_G_PER_STEP` g of fuel per grid step of violation, with the engine's
+      ``clip=True`` lookup, not +inf: with +inf, a grid node that cannot avoid leaving the box (e.g. SOC
+      0.8 while braking: the motor must regenerate) poisons its neighbours through interpolation, one cell
+      per event, until after ~40 braking events no SOC node is finite (the level-set method of the engine
+      covers terminal sets only). Re-simulated results are checked to stay inside the boxes.
 """
 from __future__ import annotations
 
@@ -180,6 +186,11 @@ def peak_rss_mb() -> float:
 _C_NX, _C_NQ, _C_TAMB, _C_TS, _C_TBAT, _C_WBL = 0, 1, 2, 3, 4, 5
 _C_SLO, _C_SHI, _C_SH, _C_TLO, _C_THI, _C_TH, _C_CHI, _C_CH, _C_PEN = 6, 7, 8, 9, 10, 11, 12, 13, 14
 
+# array descriptors (offset, length) in the flat parameter vector, then the model scalars
+_A_SOCG, _A_FCLG, _A_LOSSG, _A_SOCBP, _A_UOC, _A_SOCBPR, _A_RINT, _A_TFCL, _A_FCL, _A_BIG = range(16, 36, 2)
+_MS0 = 40
+_HEADER = 64
+
 #: Penalty (g of fuel) per grid step of state-constraint violation (see :func:`hev_transition`).
 PENALTY_G_PER_STEP = 1000.0
 # model scalars (float64 array): the generic engine's parallel kernel cannot take the ModelParams namedtuple
@@ -226,24 +237,53 @@ def build_tables(mp, pc, socg, P_trac, Ts, T_bat):  # pragma: no cover - compile
     return out
 
 
+@njit(inline="always", cache=True)
+def _arr(p, a):
+    o = int(p[a])
+    return p[o: o + int(p[a + 1])]
+
+
+def pack_params(cfg, ms, arrays) -> np.ndarray:
+    """One flat float64 vector: header (cfg, descriptors, model scalars) then the arrays.
+
+    A flat array (rather than a tuple holding the ModelParams namedtuple) because numba's parallel
+    backward kernel rejects a struct with arrays as a prange argument, and because a tuple of arrays
+    costs reference-count traffic on every transition call."""
+    n = _HEADER + sum(a.size for a in arrays)
+    P = np.zeros(n)
+    P[: cfg.size] = cfg
+    P[_MS0: _MS0 + ms.size] = ms
+    o = _HEADER
+    for j, a in enumerate(arrays):
+        P[16 + 2 * j] = o
+        P[17 + 2 * j] = a.size
+        P[o: o + a.size] = a.ravel()
+        o += a.size
+    return P
+
+
 @njit(cache=True)
 def hev_precompute(k, w_k, p, tab):  # pragma: no cover - compiled
     """Per step: copy step k's slice of the per-step per-control table."""
-    big = p[11]
-    tab[:, :] = big[k]
+    o = int(p[_A_BIG])
+    n0 = tab.shape[0]
+    n1 = tab.shape[1]
+    o += k * n0 * n1
+    for i in range(n0):
+        for j in range(n1):
+            tab[i, j] = p[o + i * n1 + j]
 
 
 @njit(inline="always", cache=True)
 def _soc_next(p, soc, P_bat, Ts):
     """Off-grid SOC step (forward pass): calib.model.battery with the tables of p; NaN if no real root."""
-    ms, cfg = p[0], p[1]
-    U = np.interp(soc, p[5], p[6])
-    R = np.interp(soc, p[7], p[8]) * math.exp(-ms[_R_TC] * (cfg[_C_TBAT] - ms[_TBREF]))
+    U = np.interp(soc, _arr(p, _A_SOCBP), _arr(p, _A_UOC))
+    R = np.interp(soc, _arr(p, _A_SOCBPR), _arr(p, _A_RINT)) * math.exp(-p[_MS0 + _R_TC] * (p[_C_TBAT] - p[_MS0 + _TBREF]))
     disc = U * U - 4.0 * R * P_bat
     if disc < 0.0:
         return np.nan
     I = 2.0 * P_bat / (U + math.sqrt(disc))
-    return soc - I * Ts / ms[_CBAT]
+    return soc - I * Ts / p[_MS0 + _CBAT]
 
 
 @njit(cache=True)
@@ -251,13 +291,11 @@ def hev_transition(k, x, u, w_k, p, tab, iu, ix, x_next):  # pragma: no cover - 
     """x = (soc[, T_cl[, T_cab]]), u = (e_mode, P_bat_mg, Q_heat_cmd); w_k = (P_trac, T_cab_ref_k, T_cab_LB_k+1).
 
     Returns the fuel (g) of the step, inf if infeasible. Same equations as :func:`calib.model.step`."""
-    ms = p[0]
-    cfg = p[1]
-    nq = int(cfg[_C_NQ])
+    nq = int(p[_C_NQ])
     ip = iu // nq
     if tab[ip, _T_OK] == 0.0:
         return np.inf
-    Ts = cfg[_C_TS]
+    Ts = p[_C_TS]
     soc = x[0]
     if ix[0] >= 0:
         sn = tab[ip, _T_SOC0 + ix[0]]
@@ -267,57 +305,57 @@ def hev_transition(k, x, u, w_k, p, tab, iu, ix, x_next):  # pragma: no cover - 
         return np.inf
     x_next[0] = sn
     pen = 0.0
-    if sn < cfg[_C_SLO]:
-        pen += (cfg[_C_SLO] - sn) / cfg[_C_SH]
-    elif sn > cfg[_C_SHI]:
-        pen += (sn - cfg[_C_SHI]) / cfg[_C_SH]
-    nx = int(cfg[_C_NX])
+    if sn < p[_C_SLO]:
+        pen += (p[_C_SLO] - sn) / p[_C_SH]
+    elif sn > p[_C_SHI]:
+        pen += (sn - p[_C_SHI]) / p[_C_SH]
+    nx = int(p[_C_NX])
     wf = tab[ip, _T_WF]
     if nx == 1:
-        return wf * Ts + cfg[_C_PEN] * pen
+        return wf * Ts + p[_C_PEN] * pen
     T_cl = x[1]
-    T_amb = cfg[_C_TAMB]
+    T_amb = p[_C_TAMB]
     if ix[1] >= 0:
-        fcl = p[3][ix[1]]
-        loss = p[4][ix[1]]
+        fcl = p[int(p[_A_FCLG]) + ix[1]]
+        loss = p[int(p[_A_LOSSG]) + ix[1]]
     else:
-        fcl = np.interp(T_cl, p[9], p[10])
-        T_com = T_amb + ms[_KAPPA] * (T_cl - T_amb)
+        fcl = np.interp(T_cl, _arr(p, _A_TFCL), _arr(p, _A_FCL))
+        T_com = T_amb + p[_MS0 + _KAPPA] * (T_cl - T_amb)
         q_rad = 0.0
-        if T_cl > ms[_TOPEN]:
-            q_rad = ms[_KRAD] * (T_cl - ms[_TOPEN])
-            if q_rad > ms[_QRADMAX]:
-                q_rad = ms[_QRADMAX]
-        loss = ms[_HA] * (T_cl - T_com) + q_rad
+        if T_cl > p[_MS0 + _TOPEN]:
+            q_rad = p[_MS0 + _KRAD] * (T_cl - p[_MS0 + _TOPEN])
+            if q_rad > p[_MS0 + _QRADMAX]:
+                q_rad = p[_MS0 + _QRADMAX]
+        loss = p[_MS0 + _HA] * (T_cl - T_com) + q_rad
     W_f = wf * fcl
     if nx == 3:
         T_cab = x[2]
     else:
         T_cab = w_k[1]
-    T_in = ms[_RECIRC] * T_cab + (1.0 - ms[_RECIRC]) * T_amb
-    q_lim = ms[_EPS] * cfg[_C_WBL] * ms[_CP] * (T_cl - T_in)
+    T_in = p[_MS0 + _RECIRC] * T_cab + (1.0 - p[_MS0 + _RECIRC]) * T_amb
+    q_lim = p[_MS0 + _EPS] * p[_C_WBL] * p[_MS0 + _CP] * (T_cl - T_in)
     q = u[2]
     if q > q_lim:
         q = q_lim
     if q < 0.0:
         q = 0.0
-    Q_fuel = ms[_LHV] * W_f
+    Q_fuel = p[_MS0 + _LHV] * W_f
     P_e = tab[ip, _T_PE]
-    Q_exh = ms[_GAMMA] * (Q_fuel - P_e)
-    tn = T_cl + Ts * (Q_fuel - P_e - Q_exh - loss - q) / ms[_CENG]
+    Q_exh = p[_MS0 + _GAMMA] * (Q_fuel - P_e)
+    tn = T_cl + Ts * (Q_fuel - P_e - Q_exh - loss - q) / p[_MS0 + _CENG]
     x_next[1] = tn
-    if tn < cfg[_C_TLO]:
-        pen += (cfg[_C_TLO] - tn) / cfg[_C_TH]
-    elif tn > cfg[_C_THI]:
-        pen += (tn - cfg[_C_THI]) / cfg[_C_TH]
+    if tn < p[_C_TLO]:
+        pen += (p[_C_TLO] - tn) / p[_C_TH]
+    elif tn > p[_C_THI]:
+        pen += (tn - p[_C_THI]) / p[_C_TH]
     if nx == 3:
-        tc = T_cab + Ts * (q + ms[_UACAB] * (T_amb - T_cab) + ms[_QSUN]) / ms[_CCAB]
+        tc = T_cab + Ts * (q + p[_MS0 + _UACAB] * (T_amb - T_cab) + p[_MS0 + _QSUN]) / p[_MS0 + _CCAB]
         x_next[2] = tc
         if tc < w_k[2]:
-            pen += (w_k[2] - tc) / cfg[_C_CH]
-        elif tc > cfg[_C_CHI]:
-            pen += (tc - cfg[_C_CHI]) / cfg[_C_CH]
-    return W_f * Ts + cfg[_C_PEN] * pen
+            pen += (w_k[2] - tc) / p[_C_CH]
+        elif tc > p[_C_CHI]:
+            pen += (tc - p[_C_CHI]) / p[_C_CH]
+    return W_f * Ts + p[_C_PEN] * pen
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -497,8 +535,8 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
     ms = np.array([float(getattr(mp, n)) for n in _MS])
     big = build_tables(mp, pc, socg, P_trac, float(Ts), float(mp.T_bat_ref))
     c = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
-    p = (ms, cfg, socg, fclg, lossg, c(mp.soc_bp), c(mp.U_oc), c(mp.soc_bp_R), c(mp.R_int), c(mp.T_fcl),
-         c(mp.f_cl), big)
+    p = pack_params(cfg, ms, [socg, fclg, lossg, c(mp.soc_bp), c(mp.U_oc), c(mp.soc_bp_R), c(mp.R_int),
+                              c(mp.T_fcl), c(mp.f_cl), big])
     prob = DPProblem(grids=grid_list, controls=controls, N=N, transition=hev_transition, w=w, params=p,
                      terminal_bounds=bounds, boundary="levelset", clip=True, precompute=hev_precompute,
                      table_shape=(pc.shape[0], _T_SOC0 + socg.size))
@@ -506,8 +544,8 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
 
 
 def _solve(b: _Built, engine: str):
-    if engine == "fused" and b.prob.n_x == 3:
-        from ._cabinkernel import backward_pass_fused
+    if engine == "fused" and b.prob.n_x >= 2:
+        from ._fused import backward_pass_fused
 
         vf = backward_pass_fused(b.prob)
     else:
@@ -545,17 +583,19 @@ def solve_baseline(params, scenario: DPScenario | None = None, grids: DPGrids | 
 
 
 def solve_thermal(params, scenario: DPScenario | None = None, grids: DPGrids | None = None, *,
-                  heater: float | None = None, warm: bool = False) -> DPOutcome:
+                  heater: float | None = None, warm: bool = False, engine: str = "fused") -> DPOutcome:
     """Thermal-DP (SOC, T_cl). ``heater`` overrides the scenario's demand (e.g. 0 W); ``warm=True``
     sets f_cl = 1 (with heater 0 W it must reproduce Baseline-DP)."""
     scen, grids = scenario or DPScenario(), grids or DPGrids()
     t0 = time.perf_counter()
     b = build_problem(params, scen, grids, 2, heater=heater, warm=warm)
-    res = _solve(b, "generic")
+    res = _solve(b, engine)
     mp_used = b.mp
     q = res.u[:, 2]
     sim = replay(mp_used if warm else params, b.cyc, res.u[:, 0], res.u[:, 1], q, scen, "Thermal-DP")
-    return _outcome("thermal", params, b, res, scen, grids, sim, t0)
+    out = _outcome("thermal", params, b, res, scen, grids, sim, t0)
+    out.extra["engine"] = engine
+    return out
 
 
 def solve_thermal_cabin(params, scenario: DPScenario | None = None, grids: DPGrids | None = None, *,

@@ -1,0 +1,187 @@
+"""Cabin and heater-core fit (spec/model.md s.6 and s.8).
+
+- ``C_cab``, ``UA_cab``, ``Q_sun``: output error. The cabin temperature is simulated from the logged heater
+  heat and ambient temperature by eq. 10 in a compiled loop (:func:`calib.validate.cabin_replay`, which
+  calls :func:`calib.model.cabin_rate`) and matched to the logged cabin temperature with lmfit (one
+  residual vector across logs, one initial cabin temperature per log as a nuisance parameter). Standard
+  errors include the calibration uncertainty of the heater power (1 %) and of the cabin sensor (0.5 K). The heater
+  heat is the logged heater power, or ``W_bl c_p (T_vent - T_in)`` from vent temperature and blower flow.
+- ``eps_hc``: from vent temperature, coolant temperature and blower flow where the heater-core limit
+  binds. There ``T_vent - T_in = eps_hc (T_cl - T_in)``; elsewhere the ratio
+  ``r = (T_vent - T_in) / (T_cl - T_in)`` is below ``eps_hc``. The binding samples are the upper cluster of
+  ``r``: starting from its 90th percentile, samples within 3 noise sd (1 degC quantisation of both
+  temperatures) below the current estimate are taken as binding and ``eps_hc`` re-estimated by least
+  squares through the origin, until it settles. At least 60 binding samples with ``T_cl - T_in >= 10 K``
+  are needed. The standard error includes a 0.5 K offset uncertainty of the coolant and vent sensors.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .calibrate import (INPUT_REL_SD, KEY_PARAMETERS, MIN_SAMPLES, ParamEstimate, SubsystemFit, inflation, judge, lmfit_identify,
+                        not_fitted)
+from .validate import _fill, cabin_replay, first_valid_mean, log_arrays
+
+NEEDS = ("cabin_temp_degC", "ambient_temp_degC")  # + heater_power_W or vent_temp_degC + blower_flow_kg_per_s
+NEEDS_EPS = ("vent_temp_degC", "coolant_temp_degC", "blower_flow_kg_per_s", "ambient_temp_degC")
+PARAMS = ("C_cab_J_per_K", "UA_cab_W_per_K", "Q_sun_W", "eps_hc")
+T_SENSOR_SD = 0.5  # degC, calibration uncertainty (offset) of a temperature sensor
+
+
+def _eps(use, base, fit, dT_cl=0.0, dT_vent=0.0, _propagate=True):
+    mp = base.model_params()
+    xs, ys, sig = [], [], []
+    for lg in use:
+        if not lg.has(*NEEDS_EPS):
+            continue
+        la = log_arrays(lg, mp)
+        c = la.ch
+        T_in = mp.recirc * _fill(c["cabin_temp_degC"], 0.0) + (1 - mp.recirc) * c["ambient_temp_degC"] \
+            if lg.has("cabin_temp_degC") else c["ambient_temp_degC"]
+        x = c["coolant_temp_degC"] + dT_cl - T_in
+        y = c["vent_temp_degC"] + dT_vent - T_in
+        ok = np.isfinite(x) & np.isfinite(y) & (x >= 10.0) & (c["blower_flow_kg_per_s"] > 0.005)
+        xs.append(x[ok])
+        ys.append(y[ok])
+    if not xs or sum(v.size for v in xs) < MIN_SAMPLES:
+        return None, "fewer than 60 samples with vent, coolant and ambient temperature and the coolant >= 10 K " \
+                     "above the heater inlet air"
+    x, y = np.concatenate(xs), np.concatenate(ys)
+    r = y / x
+    noise = 0.35  # degC: 1 degC quantisation (0.29) and sensor noise, each temperature
+    s_r = noise * np.sqrt(1.0 + r ** 2) / x
+    eps = float(np.percentile(r, 90))
+    bind = np.zeros(r.size, bool)
+    for _ in range(30):
+        bind = r >= eps - 3.0 * s_r
+        if bind.sum() < 3:
+            break
+        w = 1.0 / s_r[bind] ** 2
+        new = float(np.sum(w * r[bind]) / np.sum(w))
+        if abs(new - eps) < 1e-6:
+            eps = new
+            break
+        eps = new
+    nb = int(bind.sum())
+    fit.metrics.update(eps_binding_samples=nb, eps_candidate_samples=int(r.size))
+    if nb < MIN_SAMPLES:
+        return None, f"the heater-core limit bound in only {nb} samples (need {MIN_SAMPLES})"
+    res = (y - eps * x)[bind]
+    se = float(np.sqrt(np.sum(res ** 2) / max(nb - 1, 1) / np.sum(x[bind] ** 2)))
+    # binding samples in log order for the autocorrelation inflation
+    se *= inflation([res], 1)
+    if _propagate:  # calibration uncertainty (offset) of the coolant and vent temperature sensors
+        for kw in ({"dT_cl": T_SENSOR_SD}, {"dT_vent": T_SENSOR_SD}):
+            e2, _ = _eps(use, base, SubsystemFit("tmp", ()), _propagate=False, **kw)
+            if e2 is not None:
+                se = float(np.sqrt(se ** 2 + (e2[0] - eps) ** 2))
+    return (eps, se, nb), ""
+
+
+def fit_cabin(logs, base, *, allowed=None) -> SubsystemFit:
+    """Fit the cabin parameters and the heater-core effectiveness.
+
+    Parameters
+    ----------
+    logs : list of DriveLog
+    base : ParameterSet
+    allowed : set of str, optional
+
+    Returns
+    -------
+    SubsystemFit
+    """
+    import lmfit
+
+    allowed = set(PARAMS) if allowed is None else set(allowed)
+    fit = SubsystemFit("cabin", NEEDS + ("heater_power_W",))
+    names = [n for n in PARAMS if n in allowed]
+    if not names:
+        return fit
+    use, skipped = [], {}
+    for lg in logs:
+        miss = lg.missing(NEEDS)
+        if not lg.has("heater_power_W") and not lg.has("vent_temp_degC", "blower_flow_kg_per_s"):
+            miss.append("heater_power_W (or vent_temp_degC + blower_flow_kg_per_s)")
+        if miss:
+            skipped[lg.label()] = f"missing channel(s) {', '.join(miss)}"
+        else:
+            use.append(lg)
+    fit.skipped = skipped
+    if "eps_hc" in allowed:
+        e, why = _eps(logs, base, fit)
+        p0 = float(base["eps_hc"])
+        if e is None:
+            miss = sorted({c for lg in logs for c in lg.missing(NEEDS_EPS)})
+            if miss and not any(lg.has(*NEEDS_EPS) for lg in logs):
+                fit.estimates["eps_hc"] = ParamEstimate("eps_hc", p0, None, "prior",
+                                                        f"not fitted: missing channel(s) {', '.join(miss)}", prior=p0)
+            else:
+                fit.estimates["eps_hc"] = ParamEstimate("eps_hc", p0, None, "undetermined", why, prior=p0)
+        else:
+            eps, se, nb = e
+            ok, why = judge("eps_hc", eps, se, base.param("eps_hc").bounds)
+            fit.estimates["eps_hc"] = (ParamEstimate("eps_hc", eps, se, "estimated",
+                                                     f"{nb} samples where the heater-core limit binds", prior=p0)
+                                       if ok else ParamEstimate("eps_hc", p0, None, "undetermined", why, prior=p0))
+    cand = [n for n in ("C_cab_J_per_K", "UA_cab_W_per_K", "Q_sun_W") if n in allowed]
+    if not cand:
+        return fit
+    if not use:
+        msg = ("cabin parameters not fitted: no log has cabin temperature, ambient temperature and heater power ("
+               + "; ".join(f"{k}: {v}" for k, v in skipped.items()) + ")")
+        keep = dict(fit.estimates)
+        not_fitted(fit, base, cand, msg)
+        fit.estimates.update(keep)
+        return fit
+    fit.logs = [lg.label() for lg in use]
+    mp0 = base.model_params()
+    data = []
+    for i, lg in enumerate(use):
+        la = log_arrays(lg, mp0)
+        c = la.ch
+        T = c["cabin_temp_degC"]
+        data.append(dict(T=T, ok=np.isfinite(T), dt=la.dt, T_amb=_fill(c["ambient_temp_degC"], 0.0),
+                         Q=np.maximum(_fill(la.Q_heat, 0.0), 0.0), T0=first_valid_mean(T, 5, 0.0), name=f"Tc0_{i}"))
+    bnd = {n: base.param(n).bounds for n in cand}
+    prior = {n: float(base[n]) for n in cand}
+
+    def make_params(vary):
+        ps = lmfit.Parameters()
+        for n in cand:
+            lo, hi = bnd[n]
+            ps.add(n, value=prior[n], min=lo, max=hi, vary=n in vary)
+        for d in data:
+            ps.add(d["name"], value=d["T0"], min=d["T0"] - 5.0, max=d["T0"] + 5.0, vary=True)
+        return ps
+
+    def segments(ps, q_scale=1.0, dT=0.0):
+        v = ps.valuesdict()
+        mp = mp0._replace(C_cab=float(v.get("C_cab_J_per_K", mp0.C_cab)),
+                          UA_cab=float(v.get("UA_cab_W_per_K", mp0.UA_cab)), Q_sun=float(v.get("Q_sun_W", mp0.Q_sun)))
+        return [(cabin_replay(mp, float(v[d["name"]]), d["dt"], d["T_amb"], q_scale * d["Q"]) - d["T"] - dT)[d["ok"]]
+                for d in data]
+
+    def residual(ps):
+        return np.concatenate(segments(ps))
+
+    perturbed = [lambda ps: np.concatenate(segments(ps, 1.0 + INPUT_REL_SD)),
+                 lambda ps: np.concatenate(segments(ps, dT=0.5))]
+    out = lmfit_identify(make_params, residual, cand, bounds=bnd, segments=segments, conf_keys=KEY_PARAMETERS,
+                         perturbed=perturbed)
+    res = out["result"]
+    r = residual(res.params)
+    fit.metrics.update(rmse_degC=float(np.sqrt(np.mean(r ** 2))), samples=int(r.size), n_eff=out["n_eff"],
+                       se_inflation=out["factor"])
+    fit.correlations = out["correl"]
+    fit.conf_intervals = out["conf"]
+    fit.nuisance = {d["name"]: float(res.params[d["name"]].value) for d in data}
+    for n in cand:
+        if n in out["vary"]:
+            fit.estimates[n] = ParamEstimate(n, out["values"][n], out["stderr"][n], "estimated",
+                                             f"output-error fit of the cabin temperature over {len(use)} log(s)",
+                                             prior=prior[n])
+        else:
+            fit.estimates[n] = ParamEstimate(n, prior[n], None, "undetermined", out["undetermined"].get(n, ""),
+                                             prior=prior[n])
+    return fit

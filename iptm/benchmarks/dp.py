@@ -1,0 +1,41 @@
+"""Benchmark: the three DP formulations on the paper's grids, 993-s ARTEMIS Urban, -10 degC.
+
+Each formulation is solved once to compile (or load numba's disk cache), then timed on a second solve.
+Memory is the process's peak resident set size (``resource.getrusage().ru_maxrss``), i.e. a process-wide
+high-water mark including Python, numba and everything solved before, not a per-solve figure.
+"""
+from __future__ import annotations
+
+import time
+
+
+def run(quick: bool = False) -> dict:
+    import numba
+
+    from calib.params import default_parameters
+    from optimize.formulations import DPGrids, DPScenario, peak_rss_mb, solve_formulation
+
+    ps = default_parameters()
+    scen = DPScenario(duration_s=120.0) if quick else DPScenario()
+    grids = DPGrids()
+    cyc = scen.load_cycle()
+    print(f"cycle {cyc.name}: {cyc.n_steps} steps; paper grids {grids.to_dict()}; numba threads "
+          f"{numba.get_num_threads()}; timings after a warm-up (compile) solve")
+    out = {}
+    for f in ("baseline", "thermal", "thermal_cabin"):
+        t0 = time.perf_counter()
+        solve_formulation(f, ps, scen, grids)
+        t_warm = time.perf_counter() - t0
+        o = solve_formulation(f, ps, scen, grids)
+        rss = peak_rss_mb()
+        r = {"n_states": o.n_states, "n_controls": o.n_controls, "n_steps": cyc.n_steps,
+             "t_total_s": o.t_total, "t_backward_s": o.t_backward, "t_forward_s": o.t_forward,
+             "t_first_solve_incl_compile_s": t_warm, "n_evaluations": o.n_evaluations,
+             "evals_per_second": o.evals_per_second, "peak_rss_mb_process": rss, "fuel_g": o.sim.fuel_g,
+             "engine": o.extra.get("engine", "generic")}
+        out[f] = r
+        print(f"{f:>14s}: {o.n_states} states x {o.n_controls} controls: total {o.t_total:.3f} s (backward "
+              f"{o.t_backward:.3f} s, forward {o.t_forward:.3f} s, {o.evals_per_second / 1e6:.0f} M state-control "
+              f"evals/s, {r['engine']} kernel); process peak RSS {rss:.0f} MB; fuel {o.sim.fuel_g:.2f} g "
+              f"[first solve incl. compile {t_warm:.1f} s]", flush=True)
+    return out

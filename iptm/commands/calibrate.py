@@ -1,0 +1,72 @@
+"""``iptm calibrate``: identify the model from drive logs, with uncertainty and validation."""
+from __future__ import annotations
+
+
+def register(sub):
+    p = sub.add_parser("calibrate", help="calibrate the model from drive logs (lmfit), with validation",
+                       description="Fit battery, fuel, engine-thermal and cabin parameters from one or more drive "
+                                   "logs (CSV, MCAP, CAN dumps, MDF4, canonical tables), report standard errors, "
+                                   "correlations and which parameters the data did not determine, validate on "
+                                   "held-out logs, and write the calibration artifact (a parameter file).")
+    p.add_argument("logs", nargs="+", metavar="LOG", help="logs to fit")
+    p.add_argument("--validate", nargs="+", default=[], metavar="LOG", help="held-out logs to validate on")
+    p.add_argument("--params", metavar="BASE", help="prior/base parameter file (default: the default Prius)")
+    p.add_argument("--fit", metavar="NAMES", help="comma-separated parameters to estimate (default: all)")
+    p.add_argument("--fix", metavar="NAMES", help="comma-separated parameters held at the base value")
+    p.add_argument("--out", required=True, metavar="FILE", help="calibration artifact (.toml or .json)")
+    p.add_argument("--json", metavar="FILE", help="write the fit and validation figures as JSON")
+    p.add_argument("--plots", metavar="DIR", help="write measured-vs-simulated plots of the validation logs")
+    p.add_argument("--rate", type=float, default=1.0, help="resampling rate in Hz (default 1)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def _names(s):
+    return [n.strip() for n in s.split(",") if n.strip()] if s else None
+
+
+def _read(path, rate):
+    from pathlib import Path
+
+    from calib.ingest import read_canonical, read_log
+
+    p = Path(path)
+    if p.suffix.lower() == ".parquet" or (p.suffix.lower() == ".csv" and p.with_name(p.name + ".meta.json").exists()):
+        return read_canonical(p)
+    return read_log(p, rate_hz=rate)
+
+
+def run(args) -> int:
+    import sys
+    from pathlib import Path
+
+    from tqdm.auto import tqdm
+
+    from calib.calibrate import calibrate
+    from calib.drivelog import file_sha256
+    from calib.fileio import write_json
+    from calib.params import ParameterSet
+    from calib.validate import plot_validation, replay
+
+    paths = list(args.logs) + list(args.validate)
+    logs, val = [], []
+    for i, path in enumerate(tqdm(paths, desc="read logs", disable=args.quiet, leave=False, file=sys.stderr)):
+        lg = _read(path, args.rate)
+        if not lg.meta.sha256:
+            lg.meta.sha256 = file_sha256(path)
+        (logs if i < len(args.logs) else val).append(lg)
+    base = ParameterSet.load(args.params) if args.params else None
+    res = calibrate(logs, base=base, fit=_names(args.fit), fix=_names(args.fix), validate=val or None,
+                    progress=not args.quiet)
+    res.to_artifact(args.out)
+    print(res.report())
+    print(f"\ncalibration artifact: {args.out}")
+    if args.plots:
+        d = Path(args.plots)
+        for lg in val:
+            f = d / f"validation_{Path(lg.meta.source).stem}.png"
+            plot_validation(replay(lg, res.params), f)
+            print(f"plot: {f}")
+    if args.json:
+        write_json(args.json, res.to_dict())
+    return 0

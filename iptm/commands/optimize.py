@@ -1,0 +1,108 @@
+"""``iptm optimize``: the DP formulations and the case study (spec/optimization.md)."""
+from __future__ import annotations
+
+
+def register(sub):
+    p = sub.add_parser("optimize", help="DP-optimal power split, engine thermal management and cabin heating",
+                       description="Tune the rule-based controller and solve Baseline-DP, Thermal-DP and "
+                                   "Thermal-Cabin-DP on a scenario (paper grids by default); print the comparison "
+                                   "table with the savings next to the paper's (Gong et al., CCTA 2019).")
+    p.add_argument("--params", metavar="FILE", help="parameter set or calibration artifact (TOML/JSON)")
+    p.add_argument("--scenario", metavar="FILE", help="DP scenario file (TOML/JSON, fields of DPScenario); "
+                                                      "command-line options override it")
+    p.add_argument("--cycle", default=None, help="bundled cycle name or CSV file (default artemis_urban)")
+    p.add_argument("--duration", type=float, default=None, metavar="S", help="use the first S seconds of the cycle")
+    p.add_argument("--ambient", type=float, default=None, metavar="DEGC", help="ambient temperature (-10)")
+    p.add_argument("--soc0", type=float, default=None, help="initial SOC (0.6)")
+    p.add_argument("--tcl0", type=float, default=None, metavar="DEGC", help="initial coolant temperature (70)")
+    p.add_argument("--tcab0", type=float, default=None, metavar="DEGC", help="initial cabin temperature (20)")
+    p.add_argument("--heater", type=float, default=None, metavar="W", help="heater demand of rule-based, "
+                                                                            "Baseline and Thermal-DP (1500)")
+    p.add_argument("--formulation", default="all",
+                   help="rule, baseline, thermal, thermal_cabin, a comma list, or all (default)")
+    p.add_argument("--grid", default=None, metavar="SPEC",
+                   help="grid steps, e.g. soc=0.01,tcl=1,tcab=1,pbat=500,qheat=50 (paper's Table II = default)")
+    p.add_argument("--convergence", action="store_true",
+                   help="solve each chosen DP formulation on the grid and with every step halved; print the fuel "
+                        "change")
+    p.add_argument("--plots", metavar="DIR", help="write the paper's figures (PNG) into DIR")
+    p.add_argument("--json", metavar="FILE", help="write the table and DP figures as JSON")
+    p.set_defaults(func=run)
+
+
+def _scenario(args):
+    import json
+    import tomllib
+    from pathlib import Path
+
+    from calib.errors import ScenarioError
+    from optimize.formulations import DPScenario
+
+    d = {}
+    if args.scenario:
+        path = Path(args.scenario)
+        if not path.is_file():
+            raise ScenarioError(f"scenario file {path} not found")
+        try:
+            d = tomllib.loads(path.read_text()) if path.suffix != ".json" else json.loads(path.read_text())
+        except (tomllib.TOMLDecodeError, json.JSONDecodeError) as exc:
+            raise ScenarioError(f"{path}: not valid TOML/JSON ({exc})") from None
+        d = d.get("scenario", d)
+    for opt, name in (("cycle", "cycle"), ("duration", "duration_s"), ("ambient", "T_amb"), ("soc0", "soc0"),
+                      ("tcl0", "T_cl0"), ("tcab0", "T_cab0"), ("heater", "Q_heat")):
+        v = getattr(args, opt)
+        if v is not None:
+            d[name] = v
+    return DPScenario.from_dict(d)
+
+
+def run(args) -> int:
+    from calib.errors import ScenarioError
+    from calib.fileio import write_json
+    from iptm.commands.simulate import load_params
+    from optimize.formulations import parse_grid_spec
+
+    ps = load_params(args.params)
+    scen = _scenario(args)
+    grids = parse_grid_spec(args.grid)
+    allf = ("rule", "baseline", "thermal", "thermal_cabin")
+    chosen = allf if args.formulation == "all" else tuple(s.strip() for s in args.formulation.split(","))
+    bad = [c for c in chosen if c not in allf]
+    if bad:
+        raise ScenarioError(f"unknown formulation {bad[0]!r}; choose from {', '.join(allf)} or all")
+    if args.convergence:
+        from optimize.convergence import convergence_study, format_convergence
+
+        forms = [c for c in chosen if c != "rule"]
+        rows = convergence_study(ps, scen, forms, grids, progress=True)
+        print(format_convergence(rows))
+        if args.json:
+            write_json(args.json, {"convergence": rows, "scenario": scen.to_dict()})
+        return 0
+    from optimize.casestudy import run_case_study
+
+    cs = run_case_study(ps, scen, strategies=chosen, progress=True, grids=grids)
+    cyc = scen.load_cycle()
+    d = cyc.describe()
+    print(f"\ncase study: {d['name']} ({d['duration_s']:.0f} s, {d['distance_km']:.2f} km), ambient "
+          f"{scen.T_amb:g} degC, SOC0 {scen.soc0}, T_cl0 {scen.T_cl0} degC, T_cab0 {scen.T_cab0} degC; grids "
+          + ", ".join(f"{k}={v:g}" for k, v in grids.to_dict().items()))
+    print(cs.format_table())
+    tab = cs.table()
+    print("charge-sustaining (SOC_N >= SOC0 - %g): %s" % (scen.soc_tol, ", ".join(
+        f"{k}={'yes' if v else 'NO'}" for k, v in zip(tab["key"], tab["charge_sustaining"]))))
+    if all(k in cs.sims for k in allf):
+        print("ordering rule > baseline-on-thermal > thermal > thermal-cabin: "
+              + ("yes" if cs.ordering_ok() else "NO (see the explanation in the report)"))
+    if cs.rule:
+        print("tuned rule-based thresholds: " + ", ".join(f"{k}={v:g}" for k, v in cs.rule["thresholds"].items()))
+    for k, o in cs.outcomes.items():
+        print(f"{k}: {o.n_states} states x {o.n_controls} controls x {o.dp.u.shape[0]} steps, backward "
+              f"{o.t_backward:.2f} s ({o.evals_per_second / 1e6:.0f} M evals/s), total {o.t_total:.2f} s")
+    if args.plots:
+        paths = cs.plot_figures(args.plots)
+        print(f"figures: {len(paths)} PNG in {args.plots}")
+    if args.json:
+        write_json(args.json, cs.to_dict())
+        print(f"json: {args.json}")
+    return 0

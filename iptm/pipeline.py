@@ -1,0 +1,250 @@
+"""The main job: ingest -> calibrate (with held-out validation) -> optimise four strategies -> report.
+
+Used by ``iptm run`` and by the dashboard; it orchestrates library calls and holds no physics.
+
+Caching (``.iptm-cache/`` next to the reports, content-keyed, :class:`calib.store.Store`): ingested logs
+are keyed by file hash and reader options; calibrations by the logs' hashes, the base parameters and the
+options; each strategy's optimisation by the parameter values, the scenario, the grids and the software
+version. Re-running on the same inputs reuses all of it; after a small change only what depends on it is
+recomputed.
+
+A report is assembled in ``reports/.partial-<run-id>/`` and renamed to ``reports/<run-id>/`` only when
+complete, so an interrupted run leaves no half-written report behind (and never touches earlier ones).
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import shutil
+import sys
+import time
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from calib import __version__
+from calib.errors import IptmError, ScenarioError
+from calib.store import Store, content_key
+
+DEFAULT_LOG_GLOB = "*.blf"
+STRATEGIES = ("rule", "baseline", "thermal", "thermal_cabin")
+
+
+@dataclass
+class RunConfig:
+    """Everything a run depends on."""
+
+    logs: list
+    scenario: object = None  # optimize.formulations.DPScenario
+    grids: object = None  # optimize.formulations.DPGrids
+    strategies: tuple = STRATEGIES
+    cycle_from_log: str | None = None  # path of a log whose speed trace is the cycle
+    validate: list = field(default_factory=list)  # held-out logs (default: the last of several logs)
+    base_params: str | None = None
+    dbc: str | None = None
+    reports_dir: Path = Path("reports")
+    cache_dir: Path | None = None
+    progress: bool = True
+    command_line: str = ""
+
+
+def load_scenario(path=None):
+    """Read a scenario TOML (``[scenario]`` DPScenario fields, ``[grids]`` grid steps, ``[run]`` strategies).
+
+    ``[scenario] cycle`` is a bundled name, a speed-trace CSV, or ``"from log"`` with ``cycle_log = FILE``
+    (default: the first log of the run).
+
+    Returns
+    -------
+    (DPScenario, DPGrids, strategies, cycle_log or None)
+    """
+    from optimize.formulations import DPGrids, DPScenario
+
+    if path is None:
+        return DPScenario(), DPGrids(), STRATEGIES, None
+    path = Path(path)
+    try:
+        d = tomllib.loads(path.read_text())
+    except OSError as exc:
+        raise ScenarioError(f"{path}: cannot read scenario file ({exc.strerror})") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ScenarioError(f"{path}: not valid TOML ({exc})") from None
+    unknown = set(d) - {"scenario", "grids", "run"}
+    if unknown:
+        raise ScenarioError(f"{path}: unknown section(s) {sorted(unknown)}; use [scenario], [grids], [run]")
+    sc = dict(d.get("scenario", {}))
+    cycle_log = None
+    if str(sc.get("cycle", "")).replace("_", " ").lower() == "from log":
+        cycle_log = sc.pop("cycle_log", "") or ""
+        sc["cycle"] = "artemis_urban"  # replaced by the log's trace at run time
+    try:
+        scen = DPScenario.from_dict(sc)
+    except ScenarioError as exc:
+        raise ScenarioError(f"{path}: {exc}") from None
+    except TypeError as exc:
+        raise ScenarioError(f"{path}: [scenario]: {exc}") from None
+    g = d.get("grids", {})
+    try:
+        grids = DPGrids(**g)
+    except TypeError as exc:
+        raise ScenarioError(f"{path}: [grids]: {exc} (known: soc, tcl, tcab, pbat, qheat)") from None
+    strategies = tuple(d.get("run", {}).get("strategies", STRATEGIES))
+    bad = [s for s in strategies if s not in STRATEGIES]
+    if bad:
+        raise ScenarioError(f"{path}: unknown strategies {bad}; choose from {', '.join(STRATEGIES)}")
+    return scen, grids, strategies, cycle_log
+
+
+def default_logs(root=Path("logs")) -> list[Path]:
+    files = sorted(Path(root).glob(DEFAULT_LOG_GLOB))
+    if not files:
+        raise IptmError(f"no logs given and none bundled in {root}/ (expected {DEFAULT_LOG_GLOB}); "
+                        "run `iptm synth --out logs` or name your logs")
+    return files
+
+
+def _say(msg: str, progress: bool) -> None:
+    if progress:
+        print(msg, file=sys.stderr, flush=True)
+
+
+# ---------------------------------------------------------------------------------------------------
+# stages
+# ---------------------------------------------------------------------------------------------------
+def ingest_all(paths, store: Store | None, dbc=None, progress=True):
+    """Read every log (cached); any bad log stops the run here, before heavy work, naming the file."""
+    from tqdm import tqdm
+
+    from calib.drivelog import file_sha256
+    from calib.ingest import channel_report, read_canonical, read_log, write_canonical
+
+    logs = []
+    for p in tqdm(list(paths), desc="ingest", unit="log", disable=not progress, file=sys.stderr):
+        p = Path(p)
+        if not p.is_file():
+            raise IptmError(f"{p}: no such log file")
+        key = content_key(file_sha256(p), str(dbc or ""), __version__)
+        cached = store.path("ingest", key, "parquet") if store else None
+        log = None
+        if cached is not None and cached.is_file():
+            try:
+                log = read_canonical(cached)
+            except IptmError:
+                log = None
+        if log is None:
+            log = read_log(p, dbc=dbc)
+            if store is not None:
+                write_canonical(log, cached)
+        logs.append((p, log, channel_report(log)))
+    return logs
+
+
+def calibrate_cached(fit_logs, val_logs, base, store: Store | None, progress=True):
+    """Calibrate (or reuse a cached calibration of the same logs and base parameters).
+
+    Returns (ParameterSet, calibration dict, text report, validation-plot PNG paths in the cache).
+    """
+    from calib.calibrate import calibrate
+    from calib.params import ParameterSet
+    from calib.validate import plot_validation, replay
+
+    key = content_key([lg.meta.sha256 for lg in fit_logs], [lg.meta.sha256 for lg in val_logs],
+                      base.to_dict()["parameters"], __version__)
+    folder = store.root / "calib" / key if store else None
+    if folder is not None and (folder / "done").is_file():
+        try:
+            ps = ParameterSet.load(folder / "calibration.toml")
+            info = json.loads((folder / "calibration.json").read_text())
+            text = (folder / "report.txt").read_text()
+            return ps, info, text, sorted(folder.glob("validation_*.png")), folder / "calibration.toml"
+        except (OSError, ValueError, IptmError):
+            pass  # damaged cache entry: recompute
+    res = calibrate(fit_logs, base=base, validate=val_logs or None, progress=progress)
+    tmp = Path(str(folder) + ".partial") if folder else Path(".iptm-calib.partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    res.to_artifact(tmp / "calibration.toml")
+    from calib.fileio import write_json, write_text
+
+    write_json(tmp / "calibration.json", res.to_dict())
+    write_text(tmp / "report.txt", res.report())
+    for i, lg in enumerate(val_logs or fit_logs[:1]):
+        plot_validation(replay(lg, res.params), tmp / f"validation_{i}_{Path(lg.name).stem}.png",
+                        title=f"{lg.label()}: measured vs simulated")
+    (tmp / "done").write_text("")
+    if folder is None:
+        folder = tmp
+    else:
+        shutil.rmtree(folder, ignore_errors=True)
+        tmp.rename(folder)
+    return (ParameterSet.load(folder / "calibration.toml"), json.loads((folder / "calibration.json").read_text()),
+            (folder / "report.txt").read_text(), sorted(folder.glob("validation_*.png")), folder / "calibration.toml")
+
+
+def new_run_id(cfg_key: str) -> str:
+    return _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%d-%H%M%S") + "-" + cfg_key[:6]
+
+
+@dataclass
+class RunOutcome:
+    report_dir: Path
+    summary: dict
+    wall_s: float
+
+
+def run(cfg: RunConfig) -> RunOutcome:
+    """The whole chain; returns where the report is and the headline figures."""
+    from calib.params import ParameterSet, default_parameters
+    from optimize.formulations import DPGrids, DPScenario
+
+    t0 = time.perf_counter()
+    scen = cfg.scenario or DPScenario()
+    grids = cfg.grids or DPGrids()
+    store = Store(cfg.cache_dir) if cfg.cache_dir else None
+    paths = [Path(p) for p in cfg.logs]
+    val_paths = [Path(p) for p in cfg.validate]
+    if not val_paths and len(paths) > 1:
+        val_paths = [paths[-1]]  # hold out the last log for validation
+    fit_paths = [p for p in paths if p not in val_paths]
+    base = ParameterSet.load(cfg.base_params) if cfg.base_params else default_parameters()
+
+    # 1. every log is read before any heavy work: a bad one stops the run here, naming the file
+    _say(f"[1/4] ingesting {len(paths) + len([p for p in val_paths if p not in paths])} log(s)", cfg.progress)
+    ingested = ingest_all(list(dict.fromkeys(paths + val_paths)), store, cfg.dbc, cfg.progress)
+    by_path = {p: lg for p, lg, _ in ingested}
+    fit_logs = [by_path[p] for p in fit_paths]
+    val_logs = [by_path[p] for p in val_paths]
+    cycle_log = cfg.cycle_from_log
+    if cycle_log is not None:
+        cyc_path = Path(cycle_log) if cycle_log else paths[0]
+        cyc_log = by_path.get(cyc_path) or ingest_all([cyc_path], store, cfg.dbc, False)[0][1]
+    else:
+        cyc_log = None
+
+    # 2. calibration
+    _say(f"[2/4] calibrating on {', '.join(lg.label() for lg in fit_logs)}"
+         + (f"; validating on {', '.join(lg.label() for lg in val_logs)}" if val_logs else ""), cfg.progress)
+    params, calib_info, calib_text, val_pngs, artifact = calibrate_cached(fit_logs, val_logs, base, store,
+                                                                         cfg.progress)
+
+    # 3. optimisation
+    _say(f"[3/4] optimising {', '.join(cfg.strategies)} on {scen.cycle if cyc_log is None else cyc_log.label()}",
+         cfg.progress)
+    from optimize.casestudy import run_case_study_cached
+
+    cs = run_case_study_cached(params, scen, grids, cfg.strategies, store=store, progress=cfg.progress,
+                               cycle_log=cyc_log)
+
+    # 4. report
+    _say("[4/4] writing the report", cfg.progress)
+    from iptm.reportbuild import build_report
+
+    run_key = content_key([lg.meta.sha256 for _, lg, _ in ingested], scen.to_dict(), grids.to_dict(),
+                          list(cfg.strategies))
+    report_dir = build_report(
+        reports_dir=Path(cfg.reports_dir), run_id=new_run_id(run_key), ingested=ingested, fit_logs=fit_logs,
+        val_logs=val_logs, params=params, calib_info=calib_info, calib_text=calib_text, val_pngs=val_pngs,
+        artifact=artifact, case_study=cs, scenario=scen, grids=grids, base_params=cfg.base_params,
+        command_line=cfg.command_line, wall_s=time.perf_counter() - t0)
+    summary = json.loads((report_dir / "report.json").read_text())["summary"]
+    return RunOutcome(report_dir, summary, time.perf_counter() - t0)

@@ -1,0 +1,228 @@
+"""The case study of spec/optimization.md s.4: rule-based vs the three DP formulations.
+
+``run_case_study(params, scenario)`` tunes the rule-based controller for the scenario
+(:func:`optimize.rulebased.tune_rule_based`), solves Baseline-DP (and re-simulates its controls on the
+thermal model), Thermal-DP and Thermal-Cabin-DP, and returns a :class:`CaseStudy` with the comparison
+table (fuel, corrected fuel, final/mean states, starts, idle time, savings against rule-based and against
+Baseline-DP on the thermal model, the paper's savings alongside), a JSON-ready dict and the paper's figures.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+
+from .formulations import DPGrids, DPScenario, solve_baseline, solve_thermal, solve_thermal_cabin
+
+#: The paper's reported savings (%): vs rule-based and vs Baseline-DP on the thermal model.
+PAPER_SAVINGS = {
+    "thermal": {"vs_rule": 6.0, "vs_baseline": 2.7},
+    "thermal_cabin": {"vs_rule": 6.85, "vs_baseline": None, "vs_thermal": 1.0},
+}
+
+LABELS = {"rule": "Rule-based (tuned)", "baseline_warm": "Baseline-DP (own optimum, f_cl = 1)",
+          "baseline": "Baseline-DP on thermal model", "thermal": "Thermal-DP",
+          "thermal_cabin": "Thermal-Cabin-DP"}
+STRATEGIES = ("rule", "baseline", "thermal", "thermal_cabin")
+
+
+@dataclass
+class CaseStudy:
+    """Results of the case study: ``sims`` (label key -> SimResult), ``outcomes`` (DP outcomes),
+    ``rule`` (tuned thresholds), ``scenario``, ``grids``, ``timings``."""
+
+    sims: dict
+    outcomes: dict
+    scenario: DPScenario
+    grids: DPGrids
+    rule: dict | None = None
+    timings: dict = field(default_factory=dict)
+
+    def table(self) -> pd.DataFrame:
+        rows = []
+        ref_rule = self.sims["rule"].fuel_g if "rule" in self.sims else np.nan
+        ref_base = self.sims["baseline"].fuel_g if "baseline" in self.sims else np.nan
+        ref_th = self.sims["thermal"].fuel_g if "thermal" in self.sims else np.nan
+        tol = self.scenario.soc_tol
+        for key, sim in self.sims.items():
+            s = sim.summary()
+            f = s["fuel_g"]
+            paper = PAPER_SAVINGS.get(key, {})
+            rows.append({
+                "strategy": LABELS.get(key, key), "key": key, "fuel_g": f,
+                "fuel_corrected_g": s["fuel_corrected_g"], "soc_final": s["soc_final"],
+                "T_cl_final_degC": s["T_cl_final_degC"], "T_cl_mean_degC": s["T_cl_mean_degC"],
+                "T_cab_final_degC": s["T_cab_final_degC"], "T_cab_mean_degC": s["T_cab_mean_degC"],
+                "engine_starts": s["engine_starts"], "idle_s": s["idle_s"],
+                "heater_kJ": s["heater_delivered_J"] / 1e3,
+                "charge_sustaining": bool(s["soc_final"] >= s["soc_initial"] - tol),
+                "saving_vs_rule_pct": 100 * (1 - f / ref_rule) if key != "baseline_warm" else np.nan,
+                "paper_vs_rule_pct": paper.get("vs_rule", np.nan),
+                "saving_vs_baseline_pct": 100 * (1 - f / ref_base) if key != "baseline_warm" else np.nan,
+                "paper_vs_baseline_pct": paper.get("vs_baseline", np.nan),
+                "saving_vs_thermal_pct": 100 * (1 - f / ref_th) if key == "thermal_cabin" else np.nan,
+                "paper_vs_thermal_pct": paper.get("vs_thermal", np.nan),
+            })
+        df = pd.DataFrame(rows).set_index("strategy")
+        return df.astype({c: float for c in df.columns if c.startswith("paper")})
+
+    def ordering_ok(self, tol_g: float = 0.0) -> bool:
+        """rule >= baseline-on-thermal >= thermal >= thermal_cabin in fuel (within ``tol_g``)."""
+        keys = [k for k in STRATEGIES if k in self.sims]
+        f = [self.sims[k].fuel_g for k in keys]
+        return all(a >= b - tol_g for a, b in zip(f, f[1:]))
+
+    def to_dict(self) -> dict:
+        df = self.table().reset_index()
+        rows = [{k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in r.items()}
+                for r in df.to_dict(orient="records")]
+        return {"scenario": self.scenario.to_dict(), "grids": self.grids.to_dict(), "rule": self.rule,
+                "table": rows, "timings": self.timings,
+                "dp": {k: o.describe() for k, o in self.outcomes.items()},
+                "ordering_ok": self.ordering_ok(), "paper_savings": PAPER_SAVINGS}
+
+    def format_table(self) -> str:
+        df = self.table()
+        cols = ["fuel_g", "fuel_corrected_g", "soc_final", "T_cl_final_degC", "T_cl_mean_degC",
+                "T_cab_final_degC", "T_cab_mean_degC", "engine_starts", "idle_s", "saving_vs_rule_pct",
+                "paper_vs_rule_pct", "saving_vs_baseline_pct", "paper_vs_baseline_pct"]
+        short = {"fuel_g": "fuel g", "fuel_corrected_g": "corr g", "soc_final": "SOC_N",
+                 "T_cl_final_degC": "Tcl_N", "T_cl_mean_degC": "Tcl_avg", "T_cab_final_degC": "Tcab_N",
+                 "T_cab_mean_degC": "Tcab_avg", "engine_starts": "starts", "idle_s": "idle s",
+                 "saving_vs_rule_pct": "sav/rule%", "paper_vs_rule_pct": "paper%",
+                 "saving_vs_baseline_pct": "sav/base%", "paper_vs_baseline_pct": "paper%"}
+        out = df[cols].rename(columns=short)
+        with pd.option_context("display.width", 200, "display.max_columns", 30):
+            txt = out.to_string(float_format=lambda v: f"{v:.3f}" if abs(v) < 2 else f"{v:.1f}", na_rep="-")
+        if "thermal_cabin" in self.sims and "thermal" in self.sims:
+            r = df.loc[LABELS["thermal_cabin"]]
+            txt += (f"\nThermal-Cabin-DP vs Thermal-DP: {r['saving_vs_thermal_pct']:.2f} % (paper: about 1 %), "
+                    f"mean cabin {r['T_cab_mean_degC'] - df.loc[LABELS['thermal'], 'T_cab_mean_degC']:+.2f} degC "
+                    "(paper: -0.5 degC)")
+        return txt
+
+    def plot_figures(self, outdir) -> list:
+        """The paper's figures as PNGs in ``outdir``; returns their paths."""
+        import matplotlib
+
+        matplotlib.use("Agg", force=False)
+        import matplotlib.pyplot as plt
+        from pathlib import Path
+
+        from calib.fileio import atomic_path
+
+        outdir = Path(outdir)
+        keys = [k for k in ("rule", "baseline", "thermal", "thermal_cabin") if k in self.sims]
+        colors = {"rule": "k", "baseline": "C0", "thermal": "C3", "thermal_cabin": "C2"}
+        paths = []
+
+        def save(fig, name):
+            p = outdir / f"{name}.png"
+            with atomic_path(p) as tmp:
+                fig.savefig(tmp, dpi=110, format="png")
+            plt.close(fig)
+            paths.append(str(p))
+
+        series = [
+            ("soc", "SOC [-]", lambda s: (s.t, s.soc), "plot"),
+            ("coolant", "coolant temperature [degC]", lambda s: (s.t, s.T_cl), "plot"),
+            ("engine_power", "engine power [kW]", lambda s: (s.t[:-1], s.flows["P_e"] / 1e3), "plot"),
+            ("battery_power", "battery power [kW]", lambda s: (s.t[:-1], s.flows["P_bat"] / 1e3), "plot"),
+            ("engine_mode", "engine mode (1 off, 2 idle, 3 on)", lambda s: (s.t[:-1], s.e_mode), "step"),
+            ("cumulative_fuel", "cumulative fuel [g]",
+             lambda s: (s.t, np.concatenate([[0], np.cumsum(s.flows["W_f"]) * s.Ts])), "plot"),
+            ("cabin", "cabin temperature [degC]", lambda s: (s.t, s.T_cab), "plot"),
+            ("heater_power", "heater power delivered [W]", lambda s: (s.t[:-1], s.flows["Q_heat"]), "plot"),
+        ]
+        title = f"{self.sims[keys[0]].info.get('cycle', '')}, {self.scenario.T_amb:g} degC"
+        for name, ylabel, get, kind in series:
+            use = keys if name not in ("cabin", "heater_power") else [k for k in keys if k in ("thermal",
+                                                                                               "thermal_cabin")]
+            if name == "engine_mode":
+                fig, axs = plt.subplots(len(use), 1, figsize=(9, 1.6 * len(use) + 0.6), sharex=True,
+                                        squeeze=False)
+                for ax, k in zip(axs[:, 0], use):
+                    t, y = get(self.sims[k])
+                    ax.step(t, y, where="post", color=colors[k], lw=0.8)
+                    ax.set_yticks([1, 2, 3], ["off", "idle", "on"])
+                    ax.set_ylabel(LABELS[k].split(" on ")[0], fontsize=8)
+                axs[-1, 0].set_xlabel("time [s]")
+                fig.suptitle(f"engine mode - {title}", fontsize=10)
+            else:
+                fig, ax = plt.subplots(figsize=(9, 3.6))
+                for k in use:
+                    t, y = get(self.sims[k])
+                    ax.plot(t, y, color=colors[k], lw=0.9, label=LABELS[k])
+                if name == "cabin" and "thermal_cabin" in self.outcomes:
+                    ex = self.outcomes["thermal_cabin"].extra
+                    ax.axhline(ex.get("T_cab_ub", np.nan), color="0.5", ls=":", lw=0.8, label="upper bound")
+                    ax.axhline(ex.get("T_cab_terminal_min", np.nan), color="0.5", ls="--", lw=0.8,
+                               label="terminal minimum")
+                ax.set_xlabel("time [s]")
+                ax.set_ylabel(ylabel)
+                ax.legend(fontsize=8, loc="best")
+                ax.set_title(title, fontsize=10)
+            fig.tight_layout()
+            save(fig, name)
+        # fuel bars
+        fig, ax = plt.subplots(figsize=(7, 3.8))
+        fuel = [self.sims[k].fuel_g for k in keys]
+        corr = [self.sims[k].summary()["fuel_corrected_g"] for k in keys]
+        x = np.arange(len(keys))
+        ax.bar(x - 0.2, fuel, 0.4, color=[colors[k] for k in keys], label="fuel")
+        ax.bar(x + 0.2, corr, 0.4, color=[colors[k] for k in keys], alpha=0.45, label="corrected fuel")
+        for xi, f in zip(x, fuel):
+            ax.text(xi - 0.2, f, f"{f:.1f}", ha="center", va="bottom", fontsize=8)
+        ax.set_xticks(x, [LABELS[k].replace(" on thermal model", "\non thermal") for k in keys], fontsize=8)
+        ax.set_ylabel("fuel [g]")
+        ax.legend(fontsize=8)
+        ax.set_title(title, fontsize=10)
+        fig.tight_layout()
+        save(fig, "fuel_bars")
+        return paths
+
+
+def run_case_study(params, scenario: DPScenario | None = None, strategies=STRATEGIES, progress: bool = True,
+                   grids: DPGrids | None = None) -> CaseStudy:
+    """Run the chosen strategies (``rule``, ``baseline``, ``thermal``, ``thermal_cabin``) on a scenario."""
+    from calib.errors import ScenarioError
+
+    from .rulebased import tune_rule_based
+
+    scen = scenario or DPScenario()
+    grids = grids or DPGrids()
+    bad = set(strategies) - set(STRATEGIES)
+    if bad:
+        raise ScenarioError(f"unknown strategy {sorted(bad)}; choose from {', '.join(STRATEGIES)}")
+    say = print if progress else (lambda *a, **k: None)
+    sims, outs, timings, rule = {}, {}, {}, None
+    cyc = scen.load_cycle()
+    if "rule" in strategies:
+        t0 = time.perf_counter()
+        tr = tune_rule_based(params, cyc, T_amb=scen.T_amb, soc0=scen.soc0, T_cl0=scen.T_cl0,
+                             T_cab0=scen.T_cab0, Q_heat=scen.Q_heat)
+        sims["rule"] = tr.result
+        rule = {"thresholds": tr.rule.to_dict(), "n_tried": tr.n_tried, "n_feasible": tr.n_feasible}
+        timings["rule"] = time.perf_counter() - t0
+        say(f"rule-based tuned ({tr.n_feasible}/{tr.n_tried} charge-sustaining): {tr.result.fuel_g:.2f} g "
+            f"[{timings['rule']:.1f} s]", flush=True)
+    solvers = {"baseline": solve_baseline, "thermal": solve_thermal, "thermal_cabin": solve_thermal_cabin}
+    for key in ("baseline", "thermal", "thermal_cabin"):
+        if key not in strategies:
+            continue
+        o = solvers[key](params, scen, grids)
+        outs[key] = o
+        timings[key] = o.t_total
+        if key == "baseline":
+            sims["baseline_warm"] = o.sim
+            sims["baseline"] = o.on_thermal
+        else:
+            sims[key] = o.sim
+        say(f"{LABELS[key]}: {sims[key].fuel_g:.2f} g, SOC_N {sims[key].soc[-1]:.4f} "
+            f"[{o.t_total:.1f} s, backward {o.t_backward:.2f} s]", flush=True)
+    # order: rule, baseline (thermal), baseline warm, thermal, thermal_cabin
+    order = [k for k in ("rule", "baseline", "thermal", "thermal_cabin", "baseline_warm") if k in sims]
+    sims = {k: sims[k] for k in order}
+    return CaseStudy(sims, outs, scen, grids, rule, timings)

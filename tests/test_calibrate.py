@@ -1,0 +1,191 @@
+"""End-to-end calibration: truth recovery, held-out validation, artifact round trip, CLI, honesty flags."""
+import functools
+import json
+import math
+
+import numpy as np
+import pytest
+
+from calib.calibrate import calibrate
+from calib.errors import ParameterError
+from calib.ingest import to_drivelog
+from calib.params import ParameterSet, default_parameters
+from calib.simulate import simulate
+from calib.synth import Scenario, draw_truth, synthesise
+from calib.validate import plot_validation, replay
+
+FIT = [Scenario("fit_cold", "udds", -10.0, 0.60, -10.0, -10.0, T_bat=-5.0, with_bay_temp=True),
+       Scenario("fit_warm", "hwfet", -5.0, 0.55, 65.0, 15.0, T_bat=5.0),
+       Scenario("fit_hot", "us06", -3.0, 0.60, 80.0, 18.0, T_bat=8.0)]
+HELD_OUT = Scenario("held_out", "nycc", -8.0, 0.58, 20.0, 5.0, T_bat=0.0)
+
+
+@functools.lru_cache(maxsize=None)
+def data(seed):
+    truth = draw_truth(seed)
+    logs = [to_drivelog(*synthesise(sc, truth, seed=seed)[1:]) for sc in FIT]
+    val = to_drivelog(*synthesise(HELD_OUT, truth, seed=seed + 100)[1:])
+    return truth, logs, val
+
+
+@functools.lru_cache(maxsize=None)
+def result(seed):
+    truth, logs, val = data(seed)
+    return calibrate(logs, validate=[val], progress=False)
+
+
+def failures(params, truth):
+    bad = []
+    for n in params.names():
+        p = params.param(n)
+        if p.status != "estimated":
+            continue
+        if p.is_table:
+            for x, v, s, t in zip(p.x, p.value, p.stderr, truth[n]):
+                if math.isfinite(s) and (abs(v - t) > 3 * s or abs(v - t) > 0.1 * abs(t)):
+                    bad.append((n, x, v, s, t))
+        elif abs(p.value - truth[n]) > 3 * p.stderr or abs(p.value - truth[n]) > 0.1 * abs(truth[n]):
+            bad.append((n, p.value, p.stderr, truth[n]))
+    return bad
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_recovery_of_a_random_truth(seed):
+    truth, _, _ = data(seed)
+    res = result(seed)
+    ps = res.params
+    estimated = [n for n in ps.names() if ps.param(n).status == "estimated"]
+    # the data determine most of the model ...
+    for n in ("C_bat_Ah", "R_int_ohm", "C_eng_J_per_K", "gamma_exh", "kappa", "C_cab_J_per_K", "UA_cab_W_per_K",
+              "eps_hc", "W_idle_g_per_s"):
+        assert n in estimated, (n, ps.param(n).note)
+    # ... every parameter flagged identifiable is within 3 se and 10 % of the truth
+    assert failures(ps, truth) == []
+    # undetermined ones are at their prior, with a reason, and carry no standard error
+    prior = default_parameters()
+    for n in ps.names():
+        p = ps.param(n)
+        if p.status == "undetermined":
+            assert p.value == prior[n] and p.note and p.stderr is None, n
+        if p.status == "estimated":
+            assert p.logs and p.stderr is not None
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_validation_on_a_held_out_log(seed):
+    res = result(seed)
+    (m,) = res.validation.values()
+    assert m["coolant_temp"]["rmse"] < 1.5
+    assert m["soc"]["rmse"] < 0.01
+    assert abs(m["cumulative_fuel"]["error_pct"]) < 3.0
+    for ch in ("soc", "coolant_temp", "cabin_temp", "fuel_rate"):
+        assert {"rmse", "max_abs", "bias"} <= set(m[ch])
+
+
+def test_validation_with_the_defaults_is_worse():
+    """The metrics can fail: the uncalibrated defaults miss the held-out log by more."""
+    truth, logs, val = data(2)
+    (m,) = calibrate(logs[:1], fit=[], validate=[val], progress=False).validation.values()
+    assert m["coolant_temp"]["rmse"] > 1.5 or abs(m["cumulative_fuel"]["error_pct"]) > 3.0
+
+
+def test_artifact_round_trip_and_simulation(tmp_path):
+    res = result(1)
+    f = tmp_path / "cal.toml"
+    res.to_artifact(f)
+    text = f.read_text()
+    assert "[calibration]" in text and "[validation." in text and "SYNTHETIC" in text
+    ps = ParameterSet.load(f)
+    for n in res.params.names():
+        assert ps.param(n).status == res.params.param(n).status
+        v0, v1 = res.params[n], ps[n]
+        assert np.allclose(v0, v1)
+    import tomllib
+
+    d = tomllib.loads(text)
+    cal = d["calibration"]
+    assert cal["software"].startswith("iptm/calib") and cal["date_utc"]
+    assert len(cal["logs"]) == 3 and all(lg["synthetic"] for lg in cal["logs"])
+    assert "sha256" in cal["logs"][0]
+    assert set(cal["subsystems"]) == {"battery", "fuel", "thermal", "cabin"}
+    sim = simulate(ps, "nycc", T_amb=-5.0)
+    assert sim.fuel_g > 0
+    j = tmp_path / "cal.json"
+    res.to_artifact(j)
+    assert ParameterSet.load(j)["C_eng_J_per_K"] == pytest.approx(res.params["C_eng_J_per_K"])
+
+
+def test_report_and_plot(tmp_path):
+    res = result(1)
+    rep = res.report()
+    for s in ("[battery]", "[thermal]", "undetermined", "Validation", "RMSE", "CI C_eng_J_per_K"):
+        assert s in rep
+    truth, logs, val = data(1)
+    f = tmp_path / "v.png"
+    plot_validation(replay(val, res.params), f)
+    assert f.stat().st_size > 10_000
+
+
+def test_log_without_coolant_calibrates_battery_and_says_why_not_thermal():
+    truth = draw_truth(4)
+    sc = Scenario("no_coolant", "nycc", -10.0, 0.6, -10.0, -10.0, T_bat=-5.0, drop_channels=["coolant_temp_degC"])
+    log = to_drivelog(*synthesise(sc, truth, seed=4)[1:])
+    res = calibrate([log], progress=False)
+    ps = res.params
+    assert ps.param("R_int_ohm").status == "estimated"
+    for n in ("C_eng_J_per_K", "gamma_exh", "hA_eng_W_per_K", "T_open_degC", "k_rad_W_per_K"):
+        p = ps.param(n)
+        assert p.status == "prior" and "not fitted" in p.note and "coolant_temp_degC" in p.note
+        assert p.value == default_parameters()[n]
+    assert "coolant_temp_degC" in res.fits["thermal"].message
+    assert "coolant_temp_degC" in res.report()
+
+
+def test_fit_subset_and_fix():
+    truth, logs, _ = data(2)
+    res = calibrate(logs[:2], fit=["C_bat_Ah", "C_eng_J_per_K", "gamma_exh"], fix=["gamma_exh"], progress=False)
+    ps = res.params
+    assert ps.param("C_bat_Ah").status == "estimated"
+    assert ps.param("gamma_exh").status == "fixed" and ps["gamma_exh"] == default_parameters()["gamma_exh"]
+    assert ps.param("UA_cab_W_per_K").status == "prior"  # not in the subset
+    with pytest.raises(ParameterError):
+        calibrate(logs[:1], fit=["nope"], progress=False)
+
+
+def test_cli_calibrate(tmp_path, capsys):
+    from calib.writers import write_streams
+    from iptm.cli import main
+
+    truth = draw_truth(1)
+    paths = []
+    for i, sc in enumerate(FIT[:2] + [HELD_OUT]):
+        _, streams, meta = synthesise(sc, truth, seed=1 + i)
+        p = tmp_path / f"{sc.name}.csv"
+        write_streams(streams, meta, p, "csv")
+        paths.append(str(p))
+    out, js, plots = tmp_path / "cal.toml", tmp_path / "cal.json", tmp_path / "plots"
+    rc = main(["calibrate", paths[0], paths[1], "--validate", paths[2], "--out", str(out), "--json", str(js),
+               "--plots", str(plots), "--quiet"])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "[thermal]" in text and "Validation" in text
+    ps = ParameterSet.load(out)
+    assert ps.param("C_bat_Ah").status == "estimated"
+    d = json.loads(js.read_text())
+    assert d["calibration"]["logs"][0]["sha256"]
+    assert list(plots.glob("*.png"))
+
+
+@pytest.mark.slow
+def test_full_size_bundled_calibration():
+    """Full size (the three bundled scenarios, ~80 min): recovery and the < 60 s budget."""
+    import time
+
+    from calib.synth import BUNDLED
+
+    truth = draw_truth(11)
+    logs = [to_drivelog(*synthesise(sc, truth, seed=11 + i)[1:]) for i, sc in enumerate(BUNDLED)]
+    t0 = time.perf_counter()
+    res = calibrate(logs, progress=False)
+    assert time.perf_counter() - t0 < 60.0
+    assert failures(res.params, truth) == []
