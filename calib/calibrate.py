@@ -18,12 +18,21 @@
 
 Uncertainty
 -----------
-Standard errors come from the fit's covariance (lmfit ``leastsq``: ``s^2 (J^T J)^-1``), **inflated for
-correlated residuals**: output-error and quantised residuals are strongly autocorrelated, so the number
-of independent samples is taken as ``n_eff = sum_logs n / tau`` with ``tau = 1 + 2 sum_k rho_k`` the
-integrated autocorrelation time of each log's residuals (see :func:`neff`), and every standard error is
-multiplied by ``sqrt(n / n_eff)``. Confidence intervals (lmfit ``conf_interval``, F-test on the profile) of the key
-thermal and cabin parameters use the same ``n_eff`` (``nfree`` is set to ``n_eff - nvarys``).
+Standard errors come from the fit's covariance (lmfit ``leastsq``: ``s^2 (J^T J)^-1``), and then:
+
+- **inflated for correlated residuals**: output-error and quantised residuals are strongly
+  autocorrelated, so the number of independent samples is ``n_eff = sum_logs n / tau`` with ``tau`` the
+  larger of the integrated autocorrelation time and a batch-means estimate (:func:`neff`); every standard
+  error is multiplied by ``sqrt(n / n_eff)``;
+- **plus the calibration uncertainty of the logged inputs** (heater power, fuel rate, engine power:
+  :data:`INPUT_REL_SD` = 1 %; temperature sensors: 0.5 K offset): each input is moved by one sd, the fit
+  repeated, and the shift of every estimate added in quadrature;
+- **plus the prior uncertainty of parameters held at their prior** (:data:`PRIOR_REL_SD` = 25 % of the
+  value, or the absolute :data:`PRIOR_ABS_SD`), propagated the same way, so that an estimate leaning on a
+  doubtful prior is judged with that doubt.
+
+Confidence intervals (lmfit ``conf_interval``, F-test on the profile) of the key thermal and cabin
+parameters (:data:`KEY_PARAMETERS`) use the same ``n_eff`` (``nfree`` is set to ``n_eff - nvarys``).
 
 Identifiability criteria (a parameter is *determined* only if all hold)
 -----------------------------------------------------------------------
@@ -35,27 +44,21 @@ Identifiability criteria (a parameter is *determined* only if all hold)
 3. Relative standard error <= :data:`REL_SE_MAX` = 1/30, i.e. the 3-sigma interval lies within +-10 %
    of the value (the accuracy the issue asks of an identified parameter). Table entries of ``U_oc_V``
    must in addition have a standard error <= :data:`U_OC_SE_MAX_V` (the whole table spans only ~20 V).
+   A parameter whose true value is near zero (``Q_sun_W``) therefore cannot be reported as determined.
 4. Not nearly collinear with another fitted parameter: ``|corr| > CORR_MAX = 0.999`` flags the less
    precise of the two unless its relative standard error is below ``REL_SE_MAX / 2`` (the standard errors
    already account for correlation; this catches fits where only a combination is determined).
 5. Not stuck at a bound.
 
-The logged *inputs* of the output-error fits (heater power, fuel rate, engine power) carry calibration
-errors too: each is scaled by one sd of :data:`INPUT_REL_SD` = 1 %, the fit repeated, and the shifts added
-in quadrature to the standard errors.
-
-Parameters held at their prior are not known exactly either: the other estimates are conditional on
-them. Their prior uncertainty (:data:`PRIOR_REL_SD` = 25 % of the value, or the absolute
-:data:`PRIOR_ABS_SD`) is therefore propagated: each is moved by one prior sd, the fit repeated, and the
-shift of every estimate added in quadrature to its standard error before it is judged. An estimate that
-leans on a doubtful prior thus becomes undetermined too.
-
 A parameter failing any of these is *undetermined*: it keeps its prior value, its status is
-``undetermined`` and its note says which criterion failed. In the output-error and fuel fits it stays free
-in the fit as a nuisance parameter (so a wrong prior cannot bias the others, and their standard errors
-include the correlation with it); a parameter with no sensitivity at all, or stuck at a bound, or
-without data in its regime (criterion 1) is held at its prior instead. Parameters of a subsystem whose channels no log carries
-keep status ``prior`` with a note naming the missing channels. Fixed parameters (``fix=``) keep status
+``undetermined``, it has no standard error, and its note says which criterion failed. In the
+output-error and fuel fits it stays free in the fit as a nuisance parameter (so a wrong prior cannot bias
+the others, and their standard errors include the correlation with it); a parameter with no sensitivity
+at all, stuck at a bound, or without data in its regime (criterion 1) is held at its prior instead (with
+its prior uncertainty propagated, above). Note the consequence: the calibrated set then combines
+estimates with priors, and a held-out log that exercises an undetermined parameter is predicted with
+its prior (the validation metrics show it). Parameters of a subsystem whose channels no log carries keep
+status ``prior`` with a note naming the missing channels. Fixed parameters (``fix=``) keep status
 ``fixed``.
 
 ``hA_eng_W_per_K`` and ``kappa`` enter the coolant equation only as ``hA_eng (1 - kappa)`` unless a log

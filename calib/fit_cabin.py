@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .calibrate import (INPUT_REL_SD, KEY_PARAMETERS, MIN_SAMPLES, ParamEstimate, SubsystemFit, inflation, judge, lmfit_identify,
-                        not_fitted)
+from .calibrate import (INPUT_REL_SD, KEY_PARAMETERS, MIN_SAMPLES, ParamEstimate, SubsystemFit, inflation, judge,
+                        lmfit_identify, not_fitted)
 from .validate import _fill, cabin_replay, first_valid_mean, log_arrays
 
 NEEDS = ("cabin_temp_degC", "ambient_temp_degC")  # + heater_power_W or vent_temp_degC + blower_flow_kg_per_s

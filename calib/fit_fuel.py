@@ -118,7 +118,8 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
     f0 = np.array(pf.value, float)
     cold = T < WARM_DEGC
     cover = hat_basis(T[cold], Tbp).sum(axis=0)
-    fit.metrics.update(ool_filtered_logs=len(ool_filtered), samples=int(P.size), warm_on_samples=warm_on, idle_samples=n_idle,
+    fit.metrics.update(ool_filtered_logs=len(ool_filtered), samples=int(P.size), warm_on_samples=warm_on,
+                       idle_samples=n_idle,
                        cold_samples=int(cold.sum()))
 
     pre = {}

@@ -16,7 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .calibrate import INPUT_REL_SD, KEY_PARAMETERS, ParamEstimate, SubsystemFit, judge, lmfit_identify, not_fitted
+from .calibrate import (INPUT_REL_SD, KEY_PARAMETERS, ParamEstimate, SubsystemFit, judge, lmfit_identify,
+                        not_fitted)
 from .validate import _fill, coolant_replay, first_valid_mean, log_arrays
 
 NEEDS = ("coolant_temp_degC", "fuel_rate_g_per_s", "engine_speed_rpm", "engine_torque_Nm", "ambient_temp_degC")

@@ -77,6 +77,15 @@ def _bilin(S, o, s0, t0, t1):
     return (1.0 - t0) * ((1.0 - t1) * S[o] + t1 * S[o + 1]) + t0 * ((1.0 - t1) * S[o + s0] + t1 * S[o + s0 + 1])
 
 
+@njit(cache=True)
+def _zero_cells(S, ns, nt, Z):
+    """Z[o] = 1 where the 4 corners of cell o (row-major ns x nt plane) are exactly 0."""
+    for a in range(ns - 1):
+        for b in range(nt - 1):
+            o = a * nt + b
+            Z[o] = S[o] == 0.0 and S[o + 1] == 0.0 and S[o + nt] == 0.0 and S[o + nt + 1] == 0.0
+
+
 @njit(parallel=True, cache=True)
 def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol):
     """Thermal-DP backward pass (states SOC x T_cl, one heater demand Q[0]); fills VT, LT[0..N-1]."""
@@ -86,10 +95,16 @@ def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol):
     t_lo, t_inv = tclg[0], (nt - 1) / (tclg[-1] - tclg[0])
     Ts = P[_C_TS]
     T_amb = P[_C_TAMB]
+    PEN = P[_C_PEN]
     fclg = P[int(P[_A_FCLG]): int(P[_A_FCLG]) + nt]
     lossg = P[int(P[_A_LOSSG]): int(P[_A_LOSSG]) + nt]
     strides = np.array([nt, 1], np.int64)
     qv = np.empty(nt)
+    TB = np.empty((np_, nt), np.int64)
+    TT = np.empty((np_, nt))
+    PT = np.empty((np_, nt))
+    C0 = np.empty((np_, nt))
+    Z = np.zeros(ns * nt, np.bool_)
     for k in range(N - 1, -1, -1):
         tab = big[k]
         Vn = VT[k + 1]
@@ -104,6 +119,28 @@ def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol):
             if q < 0.0:
                 q = 0.0
             qv[j] = q
+        _zero_cells(Ln, ns, nt, Z)
+        # next coolant state per (power control, T_cl node): independent of SOC
+        for ip in prange(np_):
+            if tab[ip, _T_OK] == 0.0:
+                continue
+            wf = tab[ip, _T_WF]
+            P_e = tab[ip, _T_PE]
+            for j in range(nt):
+                W_f = wf * fclg[j]
+                Q_fuel = P[_MS0 + _LHV] * W_f
+                Q_exh = P[_MS0 + _GAMMA] * (Q_fuel - P_e)
+                tn = tclg[j] + Ts * (Q_fuel - P_e - Q_exh - lossg[j] - qv[j]) / P[_MS0 + _CENG]
+                pt = 0.0
+                if tn < P[_C_TLO]:
+                    pt = (P[_C_TLO] - tn) / P[_C_TH]
+                elif tn > P[_C_THI]:
+                    pt = (tn - P[_C_THI]) / P[_C_TH]
+                PT[ip, j] = pt
+                C0[ip, j] = W_f * Ts
+                bb, tt = _loc(tn, t_lo, t_inv, nt)
+                TB[ip, j] = bb
+                TT[ip, j] = tt
         for i in prange(ns):
             best = np.full(nt, np.inf)
             bestL = np.full(nt, np.inf)
@@ -121,42 +158,34 @@ def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol):
                 elif sn > P[_C_SHI]:
                     pen0 += (sn - P[_C_SHI]) / P[_C_SH]
                 a, ta = _loc(sn, s_lo, s_inv, ns)
-                wf = tab[ip, _T_WF]
-                P_e = tab[ip, _T_PE]
+                oa = a * nt
                 for j in range(nt):
-                    W_f = wf * fclg[j]
-                    Q_fuel = P[_MS0 + _LHV] * W_f
-                    Q_exh = P[_MS0 + _GAMMA] * (Q_fuel - P_e)
-                    tn = tclg[j] + Ts * (Q_fuel - P_e - Q_exh - lossg[j] - qv[j]) / P[_MS0 + _CENG]
-                    pen = pen0
-                    if tn < P[_C_TLO]:
-                        pen += (P[_C_TLO] - tn) / P[_C_TH]
-                    elif tn > P[_C_THI]:
-                        pen += (tn - P[_C_THI]) / P[_C_TH]
-                    cst = W_f * Ts + P[_C_PEN] * pen
-                    b, tt = _loc(tn, t_lo, t_inv, nt)
-                    o = a * nt + b
-                    lv = _bilin(Ln, o, nt, ta, tt)
-                    if not np.isfinite(lv):
-                        ib[0] = a
-                        ib[1] = b
-                        tb[0] = ta
-                        tb[1] = tt
-                        lv = _slow(Ln, 2, strides, ib, tb)
-                        if not (lv < np.inf):
-                            continue
-                    if lv <= level_tol:
+                    tt = TT[ip, j]
+                    o = oa + TB[ip, j]
+                    if Z[o]:
                         lv = 0.0
+                    else:
+                        lv = _bilin(Ln, o, nt, ta, tt)
+                        if not np.isfinite(lv):
+                            ib[0] = a
+                            ib[1] = TB[ip, j]
+                            tb[0] = ta
+                            tb[1] = tt
+                            lv = _slow(Ln, 2, strides, ib, tb)
+                            if not (lv < np.inf):
+                                continue
+                        if lv <= level_tol:
+                            lv = 0.0
                     if lv > bestL[j]:
                         continue
                     vv = _bilin(Vn, o, nt, ta, tt)
                     if not np.isfinite(vv):
                         ib[0] = a
-                        ib[1] = b
+                        ib[1] = TB[ip, j]
                         tb[0] = ta
                         tb[1] = tt
                         vv = _slow(Vn, 2, strides, ib, tb)
-                    v = cst + vv
+                    v = C0[ip, j] + PEN * (pen0 + PT[ip, j]) + vv
                     if lv < bestL[j] or v < best[j]:
                         best[j] = v
                         bestL[j] = lv
@@ -167,7 +196,11 @@ def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol):
 
 @njit(parallel=True, cache=True)
 def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol):
-    """Thermal-Cabin-DP backward pass (states SOC x T_cl x T_cab, controls power x Q)."""
+    """Thermal-Cabin-DP backward pass (states SOC x T_cl x T_cab, controls power x Q).
+
+    Controls whose requested heat exceeds the heater-core limit all deliver the same heat (the limit):
+    they are identical transitions, so only the first of them (lowest control index, the one the engine's
+    tie rule would keep) is evaluated."""
     ns, nt, nc, nq = socg.size, tclg.size, cabg.size, Q.size
     np_ = big.shape[1]
     s_lo, s_inv = socg[0], (ns - 1) / (socg[-1] - socg[0])
@@ -175,6 +208,7 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol):
     c_lo, c_inv = cabg[0], (nc - 1) / (cabg[-1] - cabg[0])
     Ts = P[_C_TS]
     T_amb = P[_C_TAMB]
+    PEN = P[_C_PEN]
     fclg = P[int(P[_A_FCLG]): int(P[_A_FCLG]) + nt]
     lossg = P[int(P[_A_LOSSG]): int(P[_A_LOSSG]) + nt]
     s1 = nc
@@ -182,12 +216,18 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol):
     strides = np.array([s0, s1, 1], np.int64)
     nplane = ns * nt
     qlim = np.empty((nt, nc))
-    tcu = np.empty((nc, nq))  # next cabin temperature when not limited
-    pcu = np.empty((nc, nq))  # its penalty
+    nunl = np.empty((nt, nc), np.int64)  # number of Q values not limited at (j, m)
+    pcu = np.empty((nc, nq))
     cu = np.empty((nc, nq), np.int64)
     tu = np.empty((nc, nq))
     SV = np.empty((nc * nq, nplane))
     SL = np.empty((nc * nq, nplane))
+    ZL = np.zeros((nc * nq, nplane), np.bool_)
+    TB = np.empty((np_, nt, nq), np.int64)
+    TT = np.empty((np_, nt, nq))
+    PT = np.empty((np_, nt, nq))
+    BASE = np.empty((np_, nt))
+    C0 = np.empty((np_, nt))
     for k in range(N - 1, -1, -1):
         tab = big[k]
         Vn = VT[k + 1]
@@ -196,10 +236,15 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol):
         for m in range(nc):
             T_in = P[_MS0 + _RECIRC] * cabg[m] + (1.0 - P[_MS0 + _RECIRC]) * T_amb
             for j in range(nt):
-                qlim[j, m] = P[_MS0 + _EPS] * P[_C_WBL] * P[_MS0 + _CP] * (tclg[j] - T_in)
+                ql = P[_MS0 + _EPS] * P[_C_WBL] * P[_MS0 + _CP] * (tclg[j] - T_in)
+                qlim[j, m] = ql
+                cnt = 0
+                for iq in range(nq):
+                    if not (Q[iq] > ql):
+                        cnt += 1
+                nunl[j, m] = cnt
             for iq in range(nq):
                 tc = cabg[m] + Ts * (Q[iq] + P[_MS0 + _UACAB] * (T_amb - cabg[m]) + P[_MS0 + _QSUN]) / P[_MS0 + _CCAB]
-                tcu[m, iq] = tc
                 pc = 0.0
                 if tc < lb:
                     pc = (lb - tc) / P[_C_CH]
@@ -218,6 +263,30 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol):
                 o = e * nc + c
                 SV[r, e] = (1.0 - t2) * Vn[o] + t2 * Vn[o + 1]
                 SL[r, e] = (1.0 - t2) * Ln[o] + t2 * Ln[o + 1]
+            _zero_cells(SL[r], ns, nt, ZL[r])
+        for ip in prange(np_):
+            if tab[ip, _T_OK] == 0.0:
+                continue
+            wf = tab[ip, _T_WF]
+            P_e = tab[ip, _T_PE]
+            for j in range(nt):
+                W_f = wf * fclg[j]
+                Q_fuel = P[_MS0 + _LHV] * W_f
+                Q_exh = P[_MS0 + _GAMMA] * (Q_fuel - P_e)
+                base = Q_fuel - P_e - Q_exh - lossg[j]
+                BASE[ip, j] = base
+                C0[ip, j] = W_f * Ts
+                for iq in range(nq):
+                    tn = tclg[j] + Ts * (base - Q[iq]) / P[_MS0 + _CENG]
+                    pt = 0.0
+                    if tn < P[_C_TLO]:
+                        pt = (P[_C_TLO] - tn) / P[_C_TH]
+                    elif tn > P[_C_THI]:
+                        pt = (tn - P[_C_THI]) / P[_C_TH]
+                    PT[ip, j, iq] = pt
+                    bb, tt = _loc(tn, t_lo, t_inv, nt)
+                    TB[ip, j, iq] = bb
+                    TT[ip, j, iq] = tt
         for i in prange(ns):
             best = np.full(nt * nc, np.inf)
             bestL = np.full(nt * nc, np.inf)
@@ -235,86 +304,90 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol):
                 elif sn > P[_C_SHI]:
                     pen0 += (sn - P[_C_SHI]) / P[_C_SH]
                 a, ta = _loc(sn, s_lo, s_inv, ns)
-                wf = tab[ip, _T_WF]
-                P_e = tab[ip, _T_PE]
+                oa = a * nt
                 for j in range(nt):
-                    W_f = wf * fclg[j]
-                    Q_fuel = P[_MS0 + _LHV] * W_f
-                    Q_exh = P[_MS0 + _GAMMA] * (Q_fuel - P_e)
-                    base = Q_fuel - P_e - Q_exh - lossg[j]
-                    cst0 = W_f * Ts
+                    c0 = C0[ip, j]
                     for m in range(nc):
                         sidx = j * nc + m
-                        ql = qlim[j, m]
-                        for iq in range(nq):
-                            q = Q[iq]
-                            limited = q > ql
-                            if limited:
-                                q = ql
-                            if q < 0.0:
-                                q = 0.0
-                            tn = tclg[j] + Ts * (base - q) / P[_MS0 + _CENG]
-                            pen = pen0
-                            if tn < P[_C_TLO]:
-                                pen += (P[_C_TLO] - tn) / P[_C_TH]
-                            elif tn > P[_C_THI]:
-                                pen += (tn - P[_C_THI]) / P[_C_TH]
-                            b, tt = _loc(tn, t_lo, t_inv, nt)
-                            if not limited:
-                                pen += pcu[m, iq]
-                                rr = m * nq + iq
-                                o = a * nt + b
+                        nu_ = nunl[j, m]
+                        # controls whose heat is delivered in full: 2-D slices
+                        for iq in range(nu_):
+                            rr = m * nq + iq
+                            tt = TT[ip, j, iq]
+                            o = oa + TB[ip, j, iq]
+                            if ZL[rr, o]:
+                                lv = 0.0
+                            else:
                                 lv = _bilin(SL[rr], o, nt, ta, tt)
                                 if not np.isfinite(lv):
                                     ib[0] = a
-                                    ib[1] = b
+                                    ib[1] = TB[ip, j, iq]
                                     ib[2] = cu[m, iq]
                                     tb[0] = ta
                                     tb[1] = tt
                                     tb[2] = tu[m, iq]
                                     lv = _slow(Ln, 3, strides, ib, tb)
-                            else:
-                                tc = cabg[m] + Ts * (q + P[_MS0 + _UACAB] * (T_amb - cabg[m]) + P[_MS0 + _QSUN]) / P[_MS0 + _CCAB]
-                                if tc < lb:
-                                    pen += (lb - tc) / P[_C_CH]
-                                elif tc > P[_C_CHI]:
-                                    pen += (tc - P[_C_CHI]) / P[_C_CH]
-                                c, t2 = _loc(tc, c_lo, c_inv, nc)
-                                ib[0] = a
-                                ib[1] = b
-                                ib[2] = c
-                                tb[0] = ta
-                                tb[1] = tt
-                                tb[2] = t2
-                                o = a * s0 + b * s1 + c
-                                lv = _tri(Ln, o, s0, s1, ta, tt, t2)
-                                if not np.isfinite(lv):
-                                    lv = _slow(Ln, 3, strides, ib, tb)
-                            if not (lv < np.inf):
-                                continue
-                            if lv <= level_tol:
-                                lv = 0.0
+                                    if not (lv < np.inf):
+                                        continue
+                                if lv <= level_tol:
+                                    lv = 0.0
                             if lv > bestL[sidx]:
                                 continue
-                            cst = cst0 + P[_C_PEN] * pen
-                            if not limited:
-                                vv = _bilin(SV[m * nq + iq], a * nt + b, nt, ta, tt)
-                                if not np.isfinite(vv):
-                                    ib[0] = a
-                                    ib[1] = b
-                                    ib[2] = cu[m, iq]
-                                    tb[0] = ta
-                                    tb[1] = tt
-                                    tb[2] = tu[m, iq]
-                                    vv = _slow(Vn, 3, strides, ib, tb)
-                            else:
-                                vv = _tri(Vn, a * s0 + b * s1 + ib[2], s0, s1, ta, tt, tb[2])
-                                if not np.isfinite(vv):
-                                    vv = _slow(Vn, 3, strides, ib, tb)
-                            v = cst + vv
+                            vv = _bilin(SV[rr], o, nt, ta, tt)
+                            if not np.isfinite(vv):
+                                ib[0] = a
+                                ib[1] = TB[ip, j, iq]
+                                ib[2] = cu[m, iq]
+                                tb[0] = ta
+                                tb[1] = tt
+                                tb[2] = tu[m, iq]
+                                vv = _slow(Vn, 3, strides, ib, tb)
+                            v = c0 + PEN * ((pen0 + PT[ip, j, iq]) + pcu[m, iq]) + vv
                             if lv < bestL[sidx] or v < best[sidx]:
                                 best[sidx] = v
                                 bestL[sidx] = lv
+                        if nu_ == nq:
+                            continue
+                        # the first heater-limited control (the others repeat it)
+                        q = qlim[j, m]
+                        if q < 0.0:
+                            q = 0.0
+                        tn = tclg[j] + Ts * (BASE[ip, j] - q) / P[_MS0 + _CENG]
+                        pen = pen0
+                        if tn < P[_C_TLO]:
+                            pen += (P[_C_TLO] - tn) / P[_C_TH]
+                        elif tn > P[_C_THI]:
+                            pen += (tn - P[_C_THI]) / P[_C_TH]
+                        tc = cabg[m] + Ts * (q + P[_MS0 + _UACAB] * (T_amb - cabg[m]) + P[_MS0 + _QSUN]) / P[_MS0 + _CCAB]
+                        if tc < lb:
+                            pen += (lb - tc) / P[_C_CH]
+                        elif tc > P[_C_CHI]:
+                            pen += (tc - P[_C_CHI]) / P[_C_CH]
+                        bb, tt = _loc(tn, t_lo, t_inv, nt)
+                        c, t2 = _loc(tc, c_lo, c_inv, nc)
+                        ib[0] = a
+                        ib[1] = bb
+                        ib[2] = c
+                        tb[0] = ta
+                        tb[1] = tt
+                        tb[2] = t2
+                        o = a * s0 + bb * s1 + c
+                        lv = _tri(Ln, o, s0, s1, ta, tt, t2)
+                        if not np.isfinite(lv):
+                            lv = _slow(Ln, 3, strides, ib, tb)
+                        if not (lv < np.inf):
+                            continue
+                        if lv <= level_tol:
+                            lv = 0.0
+                        if lv > bestL[sidx]:
+                            continue
+                        vv = _tri(Vn, o, s0, s1, ta, tt, t2)
+                        if not np.isfinite(vv):
+                            vv = _slow(Vn, 3, strides, ib, tb)
+                        v = c0 + PEN * pen + vv
+                        if lv < bestL[sidx] or v < best[sidx]:
+                            best[sidx] = v
+                            bestL[sidx] = lv
             for e in range(nt * nc):
                 VT[k, i * nt * nc + e] = best[e]
                 LT[k, i * nt * nc + e] = bestL[e]

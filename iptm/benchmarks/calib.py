@@ -3,8 +3,9 @@
 For each seed a truth is drawn (:func:`calib.synth.draw_truth`, never the defaults), the three bundled
 scenarios (about 75 min of driving) are synthesised, and :func:`calib.calibrate.calibrate` is run
 (1) on all three logs (the timed figure: the issue's < 60 s on 2 cores), and (2) on two of them with the
-third held out for validation, each log in turn. Printed: wall time, the recovery table (truth, estimate, standard error,
-|err|/truth, within 3 se) of every parameter flagged estimated, and the held-out validation metrics.
+third held out for validation, each log in turn. Printed: wall time, the recovery table (truth, estimate,
+standard error, |err|/truth, within 3 se) of every parameter flagged estimated, and the held-out
+validation metrics.
 
 Reproduce: ``iptm bench calib`` (``--quick``: one seed).
 """

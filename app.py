@@ -1,0 +1,27 @@
+"""The workbench dashboard: ``streamlit run app.py``.
+
+Four pages (one file each under ``pages/``): Logs, Calibrate, Optimise, Report. The pages call the same
+library functions as the command line (``calib.*``, ``optimize.*``, ``iptm.pipeline``) and hold no
+physics; session state and upload handling are in :mod:`iptm.dashboard`.
+"""
+import matplotlib
+
+matplotlib.use("Agg")
+
+import streamlit as st  # noqa: E402
+
+from iptm import dashboard as dash  # noqa: E402
+
+st.set_page_config(page_title="iptm - Prius winter workbench", layout="wide")
+
+pages = [
+    st.Page("pages/logs.py", title="Logs", icon=":material/upload_file:", default=True),
+    st.Page("pages/calibrate.py", title="Calibrate", icon=":material/tune:"),
+    st.Page("pages/optimise.py", title="Optimise", icon=":material/speed:"),
+    st.Page("pages/report.py", title="Report", icon=":material/description:"),
+]
+nav = st.navigation(pages)
+
+nav.run()
+# The sidebar (session summary, SYNTHETIC-data notice) is drawn by each page after its content
+# (iptm.dashboard.render_sidebar), so it reflects logs loaded in the same run.

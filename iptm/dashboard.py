@@ -1,0 +1,357 @@
+"""Session state and upload handling for the Streamlit dashboard (``app.py``, ``pages/*.py``).
+
+Pure functions over a mutable mapping ``state`` (``st.session_state`` in the app, a plain ``dict`` in
+tests), so everything here is testable without Streamlit. No physics: the dashboard calls the same
+library functions as the command line (:mod:`calib.ingest`, :mod:`calib.calibrate`,
+:mod:`optimize.casestudy`, :mod:`iptm.pipeline`).
+
+Per session
+    ``state[LOGS]``: ``{name: LoadedLog}``, the session's logs, and ``state[TMP]``: a temporary folder
+    created for the session, where uploads are written (original file name kept, so the format is
+    detected from the extension) before being read. Two sessions never share either.
+Shared between sessions (content-keyed, so a session only ever hits entries of content it has itself)
+    the ingest cache (:class:`calib.store.Store` under :func:`cache_dir`, keyed by the file's SHA-256 and
+    the DBC), and the Streamlit caches of calibrations / optimisations in the pages.
+
+Configuration (environment)
+    ``IPTM_MAX_UPLOAD_MB`` (default 200): larger uploads are refused with a message.
+    ``IPTM_CACHE_DIR`` (default ``.iptm-cache``): the shared content-keyed cache.
+    ``IPTM_SESSION_ROOT`` (default: the system temporary folder): where session folders are made.
+"""
+from __future__ import annotations
+
+import os
+import re
+import tempfile
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import pandas as pd
+
+from calib.errors import IptmError
+
+LOGS = "iptm_logs"
+TMP = "iptm_tmpdir"
+SEEN = "iptm_seen_uploads"
+DBC = "iptm_dbc"
+CALIB = "iptm_calibration"
+OPT = "iptm_optimisation"
+SCENARIO = "iptm_scenario"
+
+DEFAULT_MAX_UPLOAD_MB = 200.0
+#: Extensions the readers understand (calib.ingest); anything else is refused up front with a message.
+LOG_EXTENSIONS = (".csv", ".txt", ".mcap", ".log", ".candump", ".asc", ".blf", ".trc", ".mf4", ".mdf")
+REPO_ROOT = Path(__file__).resolve().parent.parent
+BUNDLED_DIR = REPO_ROOT / "logs"
+
+
+@dataclass
+class LoadedLog:
+    """One log of the session: where its bytes are, the canonical log and its channel report."""
+
+    name: str
+    path: Path
+    log: object  # calib.drivelog.DriveLog
+    report: pd.DataFrame
+    sha256: str
+
+    @property
+    def synthetic(self) -> bool:
+        return bool(self.log.meta.synthetic)
+
+    @property
+    def label(self) -> str:
+        return self.log.label()
+
+
+# ---------------------------------------------------------------------------------------------------
+# configuration
+# ---------------------------------------------------------------------------------------------------
+def max_upload_bytes() -> int:
+    """The upload size limit in bytes (``IPTM_MAX_UPLOAD_MB``, default 200 MB)."""
+    raw = os.environ.get("IPTM_MAX_UPLOAD_MB", "")
+    try:
+        mb = float(raw) if raw.strip() else DEFAULT_MAX_UPLOAD_MB
+    except ValueError:
+        mb = DEFAULT_MAX_UPLOAD_MB
+    return int(mb * 1024 * 1024)
+
+
+def cache_dir() -> Path:
+    """The shared content-keyed cache (``IPTM_CACHE_DIR``, default ``<repo>/.iptm-cache``)."""
+    return Path(os.environ.get("IPTM_CACHE_DIR") or (REPO_ROOT / ".iptm-cache"))
+
+
+def _human(n: float) -> str:
+    for unit in ("B", "kB", "MB", "GB"):
+        if n < 1024 or unit == "GB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n:.1f} GB"
+
+
+# ---------------------------------------------------------------------------------------------------
+# the session's folder and logs
+# ---------------------------------------------------------------------------------------------------
+def session_dir(state) -> Path:
+    """The session's private temporary folder (created on first use)."""
+    d = state.get(TMP)
+    if not d or not Path(d).is_dir():
+        root = os.environ.get("IPTM_SESSION_ROOT") or None
+        if root:
+            Path(root).mkdir(parents=True, exist_ok=True)
+        d = tempfile.mkdtemp(prefix="iptm-session-", dir=root)
+        state[TMP] = d
+    return Path(d)
+
+
+def logs(state) -> dict:
+    """The session's logs ``{name: LoadedLog}`` (created empty on first use)."""
+    if LOGS not in state:
+        state[LOGS] = {}
+    return state[LOGS]
+
+
+def any_synthetic(state) -> bool:
+    return any(e.synthetic for e in logs(state).values())
+
+
+def remove_log(state, name: str) -> None:
+    entry = logs(state).pop(name, None)
+    if entry is not None and session_dir(state) in Path(entry.path).parents:
+        try:
+            Path(entry.path).unlink()
+        except OSError:
+            pass
+
+
+def safe_name(name: str) -> str:
+    """The file name only (no folders), with characters other than ``[A-Za-z0-9._-]`` replaced."""
+    base = Path(str(name).replace("\\", "/")).name.strip()
+    base = re.sub(r"[^A-Za-z0-9._-]", "_", base).lstrip(".")
+    return base or "upload"
+
+
+def check_size(name: str, size: int, max_bytes: int | None = None) -> None:
+    lim = max_upload_bytes() if max_bytes is None else int(max_bytes)
+    if size > lim:
+        raise IptmError(f"{name}: file is too large ({_human(size)}; the limit is {_human(lim)}) - "
+                        "split the log, or raise IPTM_MAX_UPLOAD_MB")
+    if size == 0:
+        raise IptmError(f"{name}: the file is empty")
+
+
+def check_log_extension(name: str) -> None:
+    ext = Path(name).suffix.lower()
+    if ext not in LOG_EXTENSIONS:
+        raise IptmError(f"{name}: unsupported file type {ext or '(no extension)'!r} - upload a drive log: "
+                        + ", ".join(LOG_EXTENSIONS))
+
+
+def save_upload(state, name: str, data: bytes, *, subdir: str = "uploads", max_bytes: int | None = None) -> Path:
+    """Write uploaded bytes into the session folder under their original (sanitised) name."""
+    fname = safe_name(name)
+    check_size(fname, len(data), max_bytes)
+    folder = session_dir(state) / subdir
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / fname
+    path.write_bytes(data)
+    return path
+
+
+def read_log_cached(path, *, dbc=None, store_root=None):
+    """Read a log through the pipeline's content-keyed ingest cache; returns (DriveLog, channel report)."""
+    from calib.store import Store
+    from iptm.pipeline import ingest_all
+
+    store = Store(store_root or cache_dir())
+    (_, log, report), = ingest_all([Path(path)], store, dbc=str(dbc) if dbc else None, progress=False)
+    # the cache may hold a copy read from another path: the session's log names its own file
+    log = replace(log, meta=replace(log.meta, source=str(path)))
+    return log, report
+
+
+def add_log_file(state, path, *, dbc=None, name: str | None = None, store_root=None) -> LoadedLog:
+    """Read a log file (already on disk) into the session."""
+    from calib.drivelog import file_sha256
+
+    path = Path(path)
+    log, report = read_log_cached(path, dbc=dbc, store_root=store_root)
+    entry = LoadedLog(name=name or path.name, path=path, log=log, report=report, sha256=file_sha256(path))
+    logs(state)[entry.name] = entry
+    return entry
+
+
+def add_upload(state, name: str, data: bytes, *, dbc=None, max_bytes: int | None = None,
+               store_root=None) -> LoadedLog:
+    """Check, save and read an uploaded log. Raises :class:`IptmError` with a one-line message."""
+    fname = safe_name(name)
+    check_log_extension(fname)
+    path = save_upload(state, fname, data, max_bytes=max_bytes)
+    try:
+        return add_log_file(state, path, dbc=dbc, name=fname, store_root=store_root)
+    except IptmError as exc:
+        path.unlink(missing_ok=True)
+        # name the file as the user knows it, not by the session's temporary path
+        raise IptmError(str(exc).replace(str(path), fname)) from None
+    except Exception as exc:  # noqa: BLE001 - a reader bug must not take the page down
+        path.unlink(missing_ok=True)
+        raise IptmError(f"{fname}: cannot read this log ({type(exc).__name__}: {str(exc)[:200]})") from None
+
+
+def set_dbc(state, name: str, data: bytes, *, max_bytes: int | None = None) -> Path:
+    """Save an uploaded DBC for the session's CAN logs (checked by parsing it with cantools)."""
+    fname = safe_name(name)
+    if Path(fname).suffix.lower() != ".dbc":
+        raise IptmError(f"{fname}: a CAN database must be a .dbc file")
+    path = save_upload(state, fname, data, subdir="dbc", max_bytes=max_bytes)
+    try:
+        import cantools
+
+        cantools.database.load_file(str(path))
+    except Exception as exc:  # noqa: BLE001 - cantools raises many types
+        path.unlink(missing_ok=True)
+        raise IptmError(f"{fname}: not a readable DBC ({str(exc).splitlines()[0][:160] if str(exc) else type(exc).__name__})"
+                        ) from None
+    state[DBC] = str(path)
+    return path
+
+
+def bundled_logs(include_other_formats: bool = False, root: Path | None = None) -> list[Path]:
+    """The bundled sample logs (all SYNTHETIC): the ``.blf`` drives, optionally the same drive as CSV/MCAP/candump."""
+    root = Path(root or BUNDLED_DIR)
+    files = sorted(root.glob("*.blf"))
+    if include_other_formats:
+        files += sorted(p for p in root.iterdir() if p.suffix.lower() in (".csv", ".mcap", ".log"))
+    return files
+
+
+def load_bundled(state, include_other_formats: bool = False, store_root=None) -> list[LoadedLog]:
+    return [add_log_file(state, p, store_root=store_root) for p in bundled_logs(include_other_formats)]
+
+
+# ---------------------------------------------------------------------------------------------------
+# calibration helpers
+# ---------------------------------------------------------------------------------------------------
+def calibratable_parameters() -> list[str]:
+    from calib.calibrate import SUBSYSTEM_PARAMS
+
+    return [n for names in SUBSYSTEM_PARAMS.values() for n in names]
+
+
+def subsystem_of(name: str) -> str:
+    from calib.calibrate import SUBSYSTEM_PARAMS
+
+    return next((s for s, names in SUBSYSTEM_PARAMS.items() if name in names), "")
+
+
+def truncate(log, seconds: float | None):
+    """The first ``seconds`` of a log (``None``/0: the whole log). Same meta (provenance, SHA-256)."""
+    from calib.drivelog import DriveLog
+
+    if not seconds or seconds <= 0:
+        return log
+    t = log.data.index.to_numpy(float)
+    return DriveLog(data=log.data.loc[t <= t[0] + float(seconds)], meta=log.meta)
+
+
+def _fmt(v, digits=5):
+    if v is None:
+        return ""
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_fmt(x, 4) for x in v) + "]"
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return str(v)
+    return "nan" if f != f else f"{f:.{digits}g}"
+
+
+def parameter_table(params, names=None) -> pd.DataFrame:
+    """Parameter table for display: value, standard error, relative error, status and identifiability.
+
+    ``identifiable`` is ``yes`` for an estimated parameter, ``NO`` for an undetermined one (left at its
+    prior; the note says which criterion failed), ``-`` for fixed / not attempted ones.
+    """
+    names = list(names or calibratable_parameters())
+    rows = []
+    for n in names:
+        p = params.param(n)
+        rel = ""
+        if not p.is_table and isinstance(p.stderr, (int, float)) and p.value:
+            rel = f"{100 * abs(float(p.stderr) / float(p.value)):.2g} %"
+        status = p.status or "prior"
+        flag = {"estimated": "yes", "undetermined": "NO"}.get(status, "-")
+        rows.append({"parameter": n, "subsystem": subsystem_of(n), "value": _fmt(p.value), "unit": p.unit,
+                     "stderr": _fmt(p.stderr), "rel. stderr": rel, "status": status, "identifiable": flag,
+                     "note": p.note or ""})
+    return pd.DataFrame(rows)
+
+
+# ---------------------------------------------------------------------------------------------------
+# optimisation helpers
+# ---------------------------------------------------------------------------------------------------
+def cycle_csv_from_log(state, entry: LoadedLog) -> Path:
+    """Write a session log's speed trace as a cycle CSV (``time_s,speed_kph``) in the session folder."""
+    from calib.cycles import load_cycle
+
+    cyc = load_cycle(entry.log)
+    out = session_dir(state) / "cycles" / f"{Path(entry.name).stem}_cycle.csv"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    pd.DataFrame({"time_s": cyc.t, "speed_kph": cyc.v * 3.6}).to_csv(out, index=False, float_format="%.6g")
+    return out
+
+
+def scenario_key(scenario) -> dict:
+    """The scenario as a dict whose ``cycle`` names the content (SHA-256) of a cycle file, not its path."""
+    from calib.drivelog import file_sha256
+
+    d = scenario.to_dict()
+    p = Path(str(d.get("cycle", "")))
+    if p.suffix and p.is_file():
+        d["cycle"] = "sha256:" + file_sha256(p)
+    return d
+
+
+def merge_case_studies(parts):
+    """One :class:`optimize.casestudy.CaseStudy` from case studies of single strategies (same scenario)."""
+    from optimize.casestudy import CaseStudy
+
+    sims, outs, timings, rule = {}, {}, {}, None
+    for cs in parts:
+        sims.update(cs.sims)
+        outs.update(cs.outcomes)
+        timings.update(cs.timings)
+        rule = cs.rule if cs.rule is not None else rule
+    order = [k for k in ("rule", "baseline", "thermal", "thermal_cabin", "baseline_warm") if k in sims]
+    order += [k for k in sims if k not in order]
+    return CaseStudy({k: sims[k] for k in order}, outs, parts[0].scenario, parts[0].grids, rule, timings)
+
+
+def render_sidebar(state=None) -> None:
+    """The sidebar: what the workbench is, the session's logs, and a notice when any of them is SYNTHETIC.
+
+    Called by every page after its content (so it reflects logs loaded in the same run).
+    """
+    import streamlit as st
+
+    state = st.session_state if state is None else state
+    with st.sidebar:
+        st.markdown("**Prius winter workbench**  \ncalibrate a Prius model from winter drive logs; optimise power "
+                    "split, engine thermal management and cabin heating by DP (after Gong et al., CCTA 2019)")
+        session_logs = logs(state)
+        if session_logs:
+            st.caption(f"{len(session_logs)} log(s) loaded in this session")
+        synth = [e.name for e in session_logs.values() if e.synthetic]
+        if synth:
+            st.warning("SYNTHETIC data: " + ", ".join(synth) + (" was" if len(synth) == 1 else " were")
+                       + " simulated by iptm, not measured on a vehicle. Results from synthetic logs demonstrate "
+                       "the workbench; they say nothing about a real car.", icon=":material/science:")
+
+
+def error_message(exc: BaseException) -> str:
+    """One line for the page: the library's message for an IptmError, type and text for anything else."""
+    if isinstance(exc, IptmError):
+        return str(exc)
+    text = str(exc).splitlines()[0][:300] if str(exc) else ""
+    return f"unexpected error ({type(exc).__name__}{': ' + text if text else ''})"

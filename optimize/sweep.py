@@ -1,0 +1,564 @@
+"""Parameter sweeps: many independent DP / rule-based runs on dask.distributed (GitHub issue 8).
+
+A *study* is a TOML file::
+
+    [study]
+    name = "saving_vs_ambient"
+    strategies = ["rule", "thermal"]        # any of rule, baseline, thermal, thermal_cabin
+    reference = "rule"                       # savings are against this strategy (default: the first)
+    grids = {soc = 0.01, tcl = 1, pbat = 500}   # DPGrids steps (or a string "soc=0.01,tcl=1")
+
+    [scenario]                               # base DPScenario fields
+    duration_s = 600
+
+    [vary]                                   # cross product of these DPScenario fields
+    T_amb = [-20, -10, 0]
+    cycle = ["artemis_urban", "nycc"]
+
+    [[case]]                                 # optional: a list of scenario overrides (each crossed with [vary])
+    Q_heat = 1500
+
+    [params]                                 # optional: parameter sets (default: the default 2017 Prius)
+    files = ["my_car.toml"]                  # parameter files or calibration artifacts (relative to the study)
+    montecarlo = {artifact = "calib.toml", n = 20, seed = 1, nominal = false}
+
+Monte-Carlo draws: every parameter of the artifact with status ``estimated`` and a standard error is drawn
+from normal(value, stderr), clipped to its bounds; scalar parameters independently, a table parameter with
+one standard normal for the whole table (its shape is kept, e.g. a monotone ``f_cl`` stays monotone). A
+draw that fails validation is redrawn (up to 50 times). Draw ``i`` of a study is the same on every run
+(numpy ``default_rng([seed, i])``).
+
+Cases = parameter sets x ([[case]] entries or one empty entry) x the [vary] cross product. Each case is a
+JSON-able dict; :func:`run_case` is a pure function of it and never raises (a failing strategy is recorded
+with its error). :func:`run_study` submits the cases missing from a content-keyed result store
+(:class:`calib.store.Store`; key = parameter values + scenario + grids + strategies + ``calib.__version__``)
+to a dask.distributed cluster - a ``LocalCluster`` of 2 single-threaded worker processes by default, or any
+scheduler by address - and writes each result to the store as it arrives, so an interrupted study resumes
+and a finished one is never recomputed. A worker that dies mid-case has its case re-run elsewhere
+(dask's scheduler reschedules it; ``retries`` more on top). The result is one tidy table, one row per case
+and strategy (:data:`TABLE_COLUMNS`), written to Parquet atomically, plus plots: saving vs ambient per cycle
+and the spread of the saving over Monte-Carlo draws.
+"""
+from __future__ import annotations
+
+import itertools
+import os
+import time
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+__all__ = ["Study", "load_study", "run_case", "run_study", "results_table", "write_table", "plot_study",
+           "montecarlo_draws", "STRATEGIES", "DEFAULT_STORE", "local_client"]
+
+STRATEGIES = ("rule", "baseline", "thermal", "thermal_cabin")
+#: Default result store (gitignored).
+DEFAULT_STORE = Path(".iptm-cache") / "sweep"
+_KIND = "sweep"
+_RESULT_FIELDS = ("fuel_g", "fuel_corrected_g", "soc_final", "T_cl_final_degC", "T_cl_mean_degC",
+                  "T_cab_final_degC", "T_cab_mean_degC", "engine_starts", "idle_s")
+
+
+# ---------------------------------------------------------------------------------------------------
+# study definition
+# ---------------------------------------------------------------------------------------------------
+@dataclass
+class ParamSpec:
+    """One parameter set of a study: a label, the Monte-Carlo draw index (None: not a draw), the set."""
+
+    label: str
+    draw: int | None
+    pset: object  # calib.params.ParameterSet
+
+
+@dataclass
+class Study:
+    """A parsed study (see the module docstring). ``hold_s``: seconds each case sleeps before solving
+    (for testing fault tolerance; not part of the content key)."""
+
+    name: str = "study"
+    strategies: tuple = ("rule", "thermal")
+    reference: str | None = None
+    grids: dict = field(default_factory=dict)
+    scenario: dict = field(default_factory=dict)
+    vary: dict = field(default_factory=dict)
+    cases: list = field(default_factory=list)
+    param_sets: list = field(default_factory=list)
+    hold_s: float = 0.0
+    source: str = ""
+
+    def __post_init__(self):
+        from calib.errors import ScenarioError
+        from optimize.formulations import DPGrids, DPScenario
+
+        self.strategies = tuple(self.strategies)
+        if not self.strategies:
+            raise ScenarioError(f"study {self.name}: no strategies")
+        bad = [s for s in self.strategies if s not in STRATEGIES]
+        if bad:
+            raise ScenarioError(f"study {self.name}: unknown strategy {bad[0]!r}; choose from {', '.join(STRATEGIES)}")
+        if self.reference is None:
+            self.reference = self.strategies[0]
+        if self.reference not in self.strategies:
+            raise ScenarioError(f"study {self.name}: reference {self.reference!r} is not among the strategies")
+        if isinstance(self.grids, str):
+            from optimize.formulations import parse_grid_spec
+
+            self.grids = parse_grid_spec(self.grids).to_dict()
+        try:
+            self.grids = DPGrids(**{k: float(v) for k, v in dict(self.grids).items()}).to_dict()
+        except TypeError:
+            raise ScenarioError(f"study {self.name}: unknown grid in {sorted(self.grids)}; known: soc, tcl, "
+                                "tcab, pbat, qheat") from None
+        for k, v in self.vary.items():
+            if not isinstance(v, list) or not v:
+                raise ScenarioError(f"study {self.name}: [vary] {k} must be a non-empty list")
+        # validate field names early (one-line errors before anything is submitted)
+        for entry in self.cases or [{}]:
+            DPScenario.from_dict({**self.scenario, **entry, **{k: v[0] for k, v in self.vary.items()}})
+        if not self.param_sets:
+            from calib.params import default_parameters
+
+            self.param_sets = [ParamSpec("default", None, default_parameters())]
+
+    def expand(self) -> list[dict]:
+        """The cases: JSON-able dicts with ``case_id``, ``key`` (content key), ``labels`` and what
+        :func:`run_case` needs."""
+        import calib
+        from calib.store import content_key
+        from optimize.formulations import DPScenario
+
+        names = list(self.vary)
+        combos = list(itertools.product(*(self.vary[n] for n in names))) or [()]
+        out = []
+        for ps in self.param_sets:
+            pdict = ps.pset.to_dict()
+            fp = _fingerprint(ps.pset)
+            for entry in self.cases or [{}]:
+                for combo in combos:
+                    scen = DPScenario.from_dict({**self.scenario, **entry, **dict(zip(names, combo))})
+                    sd = _scenario_dict(scen)
+                    key = content_key({"params": fp, "scenario": sd, "grids": self.grids,
+                                       "strategies": sorted(self.strategies), "version": calib.__version__})
+                    out.append({"case_id": len(out), "key": key, "study": self.name,
+                                "labels": {"params": ps.label, "draw": ps.draw},
+                                "scenario": sd, "grids": dict(self.grids), "strategies": list(self.strategies),
+                                "params": pdict, "hold_s": float(self.hold_s)})
+        return out
+
+
+def _scenario_dict(scen) -> dict:
+    from dataclasses import asdict
+
+    d = asdict(scen)
+    return {k: (float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else v) for k, v in d.items()}
+
+
+def _fingerprint(pset) -> dict:
+    out = {}
+    for n in pset:
+        p = pset.param(n)
+        out[n] = [p.value, p.x] if p.is_table else p.value
+    return out
+
+
+def montecarlo_draws(artifact, n: int, seed: int = 1, label: str | None = None) -> list[ParamSpec]:
+    """``n`` parameter sets drawn from the estimated parameters' normal(value, stderr), clipped to bounds."""
+    from calib.errors import ParameterError
+    from calib.params import ParameterSet
+
+    base = artifact if isinstance(artifact, ParameterSet) else ParameterSet.load(artifact)
+    label = label or (Path(artifact).stem if not isinstance(artifact, ParameterSet) else
+                      base.meta.get("name", "params"))
+    est = [nm for nm in base if base.param(nm).status == "estimated" and base.param(nm).stderr is not None]
+    if not est:
+        raise ParameterError(f"{label}: no parameter with status 'estimated' and a standard error to draw from "
+                             "(use a calibration artifact)")
+    out = []
+    for i in range(int(n)):
+        rng = np.random.default_rng([int(seed), i])
+        for _attempt in range(50):
+            vals = {}
+            for nm in est:
+                p = base.param(nm)
+                lo, hi = p.bounds
+                z = rng.standard_normal()
+                if p.is_table:
+                    se = np.broadcast_to(np.asarray(p.stderr, dtype=float), (len(p.value),))
+                    vals[nm] = np.clip(np.asarray(p.value, dtype=float) + se * z, lo, hi).tolist()
+                else:
+                    vals[nm] = float(np.clip(p.value + float(p.stderr) * z, lo, hi))
+            try:
+                ps = base.with_values(**vals)
+                break
+            except ParameterError:
+                continue
+        else:
+            raise ParameterError(f"{label}: Monte-Carlo draw {i} failed validation 50 times")
+        ps.meta["montecarlo"] = {"draw": i, "seed": int(seed)}
+        out.append(ParamSpec(f"{label}", i, ps))
+    return out
+
+
+def load_study(path) -> Study:
+    """Read a study TOML file (relative parameter paths are relative to the file)."""
+    from calib.errors import ScenarioError
+    from calib.params import ParameterSet
+
+    path = Path(path)
+    if not path.is_file():
+        raise ScenarioError(f"study file {path} not found")
+    try:
+        d = tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ScenarioError(f"{path}: not valid TOML ({exc})") from None
+    known = {"study", "scenario", "vary", "case", "params"}
+    bad = set(d) - known
+    if bad:
+        raise ScenarioError(f"{path}: unknown table(s) {sorted(bad)}; known: {sorted(known)}")
+    st = dict(d.get("study", {}))
+    okst = {"name", "strategies", "reference", "grids", "hold_s"}
+    if set(st) - okst:
+        raise ScenarioError(f"{path}: unknown [study] key(s) {sorted(set(st) - okst)}; known: {sorted(okst)}")
+    cases = d.get("case", [])
+    if not isinstance(cases, list):
+        raise ScenarioError(f"{path}: [[case]] must be an array of tables")
+    pr = dict(d.get("params", {}))
+    if set(pr) - {"files", "montecarlo"}:
+        raise ScenarioError(f"{path}: unknown [params] key(s) {sorted(set(pr) - {'files', 'montecarlo'})}")
+    rel = lambda f: (path.parent / f) if not Path(f).is_absolute() else Path(f)  # noqa: E731
+    psets = []
+    files = pr.get("files", [])
+    if isinstance(files, str):
+        files = [files]
+    for f in files:
+        psets.append(ParamSpec(Path(f).stem, None, ParameterSet.load(rel(f))))
+    mc = pr.get("montecarlo")
+    if mc:
+        if "artifact" not in mc:
+            raise ScenarioError(f"{path}: [params] montecarlo needs artifact = FILE")
+        art = rel(mc["artifact"])
+        if mc.get("nominal", False):
+            psets.append(ParamSpec(art.stem, None, ParameterSet.load(art)))
+        psets.extend(montecarlo_draws(art, int(mc.get("n", 20)), int(mc.get("seed", 1))))
+    return Study(name=st.get("name", path.stem), strategies=st.get("strategies", ("rule", "thermal")),
+                 reference=st.get("reference"), grids=st.get("grids", {}), scenario=d.get("scenario", {}),
+                 vary=d.get("vary", {}), cases=cases, param_sets=psets, hold_s=float(st.get("hold_s", 0.0)),
+                 source=str(path))
+
+
+# ---------------------------------------------------------------------------------------------------
+# one case
+# ---------------------------------------------------------------------------------------------------
+def _error_text(exc: BaseException) -> str:
+    msg = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {msg[0] if msg else ''}".strip()
+
+
+def _limit_threads():
+    """Inside a dask worker, numba uses one thread (the worker processes are the parallelism)."""
+    try:
+        from distributed import get_worker
+
+        get_worker()
+    except (ImportError, ValueError):
+        return
+    try:
+        import numba
+
+        if numba.get_num_threads() != 1:
+            numba.set_num_threads(1)
+    except Exception:  # noqa: BLE001 - never fail a case over a thread setting
+        pass
+
+
+def run_case(case: dict) -> dict:
+    """Run every strategy of one case; return a JSON-able record. Never raises: errors are recorded
+    (``record["error"]`` for the case, ``record["results"][strategy]["error"]`` per strategy)."""
+    t0 = time.perf_counter()
+    rec = {"key": case.get("key"), "results": {}, "error": None, "pid": os.getpid()}
+    try:
+        _limit_threads()
+        if case.get("hold_s"):
+            time.sleep(float(case["hold_s"]))
+        from calib.params import ParameterSet
+        from optimize.formulations import DPGrids, DPScenario, solve_formulation
+        from optimize.rulebased import tune_rule_based
+
+        ps = ParameterSet.from_dict(case["params"])
+        scen = DPScenario.from_dict({k: v for k, v in case["scenario"].items() if v is not None})
+        grids = DPGrids(**case["grids"])
+        cyc = scen.load_cycle()
+    except Exception as exc:  # noqa: BLE001 - recorded, the study goes on
+        rec["error"] = _error_text(exc)
+        rec["elapsed_s"] = time.perf_counter() - t0
+        return rec
+    errors = []
+    for s in case["strategies"]:
+        t1 = time.perf_counter()
+        try:
+            if s == "rule":
+                tr = tune_rule_based(ps, cyc, T_amb=scen.T_amb, soc0=scen.soc0, T_cl0=scen.T_cl0,
+                                     T_cab0=scen.T_cab0, Q_heat=scen.Q_heat)
+                sim = tr.result
+                extra = {"rule_n_feasible": tr.n_feasible}
+            else:
+                o = solve_formulation(s, ps, scen, grids)
+                sim = o.on_thermal if s == "baseline" else o.sim
+                extra = {}
+            summ = sim.summary()
+            r = {k: float(summ[k]) for k in _RESULT_FIELDS}
+            r["charge_sustaining"] = bool(summ["soc_final"] >= summ["soc_initial"] - scen.soc_tol)
+            r.update(extra)
+            r["error"] = None
+        except Exception as exc:  # noqa: BLE001
+            r = {"error": _error_text(exc)}
+            errors.append(f"{s}: {r['error']}")
+        r["t_s"] = time.perf_counter() - t1
+        rec["results"][s] = r
+    rec["error"] = "; ".join(errors) or None
+    rec["elapsed_s"] = time.perf_counter() - t0
+    return rec
+
+
+# ---------------------------------------------------------------------------------------------------
+# the study on a cluster
+# ---------------------------------------------------------------------------------------------------
+def local_client(n_workers: int = 2):
+    """A ``Client`` on a ``LocalCluster`` of ``n_workers`` single-threaded processes (numba: 1 thread each)."""
+    from distributed import Client, LocalCluster
+
+    env = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+           "OPENBLAS_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
+    cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                           env=env)
+    return Client(cluster)
+
+
+def _valid_record(r) -> bool:
+    return isinstance(r, dict) and isinstance(r.get("results"), dict) and "error" in r
+
+
+def run_study(study, client=None, store_dir=None, progress_callback=None, *, n_workers: int = 2,
+              retries: int = 2, retry_failed: bool = False) -> pd.DataFrame:
+    """Run a study; return the tidy table (:func:`results_table`).
+
+    study: a :class:`Study` or a path to a study TOML.
+    client: a ``distributed.Client``, a scheduler address (``"tcp://host:8786"``), or None for a
+        ``LocalCluster`` of ``n_workers`` processes (started and closed here). Nothing else changes.
+    store_dir: the content-keyed result store (default ``.iptm-cache/sweep``); cases found there are not
+        recomputed; each finished case is stored as soon as it arrives (an interrupted study resumes).
+    progress_callback: ``f(done, total, record)`` after each case (cached cases first, record None).
+    retries: extra attempts per case on top of dask's rescheduling after a worker death.
+    retry_failed: recompute cases whose stored record holds an error (errors are stored: an infeasible
+        scenario fails the same way every time).
+    """
+    from calib.store import Store
+
+    if not isinstance(study, Study):
+        study = load_study(study)
+    cases = study.expand()
+    store = Store(store_dir or DEFAULT_STORE)
+    records, todo = {}, {}
+    for c in cases:
+        if c["key"] in records or c["key"] in todo:
+            continue
+        r = store.get_json(_KIND, c["key"])
+        if _valid_record(r) and not (retry_failed and r.get("error")):
+            r["cached"] = True
+            records[c["key"]] = r
+        else:
+            todo[c["key"]] = c
+    total = len(records) + len(todo)
+    done = len(records)
+    if progress_callback and done:
+        progress_callback(done, total, None)
+    if todo:
+        own = None
+        if client is None:
+            client = own = local_client(n_workers)
+        elif isinstance(client, str):
+            from distributed import Client
+
+            client = own = Client(client)
+        try:
+            from distributed import as_completed
+
+            futs = {client.submit(run_case, c, key=f"iptm-sweep-{k}", pure=False, retries=retries): k
+                    for k, c in todo.items()}
+            for fut in as_completed(list(futs)):
+                k = futs[fut]
+                try:
+                    rec = fut.result()
+                    store.put_json(_KIND, k, rec)
+                except Exception as exc:  # noqa: BLE001 - infrastructure failure (e.g. KilledWorker): not stored
+                    rec = {"key": k, "results": {}, "error": _error_text(exc), "infrastructure": True}
+                rec["cached"] = False
+                records[k] = rec
+                done += 1
+                fut.release()
+                if progress_callback:
+                    progress_callback(done, total, rec)
+        finally:
+            if own is not None:
+                cluster = getattr(own, "cluster", None)
+                own.close()
+                if cluster is not None:
+                    cluster.close()
+    df = results_table(cases, records, study.reference)
+    df.attrs["study"] = study.name
+    return df
+
+
+def run_sequential(study, progress_callback=None) -> pd.DataFrame:
+    """Every case in this process, one after the other, no store (reference for tests and benchmarks)."""
+    if not isinstance(study, Study):
+        study = load_study(study)
+    cases = study.expand()
+    records = {}
+    for i, c in enumerate(cases):
+        if c["key"] not in records:
+            records[c["key"]] = run_case(c)
+        if progress_callback:
+            progress_callback(i + 1, len(cases), records[c["key"]])
+    return results_table(cases, records, study.reference)
+
+
+# ---------------------------------------------------------------------------------------------------
+# the table
+# ---------------------------------------------------------------------------------------------------
+_SCEN_COLS = ("cycle", "T_amb", "soc0", "T_cl0", "T_cab0", "Q_heat", "Q_heat_min", "Q_heat_max", "soc_min",
+              "soc_max", "T_cl_min", "T_cl_max", "cab_lb_offset", "T_cab_ub", "duration_s", "soc_tol")
+#: Columns of the tidy table (one row per case and strategy).
+TABLE_COLUMNS = ("study", "case_id", "case_key", "params", "draw") + _SCEN_COLS + (
+    "strategy", "reference", "status", "error") + _RESULT_FIELDS + (
+    "charge_sustaining", "saving_pct", "saving_corrected_pct", "t_s", "cached")
+
+
+def results_table(cases: list, records: dict, reference: str) -> pd.DataFrame:
+    """Tidy table: one row per case and strategy; ``saving_pct`` = 100 (1 - fuel / fuel of the
+    reference strategy of the same case); ``status`` ok / failed."""
+    rows = []
+    for c in cases:
+        rec = records.get(c["key"]) or {"results": {}, "error": "not run"}
+        ref = rec["results"].get(reference) or {}
+        for s in c["strategies"]:
+            r = rec["results"].get(s) or {}
+            err = r.get("error") or (None if r else rec.get("error") or "not run")
+            row = {"study": c["study"], "case_id": c["case_id"], "case_key": c["key"],
+                   "params": c["labels"]["params"], "draw": c["labels"]["draw"]}
+            row.update({k: c["scenario"].get(k) for k in _SCEN_COLS})
+            row.update(strategy=s, reference=reference, status="failed" if err else "ok", error=err)
+            for k in _RESULT_FIELDS:
+                row[k] = r.get(k, np.nan) if not err else np.nan
+            row["charge_sustaining"] = r.get("charge_sustaining") if not err else None
+            f, fr = row["fuel_g"], ref.get("fuel_g", np.nan) if not ref.get("error") else np.nan
+            fc, fcr = row["fuel_corrected_g"], ref.get("fuel_corrected_g", np.nan) if not ref.get("error") else np.nan
+            row["saving_pct"] = 100 * (1 - f / fr) if fr and np.isfinite(fr) else np.nan
+            row["saving_corrected_pct"] = 100 * (1 - fc / fcr) if fcr and np.isfinite(fcr) else np.nan
+            row["t_s"] = r.get("t_s", np.nan)
+            row["cached"] = bool(rec.get("cached", False))
+            rows.append(row)
+    df = pd.DataFrame(rows, columns=list(TABLE_COLUMNS))
+    float_cols = [k for k in _SCEN_COLS if k != "cycle"] + list(_RESULT_FIELDS) + ["saving_pct",
+                                                                                  "saving_corrected_pct", "t_s"]
+    df[float_cols] = df[float_cols].astype(float)
+    df["draw"] = df["draw"].astype("Int64")
+    df["case_id"] = df["case_id"].astype(int)
+    return df
+
+
+def write_table(df: pd.DataFrame, path) -> Path:
+    """Write the table as Parquet, atomically."""
+    from calib.fileio import atomic_path
+
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        df.to_parquet(tmp, index=False)
+    return path
+
+
+# ---------------------------------------------------------------------------------------------------
+# plots
+# ---------------------------------------------------------------------------------------------------
+def plot_study(df: pd.DataFrame, outdir, metric: str = "saving_pct") -> list[str]:
+    """``saving_vs_ambient.png`` (saving of each non-reference strategy vs ambient, one line per cycle;
+    median and 5-95 % band over Monte-Carlo draws) when the ambient varies, and ``saving_spread.png``
+    (boxplot over draws for each cycle and ambient) when there are Monte-Carlo draws. Returns the paths."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    from calib.fileio import atomic_path
+
+    outdir = Path(outdir)
+    paths = []
+    ok = df[(df["status"] == "ok") & (df["strategy"] != df["reference"])]
+    if ok.empty:
+        return paths
+    label = {"saving_pct": "fuel saving vs {ref} [%]",
+             "saving_corrected_pct": "corrected-fuel saving vs {ref} [%]"}[metric]
+    ref = df["reference"].iloc[0]
+    name = df["study"].iloc[0] if "study" in df else ""
+
+    def save(fig, fname):
+        p = outdir / fname
+        with atomic_path(p) as tmp:
+            fig.savefig(tmp, dpi=110, format="png")
+        plt.close(fig)
+        paths.append(str(p))
+
+    if ok["T_amb"].nunique() > 1:
+        fig, ax = plt.subplots(figsize=(7.5, 4.2))
+        groups = list(ok.groupby(["cycle", "strategy", "params"], sort=True))
+        for i, ((cyc, strat, plabel), g) in enumerate(groups):
+            st = g.groupby("T_amb")[metric]
+            med = st.median()
+            lab = f"{cyc}, {strat}" + (f" ({plabel})" if ok["params"].nunique() > 1 else "")
+            line, = ax.plot(med.index, med.values, marker="o", lw=1.4, label=lab, color=f"C{i % 10}")
+            if g["draw"].notna().any() and st.size().max() > 1:
+                ax.fill_between(med.index, st.quantile(0.05).values, st.quantile(0.95).values,
+                                color=line.get_color(), alpha=0.2, lw=0)
+        ax.axhline(0, color="0.6", lw=0.7)
+        ax.set_xlabel("ambient temperature [degC]")
+        ax.set_ylabel(label.format(ref=ref))
+        ax.set_title(f"{name}: saving vs ambient", fontsize=10)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        save(fig, "saving_vs_ambient.png")
+    draws = ok[ok["draw"].notna()]
+    if not draws.empty and draws.groupby(["cycle", "T_amb", "strategy"]).size().max() > 1:
+        keys = sorted(draws.groupby(["strategy", "cycle", "T_amb"]).groups)
+        data = [draws[(draws["strategy"] == s) & (draws["cycle"] == c) & (draws["T_amb"] == t)][metric].values
+                for s, c, t in keys]
+        fig, ax = plt.subplots(figsize=(max(6.0, 0.55 * len(keys) + 2), 4.2))
+        ax.boxplot(data, showfliers=True)
+        ax.set_xticks(range(1, len(keys) + 1), [f"{c}\n{t:g} degC" + (f"\n{s}" if draws["strategy"].nunique() > 1
+                                                                      else "") for s, c, t in keys],
+                      fontsize=7, rotation=0)
+        ax.set_ylabel(label.format(ref=ref))
+        ax.set_title(f"{name}: spread over {draws['draw'].nunique()} parameter draws", fontsize=10)
+        ax.grid(alpha=0.3, axis="y")
+        fig.tight_layout()
+        save(fig, "saving_spread.png")
+    return paths
+
+
+def summary_pivot(df: pd.DataFrame, metric: str = "saving_pct") -> pd.DataFrame:
+    """Median ``metric`` per (strategy, cycle) x ambient (for printing)."""
+    ok = df[(df["status"] == "ok") & (df["strategy"] != df["reference"])]
+    if ok.empty:
+        return pd.DataFrame()
+    return ok.pivot_table(index=["strategy", "cycle"], columns="T_amb", values=metric, aggfunc="median")
+
+
+def format_failures(df: pd.DataFrame) -> str:
+    bad = df[df["status"] == "failed"]
+    return "\n".join(f"case {r.case_id} ({r.cycle}, {r.T_amb:g} degC, {r.params}) {r.strategy}: {r.error}"
+                     for r in bad.itertuples())
+

@@ -1,0 +1,160 @@
+"""Calibrate page: choose logs for fitting and validation and the parameters to fit or fix, run
+:func:`calib.calibrate.calibrate`, see the parameter table with uncertainties and identifiability,
+measured-vs-simulated plots, and download the calibration file."""
+import matplotlib.pyplot as plt
+import streamlit as st
+
+from calib.store import content_key
+from iptm import dashboard as dash
+
+state = st.session_state
+st.title("Calibrate")
+
+
+@st.cache_resource(show_spinner=False, max_entries=8)
+def _calibrate(key, _fit_logs, _val_logs, _base, fit, fix):
+    """Cached by ``key`` (the logs' SHA-256, truncation, base parameters and options), never by session."""
+    from calib.calibrate import calibrate
+
+    return calibrate(_fit_logs, base=_base, fit=list(fit) if fit is not None else None, fix=list(fix),
+                     validate=_val_logs or None, progress=False)
+
+
+@st.cache_resource(show_spinner=False, max_entries=32)
+def _replay(key, _log, _params):
+    from calib.validate import replay
+
+    return replay(_log, _params)
+
+
+
+
+def _page():
+    session_logs = dash.logs(state)
+    if not session_logs:
+        st.info("Load logs on the Logs page first.")
+        st.page_link("pages/logs.py", label="Go to Logs")
+        return
+
+    names = list(session_logs)
+    label = lambda n: session_logs[n].label  # noqa: E731
+    c1, c2 = st.columns(2)
+    with c1:
+        fit_names = st.multiselect("Logs for fitting", names, default=names[:max(1, len(names) - 1)],
+                                   format_func=label, key="cal_fit_logs")
+    with c2:
+        val_default = [names[-1]] if len(names) > 1 else []
+        val_names = st.multiselect("Held-out logs for validation", [n for n in names if n not in fit_names],
+                                   default=[n for n in val_default if n not in fit_names], format_func=label,
+                                   key="cal_val_logs")
+
+    allp = dash.calibratable_parameters()
+    c3, c4 = st.columns(2)
+    with c3:
+        fit_sel = st.multiselect("Parameters to fit (the others stay at the base value)", allp, default=allp,
+                                 key="cal_fit_params")
+    with c4:
+        fix_sel = st.multiselect("Parameters to fix at the base value", allp, default=[], key="cal_fix_params")
+
+    c5, c6 = st.columns(2)
+    with c5:
+        base_file = st.file_uploader("Base parameter set (TOML/JSON; default: the built-in 2017 Prius)",
+                                     key="cal_base_upload")
+    with c6:
+        trunc = st.number_input("Use only the first ... seconds of each log (0 = whole log)", min_value=0.0,
+                                value=0.0, step=60.0, key="cal_truncate_s")
+
+    base = None
+    base_ok = True
+    if base_file is not None:
+        from calib.params import ParameterSet
+
+        try:
+            p = dash.save_upload(state, base_file.name, base_file.getvalue(), subdir="params")
+            base = ParameterSet.load(p)
+            st.caption(f"base parameters: {base_file.name}")
+        except Exception as exc:  # noqa: BLE001
+            st.error(f"Could not use {base_file.name} as base parameters: {dash.error_message(exc)}")
+            base_ok = False
+
+    run = st.button("Run calibration", type="primary", disabled=not fit_names or not base_ok, key="cal_run")
+    if run:
+        from calib.params import default_parameters
+
+        bar = st.progress(0.0, text="preparing the logs")
+        try:
+            fit_logs = [dash.truncate(session_logs[n].log, trunc) for n in fit_names]
+            val_logs = [dash.truncate(session_logs[n].log, trunc) for n in val_names]
+            base_ps = base or default_parameters()
+            fit = tuple(fit_sel) if set(fit_sel) != set(allp) else None
+            fix = tuple(fix_sel)
+            key = content_key([session_logs[n].sha256 for n in fit_names], [session_logs[n].sha256 for n in val_names],
+                              float(trunc), base_ps.to_dict()["parameters"], fit, fix)
+            bar.progress(0.1, text=f"fitting on {len(fit_logs)} log(s) (battery, fuel, thermal, cabin)")
+            with st.spinner("calibrating..."):
+                res = _calibrate(key, fit_logs, val_logs, base_ps, fit, fix)
+            bar.progress(0.7, text="replaying the logs with the calibrated parameters")
+            plots = []
+            show = val_names or fit_names[:1]
+            for i, n in enumerate(show):
+                lg = dash.truncate(session_logs[n].log, trunc)
+                rep = _replay(content_key(key, session_logs[n].sha256, float(trunc)), lg, res.params)
+                plots.append((session_logs[n].label, rep, n in val_names))
+                bar.progress(0.7 + 0.3 * (i + 1) / len(show), text=f"replayed {session_logs[n].label}")
+            art = dash.session_dir(state) / "calibration" / "calibration.toml"
+            res.to_artifact(art)
+            state[dash.CALIB] = {"result": res, "plots": plots, "artifact": art.read_bytes(), "key": key,
+                                 "fit": fit_names, "val": val_names}
+            bar.progress(1.0, text=f"done in {res.wall_s:.1f} s")
+        except Exception as exc:  # noqa: BLE001 - the page stays usable
+            bar.empty()
+            st.error(f"Calibration failed: {dash.error_message(exc)}")
+
+    cal = state.get(dash.CALIB)
+    if cal is None:
+        st.info("Choose logs and parameters, then run the calibration.")
+        return
+
+    res = cal["result"]
+    st.subheader("Calibrated parameters")
+    tbl = dash.parameter_table(res.params)
+    n_est = int((tbl["identifiable"] == "yes").sum())
+    n_und = int((tbl["identifiable"] == "NO").sum())
+    m1, m2, m3 = st.columns(3)
+    m1.metric("estimated (identifiable)", n_est)
+    m2.metric("undetermined (kept prior)", n_und)
+    m3.metric("wall time", f"{res.wall_s:.1f} s")
+    if res.params.meta.get("synthetic"):
+        st.warning("Calibrated from SYNTHETIC logs.")
+    st.dataframe(tbl, hide_index=True, width="stretch")
+
+    st.download_button("Download the calibration file (TOML)", cal["artifact"], file_name="calibration.toml",
+                       mime="application/toml", key="cal_download")
+
+    if res.validation:
+        st.subheader("Validation on held-out logs")
+        rows = []
+        for lg, m in res.validation.items():
+            for ch, v in m.items():
+                if ch == "cumulative_fuel":
+                    rows.append({"log": lg, "channel": "cumulative fuel", "RMSE": None, "max_abs": None, "bias": None,
+                                 "unit": "g", "fuel error %": v.get("error_pct")})
+                else:
+                    rows.append({"log": lg, "channel": ch, "RMSE": v.get("rmse"), "max_abs": v.get("max_abs"),
+                                 "bias": v.get("bias"), "unit": v.get("unit"), "fuel error %": None})
+        st.dataframe(rows, hide_index=True, width="stretch")
+
+    st.subheader("Measured vs simulated")
+    from calib.validate import plot_validation  # noqa: E402
+
+    for lbl, rep, held_out in cal["plots"]:
+        fig = plot_validation(rep, title=f"{lbl}: measured vs simulated" + (" (held out)" if held_out else " (fit)"))
+        st.pyplot(fig, clear_figure=True)
+        plt.close(fig)
+
+    with st.expander("Fit report (text)"):
+        st.code(res.report(), language=None)
+
+
+_page()
+dash.render_sidebar()

@@ -1,0 +1,242 @@
+"""Optimise page: a scenario (cycle from the library, a file or a loaded log; ambient; heater; grids;
+strategies), run the case study of :mod:`optimize.casestudy` with progress, and see the comparison table,
+the savings and the paper-style figures."""
+import importlib.util
+import json
+
+import streamlit as st
+
+from calib.store import content_key
+from iptm import dashboard as dash
+
+state = st.session_state
+st.title("Optimise")
+
+STRATS = {"rule": "Rule-based (tuned)", "baseline": "Baseline-DP", "thermal": "Thermal-DP",
+          "thermal_cabin": "Thermal-Cabin-DP"}
+
+
+@st.cache_resource(show_spinner=False, max_entries=32)
+def _solve(key, _params, _scenario, _grids, strategy):
+    """One strategy of the case study, cached by content (parameters, scenario incl. cycle file hash, grids)."""
+    from optimize.casestudy import run_case_study
+
+    return run_case_study(_params, _scenario, strategies=(strategy,), progress=False, grids=_grids)
+
+
+from calib.cycles import available_cycles  # noqa: E402
+from calib.params import ParameterSet, default_parameters  # noqa: E402
+from optimize.formulations import DPGrids, DPScenario  # noqa: E402
+
+
+
+@st.cache_resource(show_spinner=False, max_entries=8)
+def _run_sweep(key, _study, _bar):
+    from optimize.sweep import run_sequential
+
+    return run_sequential(_study, progress_callback=lambda done, total, rec: _bar.progress(
+        done / max(total, 1), text=f"case {done}/{total}"))
+
+
+def _sweep_section(params, scenario, grids, strategies):
+    """A sweep over the ambient temperature with the scenario above (optimize.sweep, issue 8)."""
+    with st.expander("Sweep over the ambient temperature (optimize.sweep)"):
+        txt = st.text_input("Ambient temperatures [degC], comma separated", "-20, -10, 0", key="sweep_Tamb")
+        if not st.button("Run sweep", key="sweep_run"):
+            res = state.get("iptm_sweep")
+        else:
+            res = None
+            bar = st.progress(0.0, text="sweep")
+            try:
+                from optimize.sweep import ParamSpec, Study, plot_study
+
+                try:
+                    temps = [float(x) for x in txt.replace(";", ",").split(",") if x.strip()]
+                except ValueError:
+                    raise dash.IptmError(f"ambient temperatures {txt!r}: give numbers, e.g. -20, -10, 0") from None
+                if not temps:
+                    raise dash.IptmError("give at least one ambient temperature")
+                base = {k: v for k, v in scenario.to_dict().items() if k != "T_amb"}
+                order = [k for k in STRATS if k in strategies]
+                study = Study(name="dashboard", strategies=tuple(order), reference=order[0],
+                              grids=grids.to_dict(), scenario=base, vary={"T_amb": temps},
+                              param_sets=[ParamSpec("session", None, params)])
+                key = content_key([c["key"] for c in study.expand()], dash.scenario_key(scenario))
+                df = _run_sweep(key, study, bar)
+                figs = plot_study(df, dash.session_dir(state) / "sweep" / key)
+                res = state["iptm_sweep"] = {"df": df, "figures": figs}
+                bar.progress(1.0, text=f"done: {len(df)} rows")
+            except Exception as exc:  # noqa: BLE001
+                bar.empty()
+                st.error(f"Sweep failed: {dash.error_message(exc)}")
+        if res is not None:
+            from optimize.sweep import summary_pivot
+
+            try:
+                st.dataframe(summary_pivot(res["df"]), width="stretch")
+            except Exception:  # noqa: BLE001 - the tidy table is enough
+                pass
+            st.dataframe(res["df"], width="stretch", hide_index=True)
+            for f in res["figures"]:
+                st.image(f, width="stretch")
+
+
+def _page():
+    # ---- parameter set ------------------------------------------------------------------------------
+    st.subheader("Model parameters")
+    psrc_opts = (["calibrated in this session"] if state.get(dash.CALIB) else []) + ["default 2017 Prius",
+                                                                                      "upload a parameter file"]
+    psrc = st.radio("Parameter set", psrc_opts, horizontal=True, key="opt_params_src")
+    params, params_ok = None, True
+    if psrc == "calibrated in this session":
+        params = state[dash.CALIB]["result"].params
+    elif psrc == "default 2017 Prius":
+        params = default_parameters()
+    else:
+        pf = st.file_uploader("Parameter set or calibration artifact (TOML/JSON)", key="opt_params_upload")
+        if pf is None:
+            params_ok = False
+        else:
+            try:
+                params = ParameterSet.load(dash.save_upload(state, pf.name, pf.getvalue(), subdir="params"))
+            except Exception as exc:  # noqa: BLE001
+                st.error(f"Could not use {pf.name}: {dash.error_message(exc)}")
+                params_ok = False
+
+    # ---- scenario -----------------------------------------------------------------------------------
+    st.subheader("Scenario")
+    d = DPScenario()
+    session_logs = dash.logs(state)
+    speed_logs = [n for n, e in session_logs.items() if e.log.has("speed_mps")]
+    csrc = st.radio("Drive cycle", ["from the library", "from a file", "from a loaded log"], horizontal=True,
+                    key="opt_cycle_src")
+    cycle, cycle_ok = None, True
+    if csrc == "from the library":
+        cycs = available_cycles()
+        cycle = st.selectbox("Cycle", cycs, index=cycs.index(d.cycle) if d.cycle in cycs else 0, key="opt_cycle")
+    elif csrc == "from a file":
+        cf = st.file_uploader("Cycle CSV (time_s and speed_kph or speed_mps)", key="opt_cycle_upload")
+        if cf is None:
+            cycle_ok = False
+        else:
+            try:
+                from calib.cycles import load_cycle
+
+                p = dash.save_upload(state, cf.name, cf.getvalue(), subdir="cycles")
+                c = load_cycle(str(p))
+                st.caption(f"{cf.name}: {c.describe()['duration_s']:.0f} s, {c.describe()['distance_km']:.2f} km")
+                cycle = str(p)
+            except Exception as exc:  # noqa: BLE001
+                st.error(f"Could not use {cf.name} as a cycle: {dash.error_message(exc)}")
+                cycle_ok = False
+    else:
+        if not speed_logs:
+            st.warning("No loaded log has a speed channel: load one on the Logs page.")
+            cycle_ok = False
+        else:
+            ln = st.selectbox("Log", speed_logs, format_func=lambda n: session_logs[n].label, key="opt_cycle_log")
+            try:
+                cycle = str(dash.cycle_csv_from_log(state, session_logs[ln]))
+            except Exception as exc:  # noqa: BLE001
+                st.error(dash.error_message(exc))
+                cycle_ok = False
+
+    c1, c2, c3, c4 = st.columns(4)
+    T_amb = c1.number_input("Ambient [degC]", -40.0, 40.0, float(d.T_amb), 1.0, key="opt_Tamb")
+    soc0 = c2.number_input("Initial SOC [-]", 0.4, 0.8, float(d.soc0), 0.01, key="opt_soc0")
+    T_cl0 = c3.number_input("Initial coolant [degC]", -40.0, 100.0, float(d.T_cl0), 1.0, key="opt_Tcl0")
+    T_cab0 = c4.number_input("Initial cabin [degC]", -40.0, 40.0, float(d.T_cab0), 1.0, key="opt_Tcab0")
+    c5, c6, c7, c8 = st.columns(4)
+    Q_heat = c5.number_input("Heater demand [W] (rule, Baseline, Thermal)", 0.0, 6000.0, float(d.Q_heat), 100.0,
+                             key="opt_Qheat")
+    Q_min = c6.number_input("Thermal-Cabin heater min [W]", 0.0, 6000.0, float(d.Q_heat_min), 100.0, key="opt_Qmin")
+    Q_max = c7.number_input("Thermal-Cabin heater max [W]", 0.0, 6000.0, float(d.Q_heat_max), 100.0, key="opt_Qmax")
+    dur = c8.number_input("Use the first ... s of the cycle (0 = whole)", 0.0, 100000.0, 0.0, 60.0, key="opt_duration")
+
+    st.markdown("**DP grid steps** (the paper's Table II: SOC 0.01, coolant 1 degC, cabin 1 degC, battery 500 W, "
+                "heater 50 W; coarser runs faster)")
+    g = DPGrids()
+    g1, g2, g3, g4, g5 = st.columns(5)
+    gs = g1.number_input("SOC [-]", 0.001, 0.1, 0.02, 0.005, format="%.3f", key="opt_g_soc")
+    gt = g2.number_input("coolant [degC]", 0.1, 10.0, 2.0, 0.5, key="opt_g_tcl")
+    gc = g3.number_input("cabin [degC]", 0.1, 10.0, 2.0, 0.5, key="opt_g_tcab")
+    gp = g4.number_input("battery [W]", 50.0, 5000.0, 1000.0, 100.0, key="opt_g_pbat")
+    gq = g5.number_input("heater [W]", 10.0, 1000.0, 100.0, 10.0, key="opt_g_qheat")
+    strategies = st.multiselect("Strategies", list(STRATS), default=list(STRATS), format_func=STRATS.get,
+                                key="opt_strategies")
+
+
+    scenario, grids = None, None
+    if cycle_ok and cycle is not None:
+        try:
+            scenario = DPScenario(cycle=cycle, T_amb=T_amb, soc0=soc0, T_cl0=T_cl0, T_cab0=T_cab0, Q_heat=Q_heat,
+                                  Q_heat_min=Q_min, Q_heat_max=Q_max, duration_s=dur or None)
+            grids = DPGrids(soc=gs, tcl=gt, tcab=gc, pbat=gp, qheat=gq)
+            state[dash.SCENARIO] = {"scenario": scenario, "grids": grids, "strategies": tuple(strategies)}
+        except Exception as exc:  # noqa: BLE001
+            st.error(f"Invalid scenario: {dash.error_message(exc)}")
+
+    ready = params_ok and scenario is not None and bool(strategies)
+    if st.button("Run optimisation", type="primary", disabled=not ready, key="opt_run"):
+        bar = st.progress(0.0, text="loading the cycle")
+        try:
+            cyc = scenario.load_cycle()  # a bad cycle or duration fails here, before any DP
+            base_key = content_key(params.to_dict()["parameters"], dash.scenario_key(scenario), grids.to_dict())
+            parts = []
+            order = [s for s in STRATS if s in strategies]
+            for i, s in enumerate(order):
+                bar.progress(i / len(order), text=f"solving {STRATS[s]} ({i + 1}/{len(order)}) on {cyc.n_steps} steps")
+                parts.append(_solve(content_key(base_key, s), params, scenario, grids, s))
+            cs = dash.merge_case_studies(parts)
+            bar.progress(0.95, text="drawing the figures")
+            figdir = dash.session_dir(state) / "figures" / base_key
+            figs = cs.plot_figures(figdir)
+            state[dash.OPT] = {"cs": cs, "figures": figs, "cycle": cyc.describe(), "key": base_key}
+            bar.progress(1.0, text=f"done ({sum(cs.timings.values()):.1f} s of solver time)")
+        except Exception as exc:  # noqa: BLE001
+            bar.empty()
+            st.error(f"Optimisation failed: {dash.error_message(exc)}")
+
+    if importlib.util.find_spec("optimize.sweep") is not None and params_ok and scenario is not None and strategies:
+        _sweep_section(params, scenario, grids, strategies)
+
+    opt = state.get(dash.OPT)
+    if opt is None:
+        st.info("Set the scenario, then run the optimisation (coarse grids and a short cycle take seconds; the "
+                "paper's grids on a whole cycle take minutes).")
+        return
+
+    cs = opt["cs"]
+    st.subheader("Comparison")
+    cy = opt["cycle"]
+    st.caption(f"cycle {cy['name']}: {cy['duration_s']:.0f} s, {cy['distance_km']:.2f} km; ambient "
+               f"{cs.scenario.T_amb:g} degC; grids {cs.grids.to_dict()}")
+    tbl = cs.table()
+    cols = st.columns(3)
+    for col, key, ref in ((cols[0], "thermal", "vs_rule"), (cols[1], "thermal_cabin", "vs_rule"),
+                          (cols[2], "thermal", "vs_baseline")):
+        row = tbl[tbl["key"] == key]
+        if row.empty:
+            continue
+        v = float(row[f"saving_{ref}_pct"].iloc[0])
+        paper = row[f"paper_{ref}_pct"].iloc[0]
+        other = "rule-based" if ref == "vs_rule" else "Baseline-DP"
+        col.metric(f"{STRATS[key]} saving vs {other}", f"{v:.2f} %" if v == v else "-",
+                   delta=f"paper {paper:.2f} %" if paper == paper else None, delta_color="off")
+    if not cs.ordering_ok():
+        st.warning("Fuel is not ordered rule >= Baseline >= Thermal >= Thermal-Cabin on these grids: refine the grids "
+                   "(coarse grids cost accuracy).")
+    st.dataframe(tbl, width="stretch")
+    st.download_button("Download the results (JSON)", json.dumps(cs.to_dict(), indent=1, default=str),
+                       file_name="case_study.json", mime="application/json", key="opt_download")
+
+    st.subheader("Figures")
+    figs = opt["figures"]
+    for i in range(0, len(figs), 2):
+        cc = st.columns(2)
+        for col, f in zip(cc, figs[i:i + 2]):
+            col.image(f, width="stretch")
+
+
+_page()
+dash.render_sidebar()

@@ -1,0 +1,267 @@
+"""The Streamlit dashboard (app.py, pages/*.py, iptm/dashboard.py) driven by ``streamlit.testing.v1.AppTest``.
+
+Small data: the first 300 s of the bundled (SYNTHETIC) warm-restart CSV as the upload, calibration on it,
+optimisation on 60 s of a cycle with coarse grids. The real-browser test is tests/test_browser.py.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("streamlit")
+from streamlit.testing.v1 import AppTest  # noqa: E402
+
+from iptm import dashboard as dash  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+APP = str(ROOT / "app.py")
+TIMEOUT = 240
+
+
+@pytest.fixture(autouse=True)
+def _env(tmp_path_factory, monkeypatch):
+    base = tmp_path_factory.getbasetemp()
+    monkeypatch.setenv("IPTM_CACHE_DIR", str(base / "iptm-cache"))  # shared by the tests: content-keyed
+    monkeypatch.setenv("IPTM_SESSION_ROOT", str(base / "sessions"))
+    monkeypatch.delenv("IPTM_MAX_UPLOAD_MB", raising=False)
+
+
+@pytest.fixture(scope="session")
+def small_csv() -> bytes:
+    """The first 300 s of logs/winter_warm_restart.csv (SYNTHETIC; header comments kept)."""
+    lines = (ROOT / "logs" / "winter_warm_restart.csv").read_text().splitlines()
+    head = [ln for ln in lines[:10] if ln.startswith("#") or ln.startswith("time")]
+    body = [ln for ln in lines if ln[:1].isdigit() and float(ln.split(",", 1)[0]) < 300.0]
+    return ("\n".join(head + body) + "\n").encode()
+
+
+def new_app() -> AppTest:
+    at = AppTest.from_file(APP, default_timeout=TIMEOUT)
+    at.run()
+    assert not at.exception, [e.value for e in at.exception]
+    return at
+
+
+def errors(at):
+    return [e.value for e in at.error]
+
+
+def ok(at):
+    assert not at.exception, [e.value for e in at.exception]
+    return at
+
+
+def upload(at, name, data, mime="application/octet-stream"):
+    at.file_uploader(key="log_upload").upload(name, data, mime)
+    return ok(at.run())
+
+
+# ------------------------------------------------------------------------------------------------
+# iptm.dashboard: pure helpers
+# ------------------------------------------------------------------------------------------------
+def test_safe_name_and_limits(monkeypatch):
+    assert dash.safe_name("../../etc/passwd") == "passwd"
+    assert dash.safe_name(r"C:\logs\drive 1.blf") == "drive_1.blf"
+    assert dash.safe_name("...") == "upload"
+    monkeypatch.setenv("IPTM_MAX_UPLOAD_MB", "1")
+    assert dash.max_upload_bytes() == 2**20
+    with pytest.raises(dash.IptmError, match="too large"):
+        dash.check_size("big.blf", 2**20 + 1)
+    with pytest.raises(dash.IptmError, match="empty"):
+        dash.check_size("e.csv", 0)
+    with pytest.raises(dash.IptmError, match="unsupported file type '.exe'"):
+        dash.check_log_extension("tool.exe")
+    monkeypatch.setenv("IPTM_MAX_UPLOAD_MB", "nonsense")
+    assert dash.max_upload_bytes() == int(dash.DEFAULT_MAX_UPLOAD_MB * 2**20)
+
+
+def test_session_state_helpers(small_csv):
+    a, b = {}, {}
+    entry = dash.add_upload(a, "short.csv", small_csv)
+    assert dash.session_dir(a) != dash.session_dir(b)
+    assert entry.path.parent.parent == dash.session_dir(a) and entry.path.name == "short.csv"
+    assert list(dash.logs(a)) == ["short.csv"] and dash.logs(b) == {}
+    assert entry.synthetic and dash.any_synthetic(a) and not dash.any_synthetic(b)
+    assert 295 <= entry.log.duration_s <= 300
+    assert dash.truncate(entry.log, 60).duration_s <= 60
+    cyc = dash.cycle_csv_from_log(a, entry)
+    assert cyc.read_text().startswith("time_s,speed_kph")
+    from calib.params import default_parameters
+
+    tbl = dash.parameter_table(default_parameters())
+    assert list(tbl["parameter"]) == dash.calibratable_parameters()
+    assert set(tbl["identifiable"]) == {"-"}
+    dash.remove_log(a, "short.csv")
+    assert dash.logs(a) == {} and not entry.path.exists()
+    with pytest.raises(dash.IptmError) as ei:
+        dash.add_upload(a, "broken.mcap", b"\x89MCAP0\r\n" + b"\x00" * 50)
+    assert str(dash.session_dir(a)) not in str(ei.value)  # named as uploaded, not by the temporary path
+
+
+# ------------------------------------------------------------------------------------------------
+# pages
+# ------------------------------------------------------------------------------------------------
+def test_every_page_renders_without_logs():
+    at = new_app()
+    assert at.title[0].value == "Logs"
+    assert any("No logs yet" in i.value for i in at.info)
+    assert not at.sidebar.warning
+    for page, title in (("pages/calibrate.py", "Calibrate"), ("pages/optimise.py", "Optimise"),
+                        ("pages/report.py", "Report")):
+        ok(at.switch_page(page).run())
+        assert at.title[0].value == title
+        if title == "Optimise":
+            assert at.button(key="opt_run").disabled is False  # works without logs (library cycle)
+
+
+def test_upload_channel_report_and_plot(small_csv):
+    at = new_app()
+    upload(at, "short.csv", small_csv, "text/csv")
+    assert not errors(at)
+    assert any("short.csv [SYNTHETIC]" in s.value for s in at.success)
+    assert any("SYNTHETIC" in w.value for w in at.sidebar.warning)
+    assert len(at.dataframe) >= 2  # overview + channel report
+    rep = at.dataframe[1].value
+    assert "speed_mps" in rep.index and bool(rep.loc["speed_mps", "present"])
+    at.multiselect(key="chans_short.csv").set_value(["speed_mps", "soc", "coolant_temp_degC"])
+    ok(at.run())
+    assert list(at.session_state[dash.LOGS]) == ["short.csv"]
+
+
+def test_bad_uploads_show_messages_and_app_keeps_working(small_csv, monkeypatch):
+    at = new_app()
+    msgs = []
+    for name, data in (("corrupt.blf", b"LOGG" + b"\xff" * 200), ("notes.docx", b"PK\x03\x04 not a log"),
+                       ("empty.csv", b""), ("text.csv", b"this is not,a drive log\n1,2\n")):
+        upload(at, name, data)
+        got = errors(at)
+        assert len(got) == 1 and name in got[0], got  # each bad file: one message, shown once
+        msgs += got
+        assert at.title[0].value == "Logs"
+    assert any("corrupt.blf" in m for m in msgs)
+    assert any("unsupported file type '.docx'" in m for m in msgs)
+    assert any("empty" in m for m in msgs)
+    assert any("text.csv" in m for m in msgs)
+    assert all("iptm-session-" not in m for m in msgs)
+    # oversized: the limit is configurable
+    monkeypatch.setenv("IPTM_MAX_UPLOAD_MB", "0.05")
+    upload(at, "big.csv", small_csv, "text/csv")
+    assert any("too large" in m and "big.csv" in m for m in errors(at))
+    monkeypatch.delenv("IPTM_MAX_UPLOAD_MB")
+    # a bad DBC is refused too
+    at.file_uploader(key="dbc_upload").upload("bad.dbc", b"\x00\x01 garbage", "application/octet-stream")
+    ok(at.run())
+    assert any("bad.dbc" in m for m in errors(at))
+    # ... and the app still works: a good upload, other pages render
+    upload(at, "short.csv", small_csv, "text/csv")
+    assert any("short.csv" in s.value for s in at.success)
+    assert list(at.session_state[dash.LOGS]) == ["short.csv"]
+    for page in ("pages/calibrate.py", "pages/optimise.py", "pages/report.py"):
+        ok(at.switch_page(page).run())
+
+
+def test_sessions_do_not_share_uploads(small_csv):
+    a, b = new_app(), new_app()
+    upload(a, "short.csv", small_csv, "text/csv")
+    ok(b.run())
+    assert any("No logs yet" in i.value for i in b.info)
+    assert b.session_state[dash.LOGS] == {}
+    assert dash.TMP not in b.session_state  # b never made a folder; a's is its own
+    upload(b, "other.csv", small_csv, "text/csv")
+    assert a.session_state[dash.TMP] != b.session_state[dash.TMP]
+    assert list(a.session_state[dash.LOGS]) == ["short.csv"] and list(b.session_state[dash.LOGS]) == ["other.csv"]
+
+
+def test_bundled_sample_logs_button():
+    at = new_app()
+    at.button(key="load_bundled").click()
+    ok(at.run())
+    assert not errors(at)
+    names = list(at.session_state[dash.LOGS])
+    assert names == [p.name for p in dash.bundled_logs()] and len(names) == 3
+    assert any("SYNTHETIC" in w.value for w in at.sidebar.warning)
+
+
+def test_calibrate_optimise_report_flow(small_csv):
+    at = new_app()
+    upload(at, "short.csv", small_csv, "text/csv")
+
+    # --- calibration on the 300-s log
+    ok(at.switch_page("pages/calibrate.py").run())
+    assert at.multiselect(key="cal_fit_logs").value == ["short.csv"]
+    at.multiselect(key="cal_fix_params").set_value(["kappa"])
+    at.button(key="cal_run").click()
+    ok(at.run())
+    assert not errors(at), errors(at)
+    tbl = at.dataframe[0].value
+    assert {"parameter", "value", "stderr", "status", "identifiable"} <= set(tbl.columns)
+    assert tbl.set_index("parameter").loc["kappa", "status"] == "fixed"
+    assert (tbl["identifiable"] == "yes").any()
+    assert at.get("download_button"), "calibration download missing"
+    art = at.session_state[dash.CALIB]["artifact"]
+    assert b"[parameters." in art
+
+    # --- optimisation: 60 s of the library cycle, coarse grids, calibrated parameters
+    ok(at.switch_page("pages/optimise.py").run())
+    assert at.radio(key="opt_params_src").value == "calibrated in this session"
+    at.number_input(key="opt_duration").set_value(60.0)
+    at.button(key="opt_run").click()
+    ok(at.run())
+    assert not errors(at), errors(at)
+    cs = at.session_state[dash.OPT]["cs"]
+    assert {"rule", "baseline", "thermal", "thermal_cabin"} <= set(cs.sims)
+    assert len(at.session_state[dash.OPT]["figures"]) >= 9
+    assert len(at.metric) == 3
+    assert "fuel_g" in at.dataframe[0].value.columns
+
+    # --- cycle from the uploaded log, one strategy
+    at.radio(key="opt_cycle_src").set_value("from a loaded log")
+    ok(at.run())
+    at.multiselect(key="opt_strategies").set_value(["thermal"])
+    at.button(key="opt_run").click()
+    ok(at.run())
+    assert not errors(at), errors(at)
+    assert "from log" in at.session_state[dash.OPT]["cycle"]["name"] or \
+        "short_cycle" in at.session_state[dash.OPT]["cycle"]["name"]
+    assert list(at.session_state[dash.OPT]["cs"].sims) == ["thermal"]
+
+    # --- an invalid grid/scenario combination is a message, not a crash
+    at.number_input(key="opt_duration").set_value(100000.0)
+    ok(at.run())
+
+    # --- report: the whole chain through iptm.pipeline.run on the session's log and scenario
+    at.number_input(key="opt_duration").set_value(60.0)
+    at.multiselect(key="opt_strategies").set_value(["rule", "thermal"])
+    at.radio(key="opt_cycle_src").set_value("from the library")
+    ok(at.run())
+    ok(at.switch_page("pages/report.py").run())
+    at.button(key="rep_run").click()
+    ok(at.run())
+    assert not errors(at), errors(at)
+    rep = at.session_state["iptm_report"]
+    assert rep["html"].lstrip().lower().startswith(b"<!doctype html") or b"<html" in rep["html"][:500].lower()
+    assert rep["json"].lstrip().startswith(b"{")
+    assert len(at.get("download_button")) == 2
+    assert Path(rep["dir"]).is_relative_to(Path(at.session_state[dash.TMP]))
+
+
+def test_optimise_sweep_over_ambient():
+    pytest.importorskip("optimize.sweep")
+    at = new_app()
+    ok(at.switch_page("pages/optimise.py").run())
+    at.radio(key="opt_params_src").set_value("default 2017 Prius")
+    at.number_input(key="opt_duration").set_value(60.0)
+    at.multiselect(key="opt_strategies").set_value(["rule", "thermal"])
+    ok(at.run())
+    at.text_input(key="sweep_Tamb").set_value("-10, 0")
+    at.button(key="sweep_run").click()
+    ok(at.run())
+    assert not errors(at), errors(at)
+    df = at.session_state["iptm_sweep"]["df"]
+    assert sorted(set(df["T_amb"])) == [-10.0, 0.0] and set(df["strategy"]) == {"rule", "thermal"}
+    # a bad list of temperatures is a message
+    at.text_input(key="sweep_Tamb").set_value("cold")
+    at.button(key="sweep_run").click()
+    ok(at.run())
+    assert any("Sweep failed" in m for m in errors(at))

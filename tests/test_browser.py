@@ -1,0 +1,179 @@
+"""Real-browser test of the dashboard: ``streamlit run app.py`` in a subprocess, driven by Playwright with the
+system's headless Chromium (``scripts/install_browser.sh`` installs both).
+
+Uploads a corrupt log (message shown, app keeps working) and a 300-s log, runs a calibration, an
+optimisation on 60 s with coarse grids and the report, and saves a screenshot of each page to
+``reports/figures/page_{logs,calibrate,optimise,report}.png`` (shown in the README).
+
+Run: ``make test-browser`` (``pytest -q -m browser``).
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.browser
+
+ROOT = Path(__file__).resolve().parent.parent
+FIGS = ROOT / "reports" / "figures"
+CHROMIUM = os.environ.get("IPTM_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
+ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+        "--disable-component-update", "--disable-sync", "--no-first-run"]
+LONG = 240_000  # ms: a calibration / optimisation / report step (first run compiles the numba kernels)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def sync_playwright():
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        pytest.skip("playwright is not installed: run scripts/install_browser.sh")
+    if not Path(CHROMIUM).is_file():
+        pytest.skip(f"no Chromium at {CHROMIUM}: run scripts/install_browser.sh (apt-get install chromium)")
+    return sync_playwright
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("browser")
+    port = _free_port()
+    env = dict(os.environ, IPTM_CACHE_DIR=str(tmp / "cache"), IPTM_SESSION_ROOT=str(tmp / "sessions"),
+               MPLBACKEND="Agg", PYTHONUNBUFFERED="1")
+    log = open(tmp / "streamlit.log", "w")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "streamlit", "run", str(ROOT / "app.py"), "--server.headless", "true",
+         "--server.port", str(port), "--server.address", "127.0.0.1", "--browser.gatherUsageStats", "false",
+         "--server.fileWatcherType", "none", "--client.toolbarMode", "viewer", "--global.developmentMode", "false"],
+        cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.time() + 90
+        while True:
+            try:
+                with urllib.request.urlopen(url + "/_stcore/health", timeout=2) as r:
+                    if r.status == 200:
+                        break
+            except OSError:
+                pass
+            if proc.poll() is not None or time.time() > deadline:
+                log.flush()
+                pytest.fail("streamlit did not start:\n" + (tmp / "streamlit.log").read_text()[-3000:])
+            time.sleep(0.5)
+        yield url, tmp
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+        log.close()
+
+
+def _small_csv(path: Path) -> Path:
+    lines = (ROOT / "logs" / "winter_warm_restart.csv").read_text().splitlines()
+    head = [ln for ln in lines[:10] if ln.startswith("#") or ln.startswith("time")]
+    body = [ln for ln in lines if ln[:1].isdigit() and float(ln.split(",", 1)[0]) < 300.0]
+    path.write_text("\n".join(head + body) + "\n")
+    return path
+
+
+def _idle(page, timeout=LONG):
+    """Wait until the script run finished (the 'Running...' status widget is gone)."""
+    page.wait_for_timeout(400)
+    page.wait_for_function(
+        "() => !document.querySelector('[data-testid=\"stStatusWidget\"]')"
+        " || !document.querySelector('[data-testid=\"stStatusWidget\"]').innerText.includes('Running')",
+        timeout=timeout)
+    page.wait_for_timeout(300)
+
+
+def _goto(page, title):
+    page.locator('[data-testid="stSidebarNav"]').get_by_text(title, exact=True).click()
+    page.get_by_role("heading", name=title).first.wait_for(timeout=60_000)
+    _idle(page)
+
+
+def _shot(page, name):
+    FIGS.mkdir(parents=True, exist_ok=True)
+    page.screenshot(path=str(FIGS / name), full_page=True)
+
+
+def test_dashboard_in_chromium(sync_playwright, server):
+    url, tmp = server
+    good = _small_csv(tmp / "winter_short.csv")
+    bad = tmp / "corrupt.blf"
+    bad.write_bytes(b"LOGG" + b"\xff" * 200)
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
+        try:
+            page = browser.new_page(viewport={"width": 1400, "height": 1800})
+            page.goto(url, wait_until="domcontentloaded")
+            page.get_by_role("heading", name="Logs").first.wait_for(timeout=60_000)
+            _idle(page)
+
+            # a corrupt upload: a message in the page, the app keeps working
+            page.locator('[data-testid="stFileUploader"] input[type="file"]').first.set_input_files(str(bad))
+            page.get_by_text("Could not load corrupt.blf").wait_for(timeout=60_000)
+
+            # a good upload
+            page.locator('[data-testid="stFileUploader"] input[type="file"]').first.set_input_files(str(good))
+            page.get_by_text("winter_short.csv [SYNTHETIC]: 299 s").wait_for(timeout=120_000)
+            _idle(page)
+            page.locator('[data-testid="stSidebar"]').get_by_text("SYNTHETIC data").wait_for(timeout=30_000)
+            page.get_by_role("tab", name="Plot").click()
+            page.wait_for_timeout(1500)
+            _shot(page, "page_logs.png")
+
+            # calibration
+            _goto(page, "Calibrate")
+            page.get_by_role("button", name="Run calibration").click()
+            page.get_by_role("heading", name="Calibrated parameters").wait_for(timeout=LONG)
+            _idle(page)
+            page.get_by_role("button", name="Download the calibration file (TOML)").wait_for()
+            assert page.locator('[data-testid="stException"]').count() == 0
+            _shot(page, "page_calibrate.png")
+
+            # optimisation on 60 s, coarse grids (the page's defaults)
+            _goto(page, "Optimise")
+            box = page.get_by_label("Use the first ... s of the cycle (0 = whole)")
+            box.fill("60")
+            box.press("Enter")
+            _idle(page)
+            page.get_by_role("button", name="Run optimisation").click()
+            page.get_by_role("heading", name="Figures").wait_for(timeout=LONG)
+            _idle(page)
+            page.locator('[data-testid="stImage"] img').first.wait_for(timeout=60_000)
+            assert page.locator('[data-testid="stMetric"]').count() == 3
+            assert page.locator('[data-testid="stException"]').count() == 0
+            _shot(page, "page_optimise.png")
+
+            # the report (whole chain through iptm.pipeline.run, same scenario)
+            _goto(page, "Report")
+            page.get_by_role("button", name="Build the report").click()
+            page.get_by_role("button", name="Download the HTML report").wait_for(timeout=LONG)
+            _idle(page)
+            assert page.locator('[data-testid="stException"]').count() == 0
+            with page.expect_download() as dl:
+                page.get_by_role("button", name="Download the JSON").click()
+            saved = tmp / "report.json"
+            dl.value.save_as(saved)
+            assert saved.read_text().lstrip().startswith("{")
+            _shot(page, "page_report.png")
+        finally:
+            browser.close()
+    for name in ("page_logs.png", "page_calibrate.png", "page_optimise.png", "page_report.png"):
+        assert (FIGS / name).stat().st_size > 10_000

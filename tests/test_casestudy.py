@@ -1,0 +1,74 @@
+"""A small case study (short cycle, coarse grids): ordering, table, figures, JSON round trip."""
+import json
+
+import numpy as np
+import pytest
+
+from optimize.casestudy import run_case_study
+from optimize.formulations import DPGrids, DPScenario
+
+SCEN = DPScenario(duration_s=150.0, T_cl0=20.0)
+GRIDS = DPGrids(soc=0.01, tcl=2.0, tcab=1.0, pbat=1000.0, qheat=150.0)
+TIE_G = 1e-6  # ordering tie tolerance (g)
+
+
+@pytest.fixture(scope="module")
+def cs(params):
+    return run_case_study(params, SCEN, progress=False, grids=GRIDS)
+
+
+def test_ordering(cs):
+    f = {k: s.fuel_g for k, s in cs.sims.items()}
+    assert f["rule"] >= f["baseline"] - TIE_G
+    assert f["baseline"] >= f["thermal"] - TIE_G
+    # Thermal-Cabin's feasible set contains the 1500-W policy only up to the cabin grid; allow a small tie band
+    assert f["thermal"] >= f["thermal_cabin"] - 0.002 * f["thermal"]
+    assert all(s.soc[-1] >= SCEN.soc0 - SCEN.soc_tol for s in cs.sims.values())
+
+
+def test_table_columns(cs):
+    df = cs.table()
+    for c in ["fuel_g", "fuel_corrected_g", "soc_final", "T_cl_final_degC", "T_cl_mean_degC",
+              "T_cab_final_degC", "T_cab_mean_degC", "engine_starts", "idle_s", "saving_vs_rule_pct",
+              "paper_vs_rule_pct", "saving_vs_baseline_pct", "paper_vs_baseline_pct"]:
+        assert c in df.columns
+    assert len(df) == 5
+    assert df.loc["Rule-based (tuned)", "saving_vs_rule_pct"] == 0.0
+    assert df["charge_sustaining"].all()
+    assert "sav/rule%" in cs.format_table()
+
+
+def test_figures(cs, tmp_path):
+    paths = cs.plot_figures(tmp_path / "figs")
+    names = {p.rsplit("/", 1)[-1] for p in paths}
+    assert names == {f"{n}.png" for n in ("soc", "coolant", "engine_power", "battery_power", "engine_mode",
+                                          "cumulative_fuel", "cabin", "heater_power", "fuel_bars")}
+    for p in paths:
+        with open(p, "rb") as fh:
+            assert fh.read(8) == b"\x89PNG\r\n\x1a\n"
+
+
+def test_json_roundtrip(cs, tmp_path):
+    from calib.fileio import write_json
+
+    d = cs.to_dict()
+    p = tmp_path / "cs.json"
+    write_json(p, d)
+    back = json.loads(p.read_text())
+    assert back["scenario"] == SCEN.to_dict()
+    assert [r["key"] for r in back["table"]] == [r["key"] for r in d["table"]]
+    fuel = {r["key"]: r["fuel_g"] for r in back["table"]}
+    assert fuel["thermal"] == pytest.approx(cs.sims["thermal"].fuel_g, rel=1e-12)
+    assert np.isfinite(back["dp"]["thermal"]["evals_per_second"])
+
+
+def test_cli_optimize(tmp_path, capsys):
+    from iptm.cli import main
+
+    rc = main(["optimize", "--duration", "60", "--tcl0", "30", "--formulation", "rule,baseline,thermal",
+               "--grid", "pbat=2000,tcl=2", "--json", str(tmp_path / "o.json")])
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert "Thermal-DP" in out and "paper%" in out
+    assert json.loads((tmp_path / "o.json").read_text())["table"]
+    assert main(["optimize", "--formulation", "nope"]) == 2

@@ -1,0 +1,267 @@
+"""Parameter sweeps on dask.distributed (optimize/sweep.py, iptm sweep): GitHub issue 8.
+
+One LocalCluster (2 worker processes, 1 thread each) is shared by the module. The small study: 2 ambients x
+2 cycles, the first 60 s of each cycle, coarse grids, rule-based + Thermal-DP.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import threading
+import time
+
+import numpy as np
+import pandas as pd
+import pytest
+
+pytest.importorskip("distributed")
+
+from calib.errors import ParameterError, ScenarioError  # noqa: E402
+from calib.params import default_parameters  # noqa: E402
+from optimize.sweep import (Study, load_study, montecarlo_draws, plot_study, run_case, run_sequential,  # noqa: E402
+                            run_study, write_table)
+
+GRIDS = {"soc": 0.02, "tcl": 2.0, "pbat": 1000.0}
+SMALL = dict(name="small", strategies=["rule", "thermal"], grids=GRIDS, scenario={"duration_s": 60.0},
+             vary={"T_amb": [-10.0, 0.0], "cycle": ["artemis_urban", "nycc"]})
+SMALL_TOML = """
+[study]
+name = "small"
+strategies = ["rule", "thermal"]
+grids = "soc=0.02,tcl=2,pbat=1000"
+[scenario]
+duration_s = 60
+[vary]
+T_amb = [-10, 0]
+cycle = ["artemis_urban", "nycc"]
+"""
+COLS = ["case_id", "cycle", "T_amb", "strategy", "status", "fuel_g", "fuel_corrected_g", "soc_final",
+        "T_cl_final_degC", "T_cab_final_degC", "saving_pct"]
+
+
+@pytest.fixture(scope="module")
+def client():
+    from optimize.sweep import local_client
+
+    c = local_client(2)
+    yield c
+    cluster = c.cluster
+    c.close()
+    cluster.close()
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    return tmp_path_factory.mktemp("sweep_store")
+
+
+@pytest.fixture(scope="module")
+def reference():
+    """The small study run case by case in this process (no cluster, no store)."""
+    return run_sequential(Study(**SMALL))
+
+
+# --------------------------------------------------------------------------------------------------- no cluster
+def test_expand_keys_and_validation(tmp_path):
+    st = Study(**SMALL)
+    cases = st.expand()
+    assert len(cases) == 4
+    assert len({c["key"] for c in cases}) == 4
+    assert {(c["scenario"]["cycle"], c["scenario"]["T_amb"]) for c in cases} == {
+        (cy, t) for cy in ("artemis_urban", "nycc") for t in (-10.0, 0.0)}
+    assert [c["key"] for c in Study(**SMALL).expand()] == [c["key"] for c in cases]  # stable
+    json.dumps(cases)  # JSON-able
+    # the key follows content, not labels or the test hold
+    assert Study(**{**SMALL, "hold_s": 3.0}).expand()[0]["key"] == cases[0]["key"]
+    assert Study(**{**SMALL, "grids": {**GRIDS, "soc": 0.01}}).expand()[0]["key"] != cases[0]["key"]
+    # [[case]] list crossed with [vary]
+    st2 = Study(name="l", strategies=["thermal"], cases=[{"Q_heat": 1000.0}, {"Q_heat": 2000.0}],
+                vary={"T_amb": [-5.0]})
+    assert [c["scenario"]["Q_heat"] for c in st2.expand()] == [1000.0, 2000.0]
+    with pytest.raises(ScenarioError, match="unknown scenario field"):
+        Study(name="bad", vary={"T_ambient": [1.0]})
+    with pytest.raises(ScenarioError, match="unknown strategy"):
+        Study(name="bad", strategies=["dp"])
+    with pytest.raises(ScenarioError, match="reference"):
+        Study(name="bad", strategies=["thermal"], reference="rule")
+    p = tmp_path / "s.toml"
+    p.write_text(SMALL_TOML)
+    assert [c["key"] for c in load_study(p).expand()] == [c["key"] for c in cases]
+
+
+def _artifact(tmp_path):
+    ps = default_parameters()
+    for n, se in (("C_eng_J_per_K", 8000.0), ("UA_cab_W_per_K", 5.0), ("fuel_scale", 0.02)):
+        ps.param(n).status, ps.param(n).stderr = "estimated", se
+    ps.param("hA_eng_W_per_K").stderr = 3.0  # a stderr but not estimated: must not be drawn
+    path = tmp_path / "calib.toml"
+    ps.save(path)
+    return ps, path
+
+
+def test_montecarlo_draws(tmp_path):
+    ps, path = _artifact(tmp_path)
+    draws = montecarlo_draws(path, 6, seed=3)
+    again = montecarlo_draws(path, 6, seed=3)
+    assert [d.draw for d in draws] == list(range(6))
+    changed = set()
+    for d, d2 in zip(draws, again):
+        for n in ps:
+            if d.pset[n] != ps[n]:
+                changed.add(n)
+            assert d.pset[n] == d2.pset[n]
+            lo, hi = d.pset.param(n).bounds
+            vals = d.pset[n] if d.pset.param(n).is_table else [d.pset[n]]
+            assert all(lo <= v <= hi for v in vals)
+    assert changed == {"C_eng_J_per_K", "UA_cab_W_per_K", "fuel_scale"}
+    assert len({d.pset["C_eng_J_per_K"] for d in draws}) == 6
+    with pytest.raises(ParameterError, match="estimated"):
+        montecarlo_draws(default_parameters(), 2)
+    # through a study file: 3 draws x 2 ambients
+    (tmp_path / "mc.toml").write_text('[study]\nstrategies = ["thermal"]\n[vary]\nT_amb = [-10, 0]\n'
+                                      '[params]\nmontecarlo = {artifact = "calib.toml", n = 3, seed = 3}\n')
+    cases = load_study(tmp_path / "mc.toml").expand()
+    assert len(cases) == 6 and len({c["key"] for c in cases}) == 6
+    assert sorted({c["labels"]["draw"] for c in cases}) == [0, 1, 2]
+
+
+def test_run_case_records_errors():
+    case = Study(**SMALL).expand()[0]
+    bad = json.loads(json.dumps(case))
+    bad["scenario"]["cycle"] = "no_such_cycle"
+    rec = run_case(bad)
+    assert rec["error"] and rec["results"] == {}
+
+
+# --------------------------------------------------------------------------------------------------- on the cluster
+def _compare(df, ref):
+    a = df[COLS].sort_values(["case_id", "strategy"]).reset_index(drop=True)
+    b = ref[COLS].sort_values(["case_id", "strategy"]).reset_index(drop=True)
+    pd.testing.assert_frame_equal(a, b, check_exact=False, rtol=1e-9, atol=1e-9)
+
+
+def test_study_on_local_cluster_matches_sequential(client, store, reference, tmp_path):
+    seen = []
+    df = run_study(Study(**SMALL), client=client, store_dir=store,
+                   progress_callback=lambda d, t, r: seen.append((d, t)))
+    assert seen[-1] == (4, 4) and len(seen) == 4
+    assert (df["status"] == "ok").all() and not df["cached"].any()
+    assert len(df) == 8
+    _compare(df, reference)
+    # the cases ran on the workers, not here
+    assert (reference["status"] == "ok").all()
+    # Parquet round trip and plots
+    p = write_table(df, tmp_path / "r.parquet")
+    back = pd.read_parquet(p)
+    _compare(back, df)
+    paths = plot_study(df, tmp_path / "plots")
+    assert [os.path.basename(x) for x in paths] == ["saving_vs_ambient.png"]
+    assert os.path.getsize(paths[0]) > 1000
+    # resume: nothing recomputed (a client that cannot run anything would fail if used)
+    t0 = time.perf_counter()
+    again = run_study(Study(**SMALL), client=object(), store_dir=store)
+    assert time.perf_counter() - t0 < 5
+    assert again["cached"].all()
+    _compare(again, df)
+
+
+def test_interrupted_study_resumes(client, store, reference):
+    """A store holding only some cases (an interrupted run) -> only the missing ones are submitted."""
+    from calib.store import Store
+
+    st = Study(**{**SMALL, "name": "resume"})
+    cases = st.expand()
+    import shutil
+
+    part = store.parent / "partial_store"
+    shutil.rmtree(part, ignore_errors=True)
+    src = Store(store)
+    for c in cases[:2]:
+        Store(part).put_json("sweep", c["key"], src.get_json("sweep", c["key"]))
+    progress = []
+    df = run_study(st, client=client, store_dir=part, progress_callback=lambda d, t, r: progress.append((d, r)))
+    assert progress[0] == (2, None)
+    assert df.groupby("case_id")["cached"].first().tolist() == [True, True, False, False]
+    _compare(df, reference)
+
+
+def test_failed_case_recorded_others_complete(client, tmp_path):
+    st = Study(name="fail", strategies=["rule", "thermal"], grids=GRIDS, scenario={"duration_s": 60.0},
+               cases=[{"cycle": "nycc"}, {"cycle": "nycc", "soc0": 0.3}, {"cycle": "no_such_cycle"}])
+    df = run_study(st, client=client, store_dir=tmp_path)
+    by = {(r.case_id, r.strategy): r for r in df.itertuples()}
+    assert by[0, "rule"].status == "ok" and by[0, "thermal"].status == "ok"
+    assert by[1, "rule"].status == "ok"  # the rule-based controller runs from SOC 0.3...
+    assert by[1, "thermal"].status == "failed" and "soc0" in by[1, "thermal"].error  # ...the DP grid does not
+    assert np.isnan(by[1, "thermal"].fuel_g)
+    assert by[2, "rule"].status == "failed" and by[2, "thermal"].status == "failed"
+    assert "no_such_cycle" in by[2, "rule"].error
+    # failures are stored: not recomputed unless asked
+    again = run_study(st, client=object(), store_dir=tmp_path)
+    assert again["cached"].all() and (again["status"] == df["status"]).all()
+    redo = run_study(st, client=client, store_dir=tmp_path, retry_failed=True)
+    assert redo.groupby("case_id")["cached"].first().tolist() == [True, False, False]
+
+
+def test_worker_killed_mid_study(client, tmp_path, reference):
+    """SIGKILL one worker process while both are busy: its case is rescheduled, nothing is lost."""
+    st = Study(**{**SMALL, "name": "kill", "hold_s": 4.0})
+    out, err = {}, []
+
+    def target():
+        try:
+            out["df"] = run_study(st, client=client, store_dir=tmp_path)
+        except BaseException as exc:  # noqa: BLE001
+            err.append(exc)
+
+    th = threading.Thread(target=target)
+    th.start()
+    victim = None
+    t_end = time.monotonic() + 60
+    while time.monotonic() < t_end:
+        proc = client.processing()
+        busy = [w for w, ts in proc.items() if any(str(t).startswith("iptm-sweep-") for t in ts)]
+        if len(busy) == 2:
+            victim = busy[0]
+            break
+        time.sleep(0.1)
+    assert victim is not None, "the two workers never held a case at the same time"
+    time.sleep(1.0)  # inside the case's hold
+    nanny = next(n for n in client.cluster.workers.values() if n.worker_address == victim)
+    pid = nanny.process.pid
+    os.kill(pid, signal.SIGKILL)
+    th.join(timeout=120)
+    assert not th.is_alive() and not err, err
+    df = out["df"]
+    assert (df["status"] == "ok").all()
+    assert df["case_id"].nunique() == 4
+    _compare(df, reference)
+    # the killed worker's case was re-run by another process (it had finished nothing: its case was on hold)
+    from calib.store import Store
+
+    pids = {Store(tmp_path).get_json("sweep", k)["pid"] for k in df["case_key"].unique()}
+    assert pid not in pids and len(pids) >= 2
+    # the nanny restarts the dead worker
+    client.wait_for_workers(2, timeout=60)
+    assert victim not in client.scheduler_info()["workers"] or len(client.scheduler_info()["workers"]) == 2
+
+
+def test_cli_sweep_from_store(store, tmp_path, reference, client, capsys):
+    """`iptm sweep` on the small study whose cases are all in the store: no cluster, table + plot + JSON."""
+    from iptm.cli import main
+
+    run_study(Study(**SMALL), client=client, store_dir=store)  # make sure every case is stored
+    p = tmp_path / "small.toml"
+    p.write_text(SMALL_TOML)
+    rc = main(["sweep", str(p), "--store", str(store), "--out", str(tmp_path / "out"), "--json",
+               str(tmp_path / "s.json")])
+    assert rc == 0
+    txt = capsys.readouterr().out
+    assert "4 cases" in txt and "4 from the store" in txt
+    df = pd.read_parquet(tmp_path / "out" / "results.parquet")
+    _compare(df, reference)
+    assert (tmp_path / "out" / "saving_vs_ambient.png").is_file()
+    j = json.loads((tmp_path / "s.json").read_text())
+    assert j["n_cases"] == 4 and j["n_failed"] == 0 and len(j["table"]) == 8
+    assert main(["sweep", str(tmp_path / "missing.toml")]) == 2
