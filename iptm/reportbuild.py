@@ -83,6 +83,7 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
         logs_info.append(info)
         rows.append({"log": lg.label(), "format": lg.meta.format, "duration s": round(lg.duration_s),
                      "role": role, "sha256": lg.meta.sha256[:16] + "...", "channels": len(lg.channels())})
+        rep = rep.reset_index() if rep.index.name else rep
         reports[lg.name] = rep
         rep.to_csv(out / f"channels_{Path(lg.name).stem}.csv", index=False)
     data.table(pd.DataFrame(rows))

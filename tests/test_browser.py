@@ -95,10 +95,9 @@ def _idle(page, timeout=LONG):
     """Wait until the script run finished (the 'Running...' status widget is gone)."""
     page.wait_for_timeout(400)
     page.wait_for_function(
-        "() => !document.querySelector('[data-testid=\"stStatusWidget\"]')"
-        " || !document.querySelector('[data-testid=\"stStatusWidget\"]').innerText.includes('Running')",
-        timeout=timeout)
-    page.wait_for_timeout(300)
+        "() => { const w = document.querySelector('[data-testid=\"stStatusWidget\"]');"
+        " return !w || !/Running|Stop/.test(w.innerText); }", timeout=timeout)
+    page.wait_for_timeout(500)
 
 
 def _goto(page, title):
@@ -144,6 +143,8 @@ def test_dashboard_in_chromium(sync_playwright, server):
             page.get_by_role("heading", name="Calibrated parameters").wait_for(timeout=LONG)
             _idle(page)
             page.get_by_role("button", name="Download the calibration file (TOML)").wait_for()
+            page.locator('[data-testid="stMain"] img').first.wait_for(timeout=LONG)  # measured vs simulated
+            _idle(page)
             assert page.locator('[data-testid="stException"]').count() == 0
             _shot(page, "page_calibrate.png")
 

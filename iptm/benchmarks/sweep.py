@@ -37,7 +37,8 @@ def run(quick: bool = False) -> dict:
     cases = st.expand()
     warm = Study(name="warm", strategies=["thermal"], grids=st.grids, scenario={"duration_s": 30.0}).expand()[0]
     print(f"{len(cases)} Thermal-DP cases (8 ambients x 2 cycles{', first 200 s' if quick else ', whole cycles'}), "
-          f"grids {st.grids}; {os.cpu_count()} CPU cores", flush=True)
+          f"grids {st.grids}; {os.cpu_count()} CPU cores, load average {os.getloadavg()[0]:.1f} (other processes "
+          "distort the figures)", flush=True)
 
     run_case(warm)
     n_default = numba.get_num_threads()
@@ -71,7 +72,8 @@ def run(quick: bool = False) -> dict:
            "numba_default_threads": n_default, "t_sequential_s": seq["numba_default"],
            "t_sequential_numba1_s": seq["numba_1"], "t_parallel_s": t_par, "t_cluster_start_s": t_start,
            "speedup": seq["numba_default"] / t_par, "speedup_vs_numba1": seq["numba_1"] / t_par,
-           "speedup_incl_cluster_start": seq["numba_default"] / (t_par + t_start), "n_failed": n_failed}
+           "speedup_incl_cluster_start": seq["numba_default"] / (t_par + t_start), "n_failed": n_failed,
+           "load_average_1min_end": os.getloadavg()[0]}
     print(f"2 local workers x 1 thread: {t_par:.1f} s (+ {t_start:.1f} s cluster start-up); failures {n_failed}")
     print(f"speed-up {out['speedup']:.2f}x over sequential with numba {n_default} threads "
           f"({out['speedup_incl_cluster_start']:.2f}x counting the cluster start-up), "

@@ -18,8 +18,9 @@ def register(sub):
     p.add_argument("--out", metavar="DIR", default=None,
                    help="output folder for results.parquet and the plots (default reports/sweeps/<study name>)")
     p.add_argument("--plots", metavar="DIR", default=None, help="write the plots here instead of --out")
-    p.add_argument("--metric", choices=("saving_pct", "saving_corrected_pct"), default="saving_pct",
-                   help="saving plotted: on fuel (default) or on fuel corrected for final SOC/coolant/cabin energy")
+    p.add_argument("--metric", choices=("both", "saving_pct", "saving_corrected_pct"), default="both",
+                   help="saving plotted: on fuel (saving_pct), on fuel corrected for the final SOC, coolant and "
+                        "cabin energy (saving_corrected_pct), or both side by side (default)")
     p.add_argument("--store", metavar="DIR", default=None, help="result store (default .iptm-cache/sweep)")
     p.add_argument("--retry-failed", action="store_true", help="recompute cases stored with an error")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
@@ -64,13 +65,14 @@ def run(args) -> int:
     n_failed = int((df.groupby("case_id")["status"].apply(lambda s: (s == "failed").any())).sum())
     n_cached = int(df.groupby("case_id")["cached"].first().sum())
     print(f"{len(cases)} cases in {wall:.1f} s ({n_cached} from the store, {n_failed} with a failure)")
-    piv = summary_pivot(df, args.metric)
-    if not piv.empty:
-        import pandas as pd
+    import pandas as pd
 
-        with pd.option_context("display.width", 200, "display.max_columns", 40):
-            print(f"median {args.metric} vs {study.reference}, by ambient (degC):")
-            print(piv.to_string(float_format=lambda v: f"{v:.2f}"))
+    for m in (("saving_pct", "saving_corrected_pct") if args.metric == "both" else (args.metric,)):
+        piv = summary_pivot(df, m)
+        if not piv.empty:
+            with pd.option_context("display.width", 200, "display.max_columns", 40):
+                print(f"median {m} vs {study.reference} [%], by ambient (degC):")
+                print(piv.to_string(float_format=lambda v: f"{v:.2f}"))
     if n_failed:
         print(format_failures(df))
     print(f"table: {table}")
