@@ -31,8 +31,15 @@ limited by the coolant of the same drive under the (untuned) rule-based controll
 
 Common choices
     * Integrator: the model's explicit Euler step (Ts of the cycle, 1 s by default).
-    * Terminal set ``SOC_N >= SOC_0`` (and the cabin condition) by the engine's level-set boundary method
-      (Elbert 2013), so hard terminal constraints work on the coarse grids.
+    * Terminal set ``SOC_N >= SOC_0`` by the engine's level-set boundary method (Elbert 2013), with
+      ``level_tol`` = :data:`LEVEL_TOL` = 1e-3 grid steps (1e-5 in SOC). A tolerance of 0 does not work:
+      under multilinear interpolation the level of a node below SOC_0 decays geometrically (each step
+      moves a fraction of a cell) but never reaches exactly 0, so the forward pass would never let SOC
+      drop below the SOC_0 node and the battery would not be used as a buffer.
+    * Thermal-Cabin terminal condition ``T_cab_N >= T_cab,1500W(N)``: a terminal cost of
+      :data:`PENALTY_G_PER_STEP` g per grid step below it (not a level set: the cabin moves 0.005 degC per
+      step on a 1-degC grid, its level would decay only by ~0.6 % per step and forbid any cabin
+      excursion below the terminal value). Results are checked against the condition.
     * States outside the grid box (SOC 0.4-0.8, T_cl 0-100 degC, the cabin range) are infeasible.
     * Speed: the engine's ``precompute`` hook fills, once per step, a per-power-control table of
       feasibility, engine power, warm fuel rate, battery power and the next SOC at every SOC grid point
@@ -102,6 +109,7 @@ class DPScenario:
     T_cab_ub: float = 22.0
     duration_s: float | None = None
     soc_tol: float = 1e-3
+    cab_terminal_g_per_K: float = 10.0
 
     @classmethod
     def from_dict(cls, d: dict) -> "DPScenario":
@@ -191,8 +199,11 @@ _A_SOCG, _A_FCLG, _A_LOSSG, _A_SOCBP, _A_UOC, _A_SOCBPR, _A_RINT, _A_TFCL, _A_FC
 _MS0 = 40
 _HEADER = 64
 
-#: Penalty (g of fuel) per grid step of state-constraint violation (see :func:`hev_transition`).
+#: Penalty (g of fuel) per grid step of state-constraint violation (see :func:`hev_transition`), also the
+#: Thermal-Cabin terminal cost per grid step below the 1500-W final cabin temperature.
 PENALTY_G_PER_STEP = 1000.0
+#: Level-set tolerance (grid steps): levels at or below it count as "terminal set reachable".
+LEVEL_TOL = 1e-3
 # model scalars (float64 array): the generic engine's parallel kernel cannot take the ModelParams namedtuple
 # (numba's parfor gufunc rejects a struct holding arrays), so the transition gets plain arrays.
 _MS = ("R_tc", "T_bat_ref", "C_bat_As", "kappa", "hA_eng", "T_open", "k_rad", "Q_rad_max", "eps_hc", "cp_air",
@@ -489,6 +500,7 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
     extra = {}
     w = np.zeros((N, 3))
     w[:, 0] = P_trac
+    terminal = None
     grid_list = [socg]
     bounds = [(scen.soc0, None)]
     x0 = [scen.soc0]
@@ -515,7 +527,11 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
         if tcabg[-1] < hi - 1e-9:
             tcabg = np.append(tcabg, tcabg[-1] + grids.tcab)
         grid_list.append(tcabg)
-        bounds.append((float(ref[-1]), None))
+        bounds.append((None, None))
+        T_term = float(ref[-1])
+        h_cab = float(tcabg[1] - tcabg[0])
+        rate = float(scen.cab_terminal_g_per_K)
+        terminal = lambda X: rate * np.maximum(T_term - X[:, 2], 0.0)  # noqa: E731
         x0.append(scen.T_cab0)
         Q = _grid(scen.Q_heat_min, scen.Q_heat_max, grids.qheat)
         extra.update(T_cab_lb_min=float(np.min(lb)), T_cab_ub=float(tcabg[-1]),
@@ -538,7 +554,8 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
     p = pack_params(cfg, ms, [socg, fclg, lossg, c(mp.soc_bp), c(mp.U_oc), c(mp.soc_bp_R), c(mp.R_int),
                               c(mp.T_fcl), c(mp.f_cl), big])
     prob = DPProblem(grids=grid_list, controls=controls, N=N, transition=hev_transition, w=w, params=p,
-                     terminal_bounds=bounds, boundary="levelset", clip=True, precompute=hev_precompute,
+                     terminal_bounds=bounds, terminal_cost=terminal, boundary="levelset", clip=True,
+                     level_tol=LEVEL_TOL, precompute=hev_precompute,
                      table_shape=(pc.shape[0], _T_SOC0 + socg.size))
     return _Built(prob, np.array(x0), cyc, extra, mp)
 

@@ -18,6 +18,9 @@ A *study* is a TOML file::
     [[case]]                                 # optional: a list of scenario overrides (each crossed with [vary])
     Q_heat = 1500
 
+    [link]                                   # optional: fields that take another field's value in every case
+    T_cl0 = "T_amb"                          # (e.g. a cold start: coolant and cabin at the ambient)
+
     [params]                                 # optional: parameter sets (default: the default 2017 Prius)
     files = ["my_car.toml"]                  # parameter files or calibration artifacts (relative to the study)
     montecarlo = {artifact = "calib.toml", n = 20, seed = 1, nominal = false}
@@ -87,6 +90,7 @@ class Study:
     vary: dict = field(default_factory=dict)
     cases: list = field(default_factory=list)
     param_sets: list = field(default_factory=list)
+    link: dict = field(default_factory=dict)
     hold_s: float = 0.0
     source: str = ""
 
@@ -116,20 +120,36 @@ class Study:
         for k, v in self.vary.items():
             if not isinstance(v, list) or not v:
                 raise ScenarioError(f"study {self.name}: [vary] {k} must be a non-empty list")
+        from dataclasses import fields as _fields
+
+        known = {f.name for f in _fields(DPScenario)}
+        for k, src in self.link.items():
+            if k not in known or src not in known:
+                raise ScenarioError(f"study {self.name}: [link] {k} = {src!r}: both must be scenario fields; "
+                                    f"known: {sorted(known)}")
         # validate field names early (one-line errors before anything is submitted)
         for entry in self.cases or [{}]:
-            DPScenario.from_dict({**self.scenario, **entry, **{k: v[0] for k, v in self.vary.items()}})
+            self._scenario({**self.scenario, **entry, **{k: v[0] for k, v in self.vary.items()}})
         if not self.param_sets:
             from calib.params import default_parameters
 
             self.param_sets = [ParamSpec("default", None, default_parameters())]
+
+    def _scenario(self, d: dict):
+        from optimize.formulations import DPScenario
+
+        scen = DPScenario.from_dict(d)
+        if self.link:
+            from dataclasses import replace
+
+            scen = replace(scen, **{k: getattr(scen, src) for k, src in self.link.items()})
+        return scen
 
     def expand(self) -> list[dict]:
         """The cases: JSON-able dicts with ``case_id``, ``key`` (content key), ``labels`` and what
         :func:`run_case` needs."""
         import calib
         from calib.store import content_key
-        from optimize.formulations import DPScenario
 
         names = list(self.vary)
         combos = list(itertools.product(*(self.vary[n] for n in names))) or [()]
@@ -139,7 +159,7 @@ class Study:
             fp = _fingerprint(ps.pset)
             for entry in self.cases or [{}]:
                 for combo in combos:
-                    scen = DPScenario.from_dict({**self.scenario, **entry, **dict(zip(names, combo))})
+                    scen = self._scenario({**self.scenario, **entry, **dict(zip(names, combo))})
                     sd = _scenario_dict(scen)
                     key = content_key({"params": fp, "scenario": sd, "grids": self.grids,
                                        "strategies": sorted(self.strategies), "version": calib.__version__})
@@ -215,7 +235,7 @@ def load_study(path) -> Study:
         d = tomllib.loads(path.read_text())
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ScenarioError(f"{path}: not valid TOML ({exc})") from None
-    known = {"study", "scenario", "vary", "case", "params"}
+    known = {"study", "scenario", "vary", "case", "params", "link"}
     bad = set(d) - known
     if bad:
         raise ScenarioError(f"{path}: unknown table(s) {sorted(bad)}; known: {sorted(known)}")
@@ -246,7 +266,7 @@ def load_study(path) -> Study:
         psets.extend(montecarlo_draws(art, int(mc.get("n", 20)), int(mc.get("seed", 1))))
     return Study(name=st.get("name", path.stem), strategies=st.get("strategies", ("rule", "thermal")),
                  reference=st.get("reference"), grids=st.get("grids", {}), scenario=d.get("scenario", {}),
-                 vary=d.get("vary", {}), cases=cases, param_sets=psets, hold_s=float(st.get("hold_s", 0.0)),
+                 vary=d.get("vary", {}), cases=cases, param_sets=psets, link=d.get("link", {}), hold_s=float(st.get("hold_s", 0.0)),
                  source=str(path))
 
 
@@ -532,7 +552,9 @@ def plot_study(df: pd.DataFrame, outdir, metric="both") -> list[str]:
             ax.set_ylabel(labels[m].format(ref=ref))
             ax.grid(alpha=0.3)
             ax.legend(fontsize=8)
-        fig.suptitle(f"{name}: saving vs ambient", fontsize=10)
+        plabels = sorted(ok["params"].unique())
+        fig.suptitle(f"{name}: saving vs ambient (parameters: {', '.join(plabels[:3])}"
+                     f"{', ...' if len(plabels) > 3 else ''})", fontsize=10)
         fig.tight_layout()
         save(fig, "saving_vs_ambient.png")
     draws = ok[ok["draw"].notna()]

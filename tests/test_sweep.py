@@ -79,6 +79,12 @@ def test_expand_keys_and_validation(tmp_path):
     st2 = Study(name="l", strategies=["thermal"], cases=[{"Q_heat": 1000.0}, {"Q_heat": 2000.0}],
                 vary={"T_amb": [-5.0]})
     assert [c["scenario"]["Q_heat"] for c in st2.expand()] == [1000.0, 2000.0]
+    # [link]: a cold start, coolant at the ambient
+    st3 = Study(name="c", strategies=["thermal"], scenario={"T_cl_min": -25.0}, vary={"T_amb": [-20.0, 5.0]},
+                link={"T_cl0": "T_amb"})
+    assert [c["scenario"]["T_cl0"] for c in st3.expand()] == [-20.0, 5.0]
+    with pytest.raises(ScenarioError, match="link"):
+        Study(name="bad", link={"T_cl0": "ambient"})
     with pytest.raises(ScenarioError, match="unknown scenario field"):
         Study(name="bad", vary={"T_ambient": [1.0]})
     with pytest.raises(ScenarioError, match="unknown strategy"):
