@@ -44,17 +44,19 @@ and the spread of the saving over Monte-Carlo draws.
 """
 from __future__ import annotations
 
+import asyncio
 import itertools
 import os
 import time
 import tomllib
+import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-__all__ = ["Study", "load_study", "run_case", "run_study", "results_table", "write_table", "plot_study",
+__all__ = ["Study", "load_study", "study_from_dict", "run_sequential", "run_case", "run_study", "results_table", "write_table", "plot_study",
            "montecarlo_draws", "STRATEGIES", "DEFAULT_STORE", "local_client"]
 
 STRATEGIES = ("rule", "baseline", "thermal", "thermal_cabin")
@@ -226,7 +228,6 @@ def montecarlo_draws(artifact, n: int, seed: int = 1, label: str | None = None) 
 def load_study(path) -> Study:
     """Read a study TOML file (relative parameter paths are relative to the file)."""
     from calib.errors import ScenarioError
-    from calib.params import ParameterSet
 
     path = Path(path)
     if not path.is_file():
@@ -235,21 +236,32 @@ def load_study(path) -> Study:
         d = tomllib.loads(path.read_text())
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ScenarioError(f"{path}: not valid TOML ({exc})") from None
+    return study_from_dict(d, base_dir=path.parent, source=str(path), default_name=path.stem)
+
+
+def study_from_dict(d: dict, base_dir=".", source: str = "<dict>", default_name: str = "study") -> Study:
+    """A study from the parsed TOML structure (``{"study": {...}, "scenario": {...}, "vary": {...}, ...}``);
+    relative parameter paths are relative to ``base_dir``. For callers that build studies in code (the
+    dashboard)."""
+    from calib.errors import ScenarioError
+    from calib.params import ParameterSet
+
+    base_dir = Path(base_dir)
     known = {"study", "scenario", "vary", "case", "params", "link"}
     bad = set(d) - known
     if bad:
-        raise ScenarioError(f"{path}: unknown table(s) {sorted(bad)}; known: {sorted(known)}")
+        raise ScenarioError(f"{source}: unknown table(s) {sorted(bad)}; known: {sorted(known)}")
     st = dict(d.get("study", {}))
     okst = {"name", "strategies", "reference", "grids", "hold_s"}
     if set(st) - okst:
-        raise ScenarioError(f"{path}: unknown [study] key(s) {sorted(set(st) - okst)}; known: {sorted(okst)}")
+        raise ScenarioError(f"{source}: unknown [study] key(s) {sorted(set(st) - okst)}; known: {sorted(okst)}")
     cases = d.get("case", [])
     if not isinstance(cases, list):
-        raise ScenarioError(f"{path}: [[case]] must be an array of tables")
+        raise ScenarioError(f"{source}: [[case]] must be an array of tables")
     pr = dict(d.get("params", {}))
     if set(pr) - {"files", "montecarlo"}:
-        raise ScenarioError(f"{path}: unknown [params] key(s) {sorted(set(pr) - {'files', 'montecarlo'})}")
-    rel = lambda f: (path.parent / f) if not Path(f).is_absolute() else Path(f)  # noqa: E731
+        raise ScenarioError(f"{source}: unknown [params] key(s) {sorted(set(pr) - {'files', 'montecarlo'})}")
+    rel = lambda f: (base_dir / f) if not Path(f).is_absolute() else Path(f)  # noqa: E731
     psets = []
     files = pr.get("files", [])
     if isinstance(files, str):
@@ -259,15 +271,15 @@ def load_study(path) -> Study:
     mc = pr.get("montecarlo")
     if mc:
         if "artifact" not in mc:
-            raise ScenarioError(f"{path}: [params] montecarlo needs artifact = FILE")
+            raise ScenarioError(f"{source}: [params] montecarlo needs artifact = FILE")
         art = rel(mc["artifact"])
         if mc.get("nominal", False):
             psets.append(ParamSpec(art.stem, None, ParameterSet.load(art)))
         psets.extend(montecarlo_draws(art, int(mc.get("n", 20)), int(mc.get("seed", 1))))
-    return Study(name=st.get("name", path.stem), strategies=st.get("strategies", ("rule", "thermal")),
+    return Study(name=st.get("name", default_name), strategies=st.get("strategies", ("rule", "thermal")),
                  reference=st.get("reference"), grids=st.get("grids", {}), scenario=d.get("scenario", {}),
-                 vary=d.get("vary", {}), cases=cases, param_sets=psets, link=d.get("link", {}), hold_s=float(st.get("hold_s", 0.0)),
-                 source=str(path))
+                 vary=d.get("vary", {}), cases=cases, param_sets=psets, link=d.get("link", {}),
+                 hold_s=float(st.get("hold_s", 0.0)), source=source)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -404,24 +416,39 @@ def run_study(study, client=None, store_dir=None, progress_callback=None, *, n_w
             from distributed import Client
 
             client = own = Client(client)
+        pending = set()
         try:
             from distributed import as_completed
 
-            futs = {client.submit(run_case, c, key=f"iptm-sweep-{k}", pure=False, retries=retries): k
+            # a fresh task key per call: tasks cancelled by an interrupted call on the same cluster cannot
+            # collide with this call's (the content key names the result, the token the computation)
+            token = uuid.uuid4().hex[:8]
+            futs = {client.submit(run_case, c, key=f"iptm-sweep-{k}-{token}", pure=False, retries=retries): k
                     for k, c in todo.items()}
+            pending = set(futs)
             for fut in as_completed(list(futs)):
+                pending.discard(fut)
                 k = futs[fut]
                 try:
                     rec = fut.result()
-                    store.put_json(_KIND, k, rec)
-                except Exception as exc:  # noqa: BLE001 - infrastructure failure (e.g. KilledWorker): not stored
+                except (Exception, asyncio.CancelledError) as exc:  # noqa: BLE001 - infrastructure failure
+                    # (KilledWorker after too many worker deaths, a task cancelled by someone else): not stored
                     rec = {"key": k, "results": {}, "error": _error_text(exc), "infrastructure": True}
+                else:
+                    store.put_json(_KIND, k, rec)
                 rec["cached"] = False
                 records[k] = rec
                 done += 1
                 fut.release()
                 if progress_callback:
                     progress_callback(done, total, rec)
+        except BaseException:
+            # interrupted (Ctrl-C) or broken: stop what is still queued; finished cases are in the store
+            try:
+                client.cancel(list(pending))
+            except Exception:  # noqa: BLE001
+                pass
+            raise
         finally:
             if own is not None:
                 cluster = getattr(own, "cluster", None)

@@ -182,13 +182,29 @@ def test_interrupted_study_resumes(client, store, reference):
 
     part = store.parent / "partial_store"
     shutil.rmtree(part, ignore_errors=True)
-    src = Store(store)
     for c in cases[:2]:
-        Store(part).put_json("sweep", c["key"], src.get_json("sweep", c["key"]))
+        Store(part).put_json("sweep", c["key"], run_case(c))
     progress = []
     df = run_study(st, client=client, store_dir=part, progress_callback=lambda d, t, r: progress.append((d, r)))
     assert progress[0] == (2, None)
     assert df.groupby("case_id")["cached"].first().tolist() == [True, True, False, False]
+    _compare(df, reference)
+
+
+def test_interrupt_then_resume(client, tmp_path, reference):
+    """The study stops after its first finished case (as on Ctrl-C); the next run computes only the rest."""
+    st = Study(**{**SMALL, "name": "interrupt"})
+
+    def stop(done, total, rec):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_study(st, client=client, store_dir=tmp_path, progress_callback=stop)
+    n_stored = len(list((tmp_path / "sweep").glob("*.json")))
+    assert 1 <= n_stored < 4
+    df = run_study(st, client=client, store_dir=tmp_path)
+    assert int(df.groupby("case_id")["cached"].first().sum()) == n_stored
+    assert (df["status"] == "ok").all()
     _compare(df, reference)
 
 
@@ -271,3 +287,22 @@ def test_cli_sweep_from_store(store, tmp_path, reference, client, capsys):
     j = json.loads((tmp_path / "s.json").read_text())
     assert j["n_cases"] == 4 and j["n_failed"] == 0 and len(j["table"]) == 8
     assert main(["sweep", str(tmp_path / "missing.toml")]) == 2
+
+
+def test_scheduler_address_and_montecarlo_spread(client, tmp_path):
+    """The same call with a scheduler address instead of a Client (what --scheduler does); Monte-Carlo
+    draws give different results and the spread plot."""
+    ps, path = _artifact(tmp_path)
+    (tmp_path / "mc.toml").write_text(
+        '[study]\nname = "mc"\nstrategies = ["rule", "thermal"]\ngrids = "soc=0.02,tcl=2,pbat=1000"\n'
+        '[scenario]\ncycle = "nycc"\nduration_s = 60\n[vary]\nT_amb = [-10, 0]\n'
+        '[params]\nmontecarlo = {artifact = "calib.toml", n = 3, seed = 5}\n')
+    st = load_study(tmp_path / "mc.toml")
+    df = run_study(st, client=client.scheduler.address, store_dir=tmp_path / "store")
+    assert len(df) == 12 and (df["status"] == "ok").all()
+    assert sorted(df["draw"].unique().tolist()) == [0, 1, 2]
+    rule = df[(df["strategy"] == "rule") & (df["T_amb"] == -10.0)]
+    assert rule["fuel_g"].nunique() == 3  # the draws change the car
+    paths = plot_study(df, tmp_path / "plots")
+    assert sorted(os.path.basename(p) for p in paths) == ["saving_spread.png", "saving_vs_ambient.png"]
+    assert len(client.scheduler_info()["workers"]) == 2  # the shared cluster is untouched
