@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test test-slow test-browser bench venv clean
+.PHONY: run test test-slow test-browser screenshots bench venv clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)

@@ -94,6 +94,7 @@ class CaseStudy:
                  "saving_vs_rule_pct": "sav/rule%", "paper_vs_rule_pct": "paper%",
                  "saving_vs_baseline_pct": "sav/base%", "paper_vs_baseline_pct": "paper%"}
         out = df[cols].rename(columns=short)
+        out = out.astype({"starts": int, "idle s": int})
         with pd.option_context("display.width", 200, "display.max_columns", 30):
             txt = out.to_string(float_format=lambda v: f"{v:.3f}" if abs(v) < 2 else f"{v:.1f}", na_rep="-")
         if "thermal_cabin" in self.sims and "thermal" in self.sims:

@@ -37,10 +37,14 @@ Common choices
       moves a fraction of a cell) but never reaches exactly 0, so the forward pass would never let SOC
       drop below the SOC_0 node and the battery would not be used as a buffer.
     * Thermal-Cabin terminal condition ``T_cab_N >= T_cab,1500W(N)``: a terminal cost of
-      :data:`PENALTY_G_PER_STEP` g per grid step below it (not a level set: the cabin moves 0.005 degC per
-      step on a 1-degC grid, its level would decay only by ~0.6 % per step and forbid any cabin
-      excursion below the terminal value). Results are checked against the condition.
-    * States outside the grid box (SOC 0.4-0.8, T_cl 0-100 degC, the cabin range) are infeasible.
+      ``DPScenario.cab_terminal_g_per_K`` (default 10 g/K, 3.5 times the fuel equivalent of cabin heat used
+      by the corrected fuel, 2.8 g/K, so ending colder never pays) per degC below it, not a level set.
+      Why: the cabin moves ~0.005 degC per step on the paper's 1-degC grid, so under multilinear
+      interpolation a level (or a steep penalty) at the terminal kink decays only ~0.5 % per step
+      backwards and forbids any excursion below the terminal value. Even with this soft cost, the
+      kink's interpolation diffusion makes an excursion look more expensive than it is on the 1-degC
+      grid: on the paper grid Thermal-Cabin-DP keeps 1500 W; a finer cabin grid (``tcab=0.1``) lets it
+      shift heat, at a small gain in this warm-coolant scenario.
     * Speed: the engine's ``precompute`` hook fills, once per step, a per-power-control table of
       feasibility, engine power, warm fuel rate, battery power and the next SOC at every SOC grid point
       (the battery square root leaves the inner loop); ``f_cl``, engine-bay loss and radiator heat are
@@ -61,16 +65,25 @@ Common choices
 from __future__ import annotations
 
 import math
+import os
 import resource
 import time
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, fields, replace
 
-import numpy as np
-from numba import njit
+# numba's OpenMP threading layer spins actively at every barrier; the DP kernels hit one or two barriers per
+# time step, and on a shared (over-subscribed) 2-core machine the spinning made the 2-thread Thermal-DP
+# backward pass 10x slower than 1 thread (5-12 s vs 0.65 s). Passive waiting removes that. It must be set
+# before the OpenMP runtime starts (the first parallel kernel call); an explicit user setting wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import numba  # noqa: E402
+import numpy as np  # noqa: E402
+from numba import njit  # noqa: E402
 
 from calib.cycles import Cycle, load_cycle
 from calib.errors import ScenarioError
-from calib.model import BATTERY_ROOT, IDLE, OFF, ON, battery, f_cold, fuel_map, power_split, radiator, \
+from calib.model import IDLE, OFF, ON, battery_ocv_r, f_cold, fuel_map, power_split, radiator, \
     traction_power
 
 from .dp import DPProblem, DPResult, backward_pass, forward_pass
@@ -221,6 +234,10 @@ def build_tables(mp, pc, socg, P_trac, Ts, T_bat):  # pragma: no cover - compile
     N = P_trac.shape[0]
     nsoc = socg.shape[0]
     out = np.empty((N, pc.shape[0], _T_SOC0 + nsoc))
+    Us = np.empty(nsoc)
+    Rs = np.empty(nsoc)
+    for i in range(nsoc):
+        Us[i], Rs[i] = battery_ocv_r(mp, socg[i], T_bat)
     for k in range(N):
         for ip in range(pc.shape[0]):
             e = int(pc[ip, 0])
@@ -241,8 +258,10 @@ def build_tables(mp, pc, socg, P_trac, Ts, T_bat):  # pragma: no cover - compile
             for i in range(nsoc):
                 sn = np.nan
                 if ok:
-                    I, V, U, R, code = battery(mp, socg[i], P_bat, T_bat)
-                    if code != BATTERY_ROOT:
+                    # calib.model.battery's current, with U_oc and R_int of the node precomputed
+                    disc = Us[i] * Us[i] - 4.0 * Rs[i] * P_bat
+                    if disc >= 0.0:
+                        I = 2.0 * P_bat / (Us[i] + math.sqrt(disc))
                         sn = socg[i] - I * Ts / mp.C_bat_As
                 out[k, ip, _T_SOC0 + i] = sn
     return out
@@ -583,13 +602,32 @@ def _outcome(name, params, b, res, scen, grids, sim, t0, on_thermal=None):
                      scenario=scen.to_dict(), on_thermal=on_thermal, extra=b.extra)
 
 
-def solve_baseline(params, scenario: DPScenario | None = None, grids: DPGrids | None = None) -> DPOutcome:
+@contextmanager
+def _threads(n):
+    """Temporarily run numba parallel kernels on ``n`` threads (None: unchanged)."""
+    if n is None:
+        yield
+        return
+    old = numba.get_num_threads()
+    numba.set_num_threads(max(1, min(int(n), numba.config.NUMBA_NUM_THREADS)))
+    try:
+        yield
+    finally:
+        numba.set_num_threads(old)
+
+
+def solve_baseline(params, scenario: DPScenario | None = None, grids: DPGrids | None = None, *,
+                   threads: int | None = 1) -> DPOutcome:
     """Baseline-DP (SOC only, f_cl = 1). ``.sim``: its own optimum (f_cl = 1); ``.on_thermal``: its
-    controls re-simulated on the full thermal model with the scenario's heater demand."""
+    controls re-simulated on the full thermal model with the scenario's heater demand.
+
+    Solved by the generic engine on one thread by default: 41 states per step are too few to pay for a
+    parallel region per step."""
     scen, grids = scenario or DPScenario(), grids or DPGrids()
     t0 = time.perf_counter()
     b = build_problem(params, scen, grids, 1, warm=True)
-    res = _solve(b, "generic")
+    with _threads(threads):
+        res = _solve(b, "generic")
     mp_warm = b.mp
     e, pbm = res.u[:, 0], res.u[:, 1]
     q = np.full(b.prob.N, scen.Q_heat)
@@ -600,13 +638,15 @@ def solve_baseline(params, scenario: DPScenario | None = None, grids: DPGrids | 
 
 
 def solve_thermal(params, scenario: DPScenario | None = None, grids: DPGrids | None = None, *,
-                  heater: float | None = None, warm: bool = False, engine: str = "fused") -> DPOutcome:
+                  heater: float | None = None, warm: bool = False, engine: str = "fused",
+                  threads: int | None = None) -> DPOutcome:
     """Thermal-DP (SOC, T_cl). ``heater`` overrides the scenario's demand (e.g. 0 W); ``warm=True``
     sets f_cl = 1 (with heater 0 W it must reproduce Baseline-DP)."""
     scen, grids = scenario or DPScenario(), grids or DPGrids()
     t0 = time.perf_counter()
     b = build_problem(params, scen, grids, 2, heater=heater, warm=warm)
-    res = _solve(b, engine)
+    with _threads(threads):
+        res = _solve(b, engine)
     mp_used = b.mp
     q = res.u[:, 2]
     sim = replay(mp_used if warm else params, b.cyc, res.u[:, 0], res.u[:, 1], q, scen, "Thermal-DP")
@@ -616,12 +656,13 @@ def solve_thermal(params, scenario: DPScenario | None = None, grids: DPGrids | N
 
 
 def solve_thermal_cabin(params, scenario: DPScenario | None = None, grids: DPGrids | None = None, *,
-                        engine: str = "fused") -> DPOutcome:
+                        engine: str = "fused", threads: int | None = None) -> DPOutcome:
     """Thermal-Cabin-DP (SOC, T_cl, T_cab; Q_heat a control). ``engine``: "fused" (default) or "generic"."""
     scen, grids = scenario or DPScenario(), grids or DPGrids()
     t0 = time.perf_counter()
     b = build_problem(params, scen, grids, 3)
-    res = _solve(b, engine)
+    with _threads(threads):
+        res = _solve(b, engine)
     sim = replay(params, b.cyc, res.u[:, 0], res.u[:, 1], res.u[:, 2], scen, "Thermal-Cabin-DP")
     out = _outcome("thermal_cabin", params, b, res, scen, grids, sim, t0)
     out.extra["engine"] = engine

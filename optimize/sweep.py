@@ -34,7 +34,8 @@ draw that fails validation is redrawn (up to 50 times). Draw ``i`` of a study is
 Cases = parameter sets x ([[case]] entries or one empty entry) x the [vary] cross product. Each case is a
 JSON-able dict; :func:`run_case` is a pure function of it and never raises (a failing strategy is recorded
 with its error). :func:`run_study` submits the cases missing from a content-keyed result store
-(:class:`calib.store.Store`; key = parameter values + scenario + grids + strategies + ``calib.__version__``)
+(:class:`calib.store.Store`; key = parameter values + scenario + grids + strategies + software version:
+``calib.__version__`` and a digest of the ``calib`` and ``optimize`` sources, :func:`code_version`)
 to a dask.distributed cluster - a ``LocalCluster`` of 2 single-threaded worker processes by default, or any
 scheduler by address - and writes each result to the store as it arrives, so an interrupted study resumes
 and a finished one is never recomputed. A worker that dies mid-case has its case re-run elsewhere
@@ -60,6 +61,9 @@ __all__ = ["Study", "load_study", "study_from_dict", "run_sequential", "run_case
            "montecarlo_draws", "STRATEGIES", "DEFAULT_STORE", "local_client"]
 
 STRATEGIES = ("rule", "baseline", "thermal", "thermal_cabin")
+#: Names in plots.
+NAMES = {"rule": "rule-based (tuned)", "baseline": "Baseline-DP on the thermal model", "thermal": "Thermal-DP",
+         "thermal_cabin": "Thermal-Cabin-DP"}
 #: Default result store (gitignored).
 DEFAULT_STORE = Path(".iptm-cache") / "sweep"
 _KIND = "sweep"
@@ -150,7 +154,6 @@ class Study:
     def expand(self) -> list[dict]:
         """The cases: JSON-able dicts with ``case_id``, ``key`` (content key), ``labels`` and what
         :func:`run_case` needs."""
-        import calib
         from calib.store import content_key
 
         names = list(self.vary)
@@ -164,12 +167,36 @@ class Study:
                     scen = self._scenario({**self.scenario, **entry, **dict(zip(names, combo))})
                     sd = _scenario_dict(scen)
                     key = content_key({"params": fp, "scenario": sd, "grids": self.grids,
-                                       "strategies": sorted(self.strategies), "version": calib.__version__})
+                                       "strategies": sorted(self.strategies), "version": code_version()})
                     out.append({"case_id": len(out), "key": key, "study": self.name,
                                 "labels": {"params": ps.label, "draw": ps.draw},
                                 "scenario": sd, "grids": dict(self.grids), "strategies": list(self.strategies),
                                 "params": pdict, "hold_s": float(self.hold_s)})
         return out
+
+
+_CODE_DIGEST = None
+
+
+def code_version() -> str:
+    """``calib.__version__`` plus a digest of the model and optimisation sources (``calib/*.py``,
+    ``optimize/*.py``): a result store never serves a result computed by different code, even between
+    releases (any edit of those files recomputes the cases)."""
+    global _CODE_DIGEST
+    if _CODE_DIGEST is None:
+        import hashlib
+
+        import calib
+        import optimize
+
+        h = hashlib.sha256()
+        for pkg in (calib, optimize):
+            root = Path(pkg.__file__).parent
+            for f in sorted(root.glob("*.py")):
+                h.update(f.name.encode())
+                h.update(f.read_bytes())
+        _CODE_DIGEST = f"{calib.__version__}+{h.hexdigest()[:12]}"
+    return _CODE_DIGEST
 
 
 def _scenario_dict(scen) -> dict:
@@ -310,7 +337,7 @@ def _limit_threads():
 def run_case(case: dict) -> dict:
     """Run every strategy of one case; return a JSON-able record. Never raises: errors are recorded
     (``record["error"]`` for the case, ``record["results"][strategy]["error"]`` per strategy)."""
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     rec = {"key": case.get("key"), "results": {}, "error": None, "pid": os.getpid()}
     try:
         _limit_threads()
@@ -353,6 +380,7 @@ def run_case(case: dict) -> dict:
         rec["results"][s] = r
     rec["error"] = "; ".join(errors) or None
     rec["elapsed_s"] = time.perf_counter() - t0
+    rec["cpu_s"] = time.process_time() - c0
     return rec
 
 
@@ -552,7 +580,7 @@ def plot_study(df: pd.DataFrame, outdir, metric="both") -> list[str]:
     metrics = ["saving_pct", "saving_corrected_pct"] if metric == "both" else [metric]
     labels = {"saving_pct": "fuel saving vs {ref} [%]",
               "saving_corrected_pct": "corrected-fuel saving vs {ref} [%]"}
-    ref = df["reference"].iloc[0]
+    ref = NAMES.get(df["reference"].iloc[0], df["reference"].iloc[0])
     name = df["study"].iloc[0] if "study" in df else ""
 
     def save(fig, fname):
@@ -569,7 +597,7 @@ def plot_study(df: pd.DataFrame, outdir, metric="both") -> list[str]:
             for i, ((cyc, strat, plabel), g) in enumerate(groups):
                 st = g.groupby("T_amb")[m]
                 med = st.median()
-                lab = f"{cyc}, {strat}" + (f" ({plabel})" if ok["params"].nunique() > 1 else "")
+                lab = f"{cyc}, {NAMES.get(strat, strat)}" + (f" ({plabel})" if ok["params"].nunique() > 1 else "")
                 line, = ax.plot(med.index, med.values, marker="o", lw=1.4, label=lab, color=f"C{i % 10}")
                 if g["draw"].notna().any() and st.size().max() > 1:
                     ax.fill_between(med.index, st.quantile(0.05).values, st.quantile(0.95).values,
@@ -594,7 +622,7 @@ def plot_study(df: pd.DataFrame, outdir, metric="both") -> list[str]:
                     for s, c, t in keys]
             ax.boxplot(data, showfliers=True)
             ax.set_xticks(range(1, len(keys) + 1),
-                          [f"{c}\n{t:g} degC" + (f"\n{s}" if draws["strategy"].nunique() > 1 else "")
+                          [f"{c}\n{t:g} degC" + (f"\n{NAMES.get(s, s)}" if draws["strategy"].nunique() > 1 else "")
                            for s, c, t in keys], fontsize=7)
             ax.set_ylabel(labels[m].format(ref=ref))
             ax.grid(alpha=0.3, axis="y")

@@ -7,7 +7,7 @@ import pytest
 from optimize.casestudy import run_case_study
 from optimize.formulations import DPGrids, DPScenario
 
-SCEN = DPScenario(duration_s=150.0, T_cl0=20.0)
+SCEN = DPScenario(duration_s=200.0)  # warm start as in the paper (cold starts: see report)
 GRIDS = DPGrids(soc=0.01, tcl=2.0, tcab=1.0, pbat=1000.0, qheat=150.0)
 TIE_G = 1e-6  # ordering tie tolerance (g)
 
@@ -72,3 +72,20 @@ def test_cli_optimize(tmp_path, capsys):
     assert "Thermal-DP" in out and "paper%" in out
     assert json.loads((tmp_path / "o.json").read_text())["table"]
     assert main(["optimize", "--formulation", "nope"]) == 2
+
+
+def test_cli_params_file_and_scenario_file(params, tmp_path, capsys):
+    """A parameter file (as a calibration artifact is) and a TOML scenario file drive `iptm optimize`."""
+    from iptm.cli import main
+
+    p = tmp_path / "calibrated.toml"
+    params.with_values(C_eng_J_per_K=60e3).save(p)
+    sc = tmp_path / "scen.toml"
+    sc.write_text('[scenario]\ncycle = "nycc"\nT_amb = -5.0\nduration_s = 60.0\n')
+    rc = main(["optimize", "--params", str(p), "--scenario", str(sc), "--formulation", "baseline,thermal",
+               "--grid", "pbat=2000"])
+    out = capsys.readouterr().out
+    assert rc == 0 and "nycc" in out and "-5 degC" in out
+    rc = main(["optimize", "--params", str(p), "--duration", "30", "--formulation", "baseline", "--convergence",
+               "--grid", "pbat=2000"])
+    assert rc == 0 and "change %" in capsys.readouterr().out

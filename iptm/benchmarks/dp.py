@@ -21,7 +21,12 @@ def run(quick: bool = False) -> dict:
     cyc = scen.load_cycle()
     print(f"cycle {cyc.name}: {cyc.n_steps} steps; paper grids {grids.to_dict()}; numba threads "
           f"{numba.get_num_threads()}; timings after a warm-up (compile) solve")
-    out = {}
+    import os
+
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    print(f"load average (1 min) before the runs: {load:.2f} on {os.cpu_count()} CPUs (other processes slow "
+          "the figures down); OMP_WAIT_POLICY=" + os.environ.get("OMP_WAIT_POLICY", ""))
+    out = {"load_average_1min": load}
     for f in ("baseline", "thermal", "thermal_cabin"):
         t0 = time.perf_counter()
         solve_formulation(f, ps, scen, grids)
@@ -32,10 +37,11 @@ def run(quick: bool = False) -> dict:
              "t_total_s": o.t_total, "t_backward_s": o.t_backward, "t_forward_s": o.t_forward,
              "t_first_solve_incl_compile_s": t_warm, "n_evaluations": o.n_evaluations,
              "evals_per_second": o.evals_per_second, "peak_rss_mb_process": rss, "fuel_g": o.sim.fuel_g,
-             "engine": o.extra.get("engine", "generic")}
+             "engine": o.extra.get("engine", "generic"),
+             "threads": 1 if f == "baseline" else numba.get_num_threads()}
         out[f] = r
         print(f"{f:>14s}: {o.n_states} states x {o.n_controls} controls: total {o.t_total:.3f} s (backward "
               f"{o.t_backward:.3f} s, forward {o.t_forward:.3f} s, {o.evals_per_second / 1e6:.0f} M state-control "
-              f"evals/s, {r['engine']} kernel); process peak RSS {rss:.0f} MB; fuel {o.sim.fuel_g:.2f} g "
+              f"evals/s, {r['engine']} kernel, {r['threads']} thread(s)); process peak RSS {rss:.0f} MB; fuel {o.sim.fuel_g:.2f} g "
               f"[first solve incl. compile {t_warm:.1f} s]", flush=True)
     return out
