@@ -19,10 +19,8 @@ The forward pass is the engine's (:func:`optimize.dp.forward_pass`) on the value
 """
 from __future__ import annotations
 
-import math
 
 import numpy as np
-import numba
 from numba import njit, prange
 
 from .formulations import (_C_CH, _C_CHI, _C_PEN, _C_SH, _C_SHI, _C_SLO, _C_TH, _C_THI, _C_TLO, _C_TS,

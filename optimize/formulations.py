@@ -45,11 +45,15 @@ Common choices
       kink's interpolation diffusion makes an excursion look more expensive than it is on the 1-degC
       grid: on the paper grid Thermal-Cabin-DP keeps 1500 W; a finer cabin grid (``tcab=0.1``) lets it
       shift heat, at a small gain in this warm-coolant scenario.
-    * Speed: the engine's ``precompute`` hook fills, once per step, a per-power-control table of
-      feasibility, engine power, warm fuel rate, battery power and the next SOC at every SOC grid point
-      (the battery square root leaves the inner loop); ``f_cl``, engine-bay loss and radiator heat are
-      tabulated per T_cl grid point once. In the backward pass the transition uses the grid indices
-      ``ix``; in the forward pass (``ix = -1``) it calls the model functions at the true state.
+    * Speed: :func:`build_tables` computes once, for every step and power control, feasibility, engine
+      power, warm fuel rate, battery power and the next SOC at every SOC node (the battery square root
+      leaves the inner loop); the engine's ``precompute`` hook copies step k's slice into ``tab``.
+      ``f_cl``, engine-bay loss and radiator heat are tabulated per T_cl node. In the backward pass the
+      transition uses the grid indices ``ix``; in the forward pass (``ix = -1``) it evaluates the same
+      equations at the true state.
+    * Parameters reach the compiled code as one flat float64 vector (:func:`pack_params`): the engine's
+      parallel kernel cannot take the ``ModelParams`` namedtuple (numba's parfor lowering rejects a struct
+      holding arrays: "scalar type ModelParams given for non scalar argument").
     * One compiled transition (:func:`hev_transition`) serves all three formulations (the state count is
       read from the parameters), so the engine's kernels compile once.
     * Thermal-DP and Thermal-Cabin-DP use fused backward kernels (:mod:`optimize._fused`) by default and
