@@ -51,3 +51,13 @@ def write_text(path, text: str) -> None:
 def write_json(path, obj) -> None:
     """Write ``obj`` as indented JSON, atomically (numpy scalars and arrays allowed)."""
     write_text(path, json.dumps(obj, indent=2, default=_default, allow_nan=True) + "\n")
+
+
+def save_figure(fig, path, dpi: int = 110) -> None:
+    """Save a matplotlib figure atomically (format from the suffix) and close it."""
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip(".") or "png")
+    plt.close(fig)

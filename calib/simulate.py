@@ -186,11 +186,9 @@ class SimResult:
                      f"{self.info.get('controller', '')[:60]}", fontsize=10)
         fig.tight_layout()
         if path is not None:
-            from .fileio import atomic_path
+            from .fileio import save_figure
 
-            with atomic_path(path) as tmp:
-                fig.savefig(tmp, dpi=110, format=str(path).rsplit(".", 1)[-1])
-            plt.close(fig)
+            save_figure(fig, path)
         return fig
 
 

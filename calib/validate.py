@@ -440,9 +440,7 @@ def plot_validation(rep: Replay, path=None, title=None):
     fig.suptitle((title or f"Validation: {rep.name}") + "\n" + sub, fontsize=9)
     fig.tight_layout()
     if path is not None:
-        from .fileio import atomic_path
+        from .fileio import save_figure
 
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=110, format=str(path).rsplit(".", 1)[-1])
-        plt.close(fig)
+        save_figure(fig, path)
     return fig

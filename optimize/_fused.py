@@ -26,6 +26,7 @@ from numba import njit, prange
 from .formulations import (_C_CH, _C_CHI, _C_PEN, _C_SH, _C_SHI, _C_SLO, _C_TH, _C_THI, _C_TLO, _C_TS,
                            _C_TAMB, _C_WBL, _CCAB, _CENG, _CP, _EPS, _GAMMA, _LHV, _MS0, _QSUN, _RECIRC,
                            _T_OK, _T_PE, _T_SOC0, _T_WF, _UACAB, _A_FCLG, _A_LOSSG)
+from ._dpkernels import _interp_slow as _slow  # the engine's exact multilinear interpolation
 from .dp import ValueFunctions
 
 _SNAP = 1e-9
@@ -46,28 +47,6 @@ def _loc(x, lo, inv, n):
     if i > n - 2:
         i = n - 2
     return i, r - i
-
-
-@njit(cache=True)
-def _slow(V, nx, strides, ib, tb):
-    acc = 0.0
-    for c in range(1 << nx):
-        wgt = 1.0
-        off = 0
-        for d in range(nx):
-            if (c >> d) & 1:
-                wgt *= tb[d]
-                off += (ib[d] + 1) * strides[d]
-            else:
-                wgt *= 1.0 - tb[d]
-                off += ib[d] * strides[d]
-        if wgt == 0.0:
-            continue
-        v = np.float64(V[off])
-        if not (v < np.inf):
-            return np.inf
-        acc += wgt * v
-    return acc
 
 
 @njit(inline="always", cache=True)

@@ -112,7 +112,7 @@ class CaseStudy:
         import matplotlib.pyplot as plt
         from pathlib import Path
 
-        from calib.fileio import atomic_path
+        from calib.fileio import save_figure
 
         outdir = Path(outdir)
         keys = [k for k in ("rule", "baseline", "thermal", "thermal_cabin") if k in self.sims]
@@ -121,9 +121,7 @@ class CaseStudy:
 
         def save(fig, name):
             p = outdir / f"{name}.png"
-            with atomic_path(p) as tmp:
-                fig.savefig(tmp, dpi=110, format="png")
-            plt.close(fig)
+            save_figure(fig, p)
             paths.append(str(p))
 
         series = [

@@ -10,7 +10,6 @@ from __future__ import annotations
 import itertools
 from dataclasses import dataclass, replace
 
-import numpy as np
 
 from calib.rulebased import RuleParams
 from calib.simulate import SimResult, simulate

@@ -570,7 +570,7 @@ def plot_study(df: pd.DataFrame, outdir, metric="both") -> list[str]:
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    from calib.fileio import atomic_path
+    from calib.fileio import save_figure
 
     outdir = Path(outdir)
     paths = []
@@ -585,9 +585,7 @@ def plot_study(df: pd.DataFrame, outdir, metric="both") -> list[str]:
 
     def save(fig, fname):
         p = outdir / fname
-        with atomic_path(p) as tmp:
-            fig.savefig(tmp, dpi=110, format="png")
-        plt.close(fig)
+        save_figure(fig, p)
         paths.append(str(p))
 
     if ok["T_amb"].nunique() > 1:
