@@ -32,15 +32,18 @@ from optimize.formulations import DPGrids, DPScenario  # noqa: E402
 
 @st.cache_resource(show_spinner=False, max_entries=8)
 def _run_sweep(key, _study, _bar):
-    from optimize.sweep import run_sequential
+    # The same call as `iptm sweep`: a local dask cluster of 2 worker processes, started and closed here,
+    # and the shared content-keyed store, so cases computed before (by any session) are reused.
+    from optimize.sweep import run_study
 
-    return run_sequential(_study, progress_callback=lambda done, total, rec: _bar.progress(
-        done / max(total, 1), text=f"case {done}/{total}"))
+    return run_study(_study, client=None, store_dir=dash.cache_dir() / "sweep", n_workers=2,
+                     progress_callback=lambda done, total, rec: _bar.progress(
+                         done / max(total, 1), text=f"case {done}/{total} (local dask cluster)"))
 
 
 def _sweep_section(params, scenario, grids, strategies):
     """A sweep over the ambient temperature with the scenario above (optimize.sweep, issue 8)."""
-    with st.expander("Sweep over the ambient temperature (optimize.sweep)"):
+    with st.expander("Sweep over the ambient temperature (optimize.sweep on a local dask cluster)"):
         txt = st.text_input("Ambient temperatures [degC], comma separated", "-20, -10, 0", key="sweep_Tamb")
         if not st.button("Run sweep", key="sweep_run"):
             res = state.get("iptm_sweep")
