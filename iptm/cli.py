@@ -13,7 +13,7 @@ import sys
 from calib.errors import IptmError
 
 # Order = order in `iptm --help`.
-COMMANDS = ["run", "simulate", "synth", "ingest", "calibrate", "optimize", "sweep", "bench"]
+COMMANDS = ["run", "simulate", "synth", "ingest", "calibrate", "optimize", "sweep", "params", "bench"]
 
 
 def build_parser() -> argparse.ArgumentParser:
