@@ -130,11 +130,18 @@ class SubsystemFit:
         return any(e.status == "estimated" for e in self.estimates.values())
 
 
-def usable_logs(logs, needs, subsystem):
-    """Split logs into those with every channel of ``needs`` and a dict label -> missing-channel reason."""
+def usable_logs(logs, needs, subsystem, any_of=()):
+    """Split logs into those with every channel of ``needs`` and a dict label -> missing-channel reason.
+
+    ``any_of``: alternative channel groups of which a log needs at least one, e.g.
+    ``(("heater_power_W",), ("vent_temp_degC", "blower_flow_kg_per_s"))``.
+    """
     use, skipped = [], {}
     for lg in logs:
         miss = lg.missing(needs)
+        if any_of and not any(lg.has(*group) for group in any_of):
+            first, *rest = [" + ".join(g) for g in any_of]
+            miss.append(first + "".join(f" (or {r})" for r in rest))
         if miss:
             skipped[lg.label()] = f"missing channel(s) {', '.join(miss)}"
         else:

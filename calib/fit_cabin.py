@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .calibrate import (INPUT_REL_SD, KEY_PARAMETERS, MIN_SAMPLES, ParamEstimate, SubsystemFit, inflation, judge,
+from .calibrate import (usable_logs, INPUT_REL_SD, KEY_PARAMETERS, MIN_SAMPLES, ParamEstimate, SubsystemFit, inflation, judge,
                         lmfit_identify, not_fitted)
 from .validate import _fill, cabin_replay, first_valid_mean, log_arrays
 
@@ -98,16 +98,8 @@ def fit_cabin(logs, base, *, allowed=None) -> SubsystemFit:
     names = [n for n in PARAMS if n in allowed]
     if not names:
         return fit
-    use, skipped = [], {}
-    for lg in logs:
-        miss = lg.missing(NEEDS)
-        if not lg.has("heater_power_W") and not lg.has("vent_temp_degC", "blower_flow_kg_per_s"):
-            miss.append("heater_power_W (or vent_temp_degC + blower_flow_kg_per_s)")
-        if miss:
-            skipped[lg.label()] = f"missing channel(s) {', '.join(miss)}"
-        else:
-            use.append(lg)
-    fit.skipped = skipped
+    use, fit.skipped = usable_logs(logs, NEEDS, fit.subsystem,
+                                   any_of=(("heater_power_W",), ("vent_temp_degC", "blower_flow_kg_per_s")))
     if "eps_hc" in allowed:
         e, why = _eps(logs, base, fit)
         p0 = float(base["eps_hc"])
@@ -129,7 +121,7 @@ def fit_cabin(logs, base, *, allowed=None) -> SubsystemFit:
         return fit
     if not use:
         msg = ("cabin parameters not fitted: no log has cabin temperature, ambient temperature and heater power ("
-               + "; ".join(f"{k}: {v}" for k, v in skipped.items()) + ")")
+               + "; ".join(f"{k}: {v}" for k, v in fit.skipped.items()) + ")")
         keep = dict(fit.estimates)
         not_fitted(fit, base, cand, msg)
         fit.estimates.update(keep)

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .calibrate import (INPUT_REL_SD, KEY_PARAMETERS, ParamEstimate, SubsystemFit, judge, lmfit_identify,
+from .calibrate import (usable_logs, INPUT_REL_SD, KEY_PARAMETERS, ParamEstimate, SubsystemFit, judge, lmfit_identify,
                         not_fitted)
 from .validate import _fill, coolant_replay, first_valid_mean, log_arrays
 
@@ -85,20 +85,12 @@ def fit_thermal(logs, base, *, allowed=None) -> SubsystemFit:
     names = [n for n in PARAMS if n in allowed]
     if not names:
         return fit
-    use, skipped = [], {}
-    for lg in logs:
-        miss = lg.missing(NEEDS)
-        if not lg.has("heater_power_W") and not lg.has("vent_temp_degC", "blower_flow_kg_per_s"):
-            miss.append("heater_power_W (or vent_temp_degC + blower_flow_kg_per_s)")
-        if miss:
-            skipped[lg.label()] = f"missing channel(s) {', '.join(miss)}"
-        else:
-            use.append(lg)
-    fit.skipped = skipped
+    use, fit.skipped = usable_logs(logs, NEEDS, fit.subsystem,
+                                   any_of=(("heater_power_W",), ("vent_temp_degC", "blower_flow_kg_per_s")))
     if not use:
         return not_fitted(fit, base, names, "engine thermal parameters not fitted: no log has coolant temperature, "
                           "fuel rate, engine speed/torque, heater power and ambient temperature ("
-                          + "; ".join(f"{k}: {v}" for k, v in skipped.items()) + ")")
+                          + "; ".join(f"{k}: {v}" for k, v in fit.skipped.items()) + ")")
     fit.logs = [lg.label() for lg in use]
     work = base
     if "kappa" in allowed:
