@@ -149,6 +149,24 @@ def usable_logs(logs, needs, subsystem, any_of=()):
     return use, skipped
 
 
+def output_error_params(names, bounds, prior, data):
+    """``make_params(vary)`` for an output-error fit: the physical parameters ``names`` (bounded, at their
+    prior, varied when in ``vary``) plus each log's initial temperature ``d["name"]`` (always fitted,
+    within 5 K of its first measured value ``d["T0"]``)."""
+    import lmfit
+
+    def make_params(vary):
+        ps = lmfit.Parameters()
+        for n in names:
+            lo, hi = bounds[n]
+            ps.add(n, value=prior[n], min=lo, max=hi, vary=n in vary)
+        for d in data:
+            ps.add(d["name"], value=d["T0"], min=d["T0"] - 5.0, max=d["T0"] + 5.0, vary=True)
+        return ps
+
+    return make_params
+
+
 def not_fitted(fit: SubsystemFit, base, names, reason):
     """Mark ``names`` as not attempted (status prior) with ``reason``."""
     fit.message = reason

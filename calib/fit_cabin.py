@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .calibrate import (usable_logs, INPUT_REL_SD, KEY_PARAMETERS, MIN_SAMPLES, ParamEstimate, SubsystemFit, inflation, judge,
+from .calibrate import (output_error_params, usable_logs, INPUT_REL_SD, KEY_PARAMETERS, MIN_SAMPLES, ParamEstimate, SubsystemFit, inflation, judge,
                         lmfit_identify, not_fitted)
 from .validate import _fill, cabin_replay, first_valid_mean, log_arrays
 
@@ -30,7 +30,7 @@ T_SENSOR_SD = 0.5  # degC, calibration uncertainty (offset) of a temperature sen
 
 def _eps(use, base, fit, dT_cl=0.0, dT_vent=0.0, _propagate=True):
     mp = base.model_params()
-    xs, ys, sig = [], [], []
+    xs, ys = [], []
     for lg in use:
         if not lg.has(*NEEDS_EPS):
             continue
@@ -91,8 +91,6 @@ def fit_cabin(logs, base, *, allowed=None) -> SubsystemFit:
     -------
     SubsystemFit
     """
-    import lmfit
-
     allowed = set(PARAMS) if allowed is None else set(allowed)
     fit = SubsystemFit("cabin", NEEDS + ("heater_power_W",))
     names = [n for n in PARAMS if n in allowed]
@@ -138,14 +136,7 @@ def fit_cabin(logs, base, *, allowed=None) -> SubsystemFit:
     bnd = {n: base.param(n).bounds for n in cand}
     prior = {n: float(base[n]) for n in cand}
 
-    def make_params(vary):
-        ps = lmfit.Parameters()
-        for n in cand:
-            lo, hi = bnd[n]
-            ps.add(n, value=prior[n], min=lo, max=hi, vary=n in vary)
-        for d in data:
-            ps.add(d["name"], value=d["T0"], min=d["T0"] - 5.0, max=d["T0"] + 5.0, vary=True)
-        return ps
+    make_params = output_error_params(cand, bnd, prior, data)
 
     def segments(ps, q_scale=1.0, dT=0.0):
         v = ps.valuesdict()

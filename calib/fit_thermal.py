@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .calibrate import (usable_logs, INPUT_REL_SD, KEY_PARAMETERS, ParamEstimate, SubsystemFit, judge, lmfit_identify,
+from .calibrate import (output_error_params, usable_logs, INPUT_REL_SD, KEY_PARAMETERS, ParamEstimate, SubsystemFit, judge, lmfit_identify,
                         not_fitted)
 from .validate import _fill, coolant_replay, first_valid_mean, log_arrays
 
@@ -37,7 +37,7 @@ def fuel_input(la):
 
 def _kappa(use, fit, base):
     """kappa from logged bay temperature, or None."""
-    xs, ys, segs = [], [], []
+    xs, ys = [], []
     for lg in use:
         if not lg.has("bay_temp_degC"):
             continue
@@ -78,8 +78,6 @@ def fit_thermal(logs, base, *, allowed=None) -> SubsystemFit:
     -------
     SubsystemFit
     """
-    import lmfit
-
     allowed = set(PARAMS) if allowed is None else set(allowed)
     fit = SubsystemFit("thermal", NEEDS + HEATER)
     names = [n for n in PARAMS if n in allowed]
@@ -121,7 +119,6 @@ def fit_thermal(logs, base, *, allowed=None) -> SubsystemFit:
             if n in allowed]
     pre = {}
     T_open0 = float(work["T_open_degC"])
-    lo_open = work.param("T_open_degC").bounds[0]
     above = sum(float(np.sum(d["T"][d["ok"]] > T_open0 - 5.0)) * d["dt"] for d in data)
     for n in ("T_open_degC", "k_rad_W_per_K"):
         if n in cand and above < MIN_ABOVE_S:
@@ -130,14 +127,7 @@ def fit_thermal(logs, base, *, allowed=None) -> SubsystemFit:
     bnd = {n: work.param(n).bounds for n in cand}
     prior = {n: float(work[n]) for n in cand}
 
-    def make_params(vary):
-        ps = lmfit.Parameters()
-        for n in cand:
-            lo, hi = bnd[n]
-            ps.add(n, value=prior[n], min=lo, max=hi, vary=n in vary)
-        for d in data:
-            ps.add(d["name"], value=d["T0"], min=d["T0"] - 5.0, max=d["T0"] + 5.0, vary=True)
-        return ps
+    make_params = output_error_params(cand, bnd, prior, data)
 
     def sims(ps, sW=1.0, sP=1.0, sQ=1.0):
         v = ps.valuesdict()
