@@ -1,5 +1,41 @@
-"""calib: the physics of the workbench (model, parameters, ingestion, fitting).
+"""calib: the physics of the workbench: the vehicle model, parameter sets, ingestion of drive logs,
+calibration with uncertainty and validation.
 
-``calib`` never imports ``optimize``.
+A script needs only this front door::
+
+    import calib
+    log = calib.read_log("logs/winter_cold_start.blf")
+    result = calib.fit.driver([log], validate=[calib.read_log("logs/winter_warm_restart.blf")])
+    sim = calib.model.simulate(result.params, "udds", T_amb=-7.0)
+
+Sub-packages: :mod:`calib.model` (equations, parameters, cycles, simulation, stock controller, fuel maps),
+:mod:`calib.ingest` (readers, writers, resampling, channel report), :mod:`calib.fit` (identification
+toolkit, subsystem fitters, driver, validation), :mod:`calib.synth` (SYNTHETIC logs with a known truth).
+``calib`` never imports ``optimize`` or ``iptm``.
 """
-__version__ = "0.1.0"
+from importlib.metadata import PackageNotFoundError, version as _version
+
+try:
+    __version__ = _version("iptm")
+except PackageNotFoundError:  # running from a source tree that was never installed
+    __version__ = "0+unknown"
+
+from .errors import (IptmError, LogFormatError, MissingChannelsError, ParameterError,  # noqa: E402
+                     ScenarioError)
+from .drivelog import DriveLog, LogMeta  # noqa: E402
+from .model import (Cycle, ParameterSet, RuleBasedController, RuleParams, SimResult,  # noqa: E402
+                    available_cycles, default_parameters, load_cycle, simulate)
+from .ingest import channel_report, read_canonical, read_log, write_canonical  # noqa: E402
+from .fit import CalibrationResult, calibrate, replay, validate  # noqa: E402
+from .synth import synthesise  # noqa: E402
+
+__all__ = [
+    "__version__",
+    "IptmError", "LogFormatError", "MissingChannelsError", "ParameterError", "ScenarioError",
+    "DriveLog", "LogMeta",
+    "ParameterSet", "default_parameters", "Cycle", "load_cycle", "available_cycles",
+    "simulate", "SimResult", "RuleBasedController", "RuleParams",
+    "read_log", "channel_report", "read_canonical", "write_canonical",
+    "calibrate", "CalibrationResult", "replay", "validate",
+    "synthesise",
+]

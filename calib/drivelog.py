@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .errors import MissingChannelsError
+from calib.errors import MissingChannelsError
 
 #: Canonical channels: name -> (pint unit string, description). Column names carry the unit.
 CHANNELS: dict[str, tuple[str, str]] = {

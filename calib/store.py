@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .fileio import atomic_path, write_json
+from calib.fileio import atomic_path, write_json
 
 
 def _canon(o):
@@ -34,6 +34,33 @@ def _canon(o):
     if hasattr(o, "_asdict"):
         return _canon(o._asdict())
     return o
+
+
+_DIGESTS: dict = {}
+
+
+def code_version(*packages: str) -> str:
+    """The installed version plus a digest of the sources of ``packages`` (default: ``calib``).
+
+    Every ``.py`` file under each package, recursively, enters the digest with its path, so an edit of
+    any model, fitting or optimisation file changes the keys of the results that depend on it and a
+    store never serves a result computed by other code.
+    """
+    import importlib
+
+    from calib import __version__
+
+    packages = packages or ("calib",)
+    key = tuple(sorted(packages))
+    if key not in _DIGESTS:
+        h = hashlib.sha256()
+        for name in key:
+            root = Path(importlib.import_module(name).__file__).parent
+            for f in sorted(root.rglob("*.py")):
+                h.update(f.relative_to(root.parent).as_posix().encode())
+                h.update(f.read_bytes())
+        _DIGESTS[key] = f"{__version__}+{h.hexdigest()[:12]}"
+    return _DIGESTS[key]
 
 
 def content_key(*parts, length: int = 20) -> str:

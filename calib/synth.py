@@ -12,9 +12,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from .drivelog import CHANNELS, DriveLog, LogMeta
-from .params import ParameterSet, default_parameters
-from .rulebased import RuleBasedController, RuleParams
+from calib.drivelog import CHANNELS, DriveLog, LogMeta
+from calib.model.params import ParameterSet, default_parameters
+from calib.model.rulebased import RuleBasedController, RuleParams
 
 
 @dataclass
@@ -142,8 +142,8 @@ def draw_truth(seed: int, spread: float = 0.25, base: ParameterSet | None = None
 
 
 def simulate_truth(truth: ParameterSet, sc: Scenario):
-    """The true trajectories of a scenario (a :class:`calib.simulate.SimResult`)."""
-    from .simulate import simulate
+    """The true trajectories of a scenario (a :class:`calib.model.simulate.SimResult`)."""
+    from calib.model.simulate import simulate
 
     mp = truth.model_params()
     ctrl = HvacController(mp, RuleParams(), T_set=sc.T_set, heater_off=sc.heater_off)

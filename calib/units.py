@@ -15,7 +15,7 @@ import re
 import numpy as np
 import pint
 
-from .errors import IptmError
+from calib.errors import IptmError
 
 #: The registry shared by the whole project (quantities from different registries cannot be mixed).
 ureg = pint.UnitRegistry(autoconvert_offset_to_baseunit=True)

@@ -25,7 +25,9 @@ def build_parser() -> argparse.ArgumentParser:
             "(Gong et al., IEEE CCTA 2019). Every command that computes figures takes --json FILE."
         ),
     )
-    parser.add_argument("--version", action="version", version="iptm 0.1.0")
+    from calib import __version__
+
+    parser.add_argument("--version", action="version", version=f"iptm {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
         try:

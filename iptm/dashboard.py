@@ -2,7 +2,7 @@
 
 Pure functions over a mutable mapping ``state`` (``st.session_state`` in the app, a plain ``dict`` in
 tests), so everything here is testable without Streamlit. No physics: the dashboard calls the same
-library functions as the command line (:mod:`calib.ingest`, :mod:`calib.calibrate`,
+library functions as the command line (:mod:`calib.ingest`, :mod:`calib.fit.driver`,
 :mod:`optimize.casestudy`, :mod:`iptm.pipeline`).
 
 Per session
@@ -234,13 +234,13 @@ def load_bundled(state, include_other_formats: bool = False, store_root=None) ->
 # calibration helpers
 # ---------------------------------------------------------------------------------------------------
 def calibratable_parameters() -> list[str]:
-    from calib.calibrate import SUBSYSTEM_PARAMS
+    from calib.fit.driver import SUBSYSTEM_PARAMS
 
     return [n for names in SUBSYSTEM_PARAMS.values() for n in names]
 
 
 def subsystem_of(name: str) -> str:
-    from calib.calibrate import SUBSYSTEM_PARAMS
+    from calib.fit.driver import SUBSYSTEM_PARAMS
 
     return next((s for s, names in SUBSYSTEM_PARAMS.items() if name in names), "")
 
@@ -293,7 +293,7 @@ def parameter_table(params, names=None) -> pd.DataFrame:
 # ---------------------------------------------------------------------------------------------------
 def cycle_csv_from_log(state, entry: LoadedLog) -> Path:
     """Write a session log's speed trace as a cycle CSV (``time_s,speed_kph``) in the session folder."""
-    from calib.cycles import load_cycle
+    from calib.model.cycles import load_cycle
 
     cyc = load_cycle(entry.log)
     out = session_dir(state) / "cycles" / f"{Path(entry.name).stem}_cycle.csv"

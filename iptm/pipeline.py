@@ -22,9 +22,8 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from calib import __version__
 from calib.errors import IptmError, ScenarioError
-from calib.store import Store, content_key
+from calib.store import Store, code_version, content_key
 
 DEFAULT_LOG_GLOB = "*.blf"
 STRATEGIES = ("rule", "baseline", "thermal", "thermal_cabin")
@@ -58,7 +57,7 @@ def load_scenario(path=None):
     -------
     (DPScenario, DPGrids, strategies, cycle_log or None)
     """
-    from optimize.formulations import DPGrids, DPScenario
+    from optimize.formulations.scenario import DPGrids, DPScenario
 
     if path is None:
         return DPScenario(), DPGrids(), STRATEGIES, None
@@ -123,7 +122,7 @@ def ingest_all(paths, store: Store | None, dbc=None, progress=True):
         p = Path(p)
         if not p.is_file():
             raise IptmError(f"{p}: no such log file")
-        key = content_key(file_sha256(p), str(dbc or ""), __version__)
+        key = content_key(file_sha256(p), str(dbc or ""), code_version("calib"))
         cached = store.path("ingest", key, "parquet") if store else None
         log = None
         if cached is not None and cached.is_file():
@@ -144,12 +143,12 @@ def calibrate_cached(fit_logs, val_logs, base, store: Store | None, progress=Tru
 
     Returns (ParameterSet, calibration dict, text report, validation-plot PNG paths in the cache).
     """
-    from calib.calibrate import calibrate
-    from calib.params import ParameterSet
-    from calib.validate import plot_validation, replay
+    from calib.fit.driver import calibrate
+    from calib.model.params import ParameterSet
+    from calib.fit.validate import plot_validation, replay
 
     key = content_key([lg.meta.sha256 for lg in fit_logs], [lg.meta.sha256 for lg in val_logs],
-                      base.to_dict()["parameters"], __version__)
+                      base.to_dict()["parameters"], code_version("calib"))
     folder = store.root / "calib" / key if store else None
     if folder is not None and (folder / "done").is_file():
         try:
@@ -204,11 +203,11 @@ def optimise_cached(params, scen, grids, strategies, store: Store | None, progre
     from tqdm import tqdm
 
     from calib.drivelog import file_sha256
-    from calib.simulate import sim_from_arrays, sim_to_arrays
+    from calib.model.simulate import sim_from_arrays, sim_to_arrays
     from optimize.casestudy import CaseStudy, run_case_study
 
     if cycle_log is not None:
-        from calib.cycles import load_cycle
+        from calib.model.cycles import load_cycle
         from calib.fileio import write_text
 
         cyc = load_cycle(cycle_log)
@@ -225,7 +224,7 @@ def optimise_cached(params, scen, grids, strategies, store: Store | None, progre
     with tqdm(total=total, desc="optimise", unit="", disable=not progress, file=sys.stderr,
               bar_format="{l_bar}{bar}| {elapsed}<{remaining}") as bar:
         for strat in strategies:
-            key = content_key(pvals, {**scen.to_dict(), "cycle": cyc_id}, grids.to_dict(), strat, __version__)
+            key = content_key(pvals, {**scen.to_dict(), "cycle": cyc_id}, grids.to_dict(), strat, code_version("calib", "optimize"))
             entry = store.get_json("dp", key) if store else None
             arrays = {name: store.get_npz("dp", f"{key}-{name}") for name in (entry or {}).get("sims", [])}
             if entry is not None and all(a is not None for a in arrays.values()):
@@ -267,8 +266,8 @@ class RunOutcome:
 
 def run(cfg: RunConfig) -> RunOutcome:
     """The whole chain; returns where the report is and the headline figures."""
-    from calib.params import ParameterSet, default_parameters
-    from optimize.formulations import DPGrids, DPScenario
+    from calib.model.params import ParameterSet, default_parameters
+    from optimize.formulations.scenario import DPGrids, DPScenario
 
     t0 = time.perf_counter()
     scen = cfg.scenario or DPScenario()

@@ -1,0 +1,31 @@
+"""optimize: fuel-optimal control of the calibrated model by dynamic programming.
+
+A script needs only this front door::
+
+    import calib, optimize
+    params = calib.default_parameters()
+    scen = optimize.DPScenario(cycle="artemis_urban", T_amb=-10.0)
+    out = optimize.solve_thermal(params, scen)          # Thermal-DP on the paper's grids
+    study = optimize.run_case_study(params, scen)       # rule-based + the three formulations
+
+Sub-packages and modules: :mod:`optimize.dp` (the generic DP engine), :mod:`optimize.formulations`
+(scenario and grids, parameter-vector layout, the compiled transition, fused kernels, solve),
+:mod:`optimize.tuning` (per-scenario tuning of the rule-based controller), :mod:`optimize.casestudy`,
+:mod:`optimize.convergence`, :mod:`optimize.sweep` (parameter studies on dask). ``optimize`` uses
+``calib``'s model and never imports ``iptm``.
+"""
+from .dp import DPProblem, DPResult, ValueFunctions, backward_pass, cartesian, forward_pass, solve
+from .formulations import (FORMULATIONS, DPGrids, DPOutcome, DPScenario, parse_grid_spec, solve_baseline,
+                           solve_formulation, solve_thermal, solve_thermal_cabin)
+from .tuning import TunedRule, tune_rule_based
+from .casestudy import CaseStudy, run_case_study
+from .convergence import convergence_study, format_convergence
+from .sweep import Study, load_study, run_study
+
+__all__ = [
+    "DPProblem", "DPResult", "ValueFunctions", "cartesian", "solve", "backward_pass", "forward_pass",
+    "DPScenario", "DPGrids", "DPOutcome", "parse_grid_spec", "FORMULATIONS",
+    "solve_baseline", "solve_thermal", "solve_thermal_cabin", "solve_formulation",
+    "TunedRule", "tune_rule_based", "CaseStudy", "run_case_study", "convergence_study", "format_convergence",
+    "Study", "load_study", "run_study",
+]

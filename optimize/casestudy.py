@@ -1,7 +1,7 @@
 """The case study of spec/optimization.md s.4: rule-based vs the three DP formulations.
 
 ``run_case_study(params, scenario)`` tunes the rule-based controller for the scenario
-(:func:`optimize.rulebased.tune_rule_based`), solves Baseline-DP (and re-simulates its controls on the
+(:func:`optimize.tuning.tune_rule_based`), solves Baseline-DP (and re-simulates its controls on the
 thermal model), Thermal-DP and Thermal-Cabin-DP, and returns a :class:`CaseStudy` with the comparison
 table (fuel, corrected fuel, final/mean states, starts, idle time, savings against rule-based and against
 Baseline-DP on the thermal model, the paper's savings alongside), a JSON-ready dict and the paper's figures.
@@ -14,7 +14,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from .formulations import DPGrids, DPScenario, solve_baseline, solve_thermal, solve_thermal_cabin
+from optimize.formulations.scenario import DPGrids, DPScenario
+from optimize.formulations.solve import solve_baseline, solve_thermal, solve_thermal_cabin
 
 #: The paper's reported savings (%): vs rule-based and vs Baseline-DP on the thermal model.
 PAPER_SAVINGS = {
@@ -188,7 +189,7 @@ def run_case_study(params, scenario: DPScenario | None = None, strategies=STRATE
     """Run the chosen strategies (``rule``, ``baseline``, ``thermal``, ``thermal_cabin``) on a scenario."""
     from calib.errors import ScenarioError
 
-    from .rulebased import tune_rule_based
+    from optimize.tuning import tune_rule_based
 
     scen = scenario or DPScenario()
     grids = grids or DPGrids()

@@ -5,7 +5,8 @@ f_cl = 1 optimum. ``iptm optimize --convergence`` prints it.
 """
 from __future__ import annotations
 
-from .formulations import DPGrids, DPScenario, solve_formulation
+from optimize.formulations.scenario import DPGrids, DPScenario
+from optimize.formulations.solve import solve_formulation
 
 
 def convergence_study(params, scenario: DPScenario | None = None, formulations=("baseline", "thermal"),

@@ -80,7 +80,7 @@ class ParamSpec:
 
     label: str
     draw: int | None
-    pset: object  # calib.params.ParameterSet
+    pset: object  # calib.model.params.ParameterSet
 
 
 @dataclass
@@ -102,7 +102,7 @@ class Study:
 
     def __post_init__(self):
         from calib.errors import ScenarioError
-        from optimize.formulations import DPGrids, DPScenario
+        from optimize.formulations.scenario import DPGrids, DPScenario
 
         self.strategies = tuple(self.strategies)
         if not self.strategies:
@@ -115,7 +115,7 @@ class Study:
         if self.reference not in self.strategies:
             raise ScenarioError(f"study {self.name}: reference {self.reference!r} is not among the strategies")
         if isinstance(self.grids, str):
-            from optimize.formulations import parse_grid_spec
+            from optimize.formulations.scenario import parse_grid_spec
 
             self.grids = parse_grid_spec(self.grids).to_dict()
         try:
@@ -137,12 +137,12 @@ class Study:
         for entry in self.cases or [{}]:
             self._scenario({**self.scenario, **entry, **{k: v[0] for k, v in self.vary.items()}})
         if not self.param_sets:
-            from calib.params import default_parameters
+            from calib.model.params import default_parameters
 
             self.param_sets = [ParamSpec("default", None, default_parameters())]
 
     def _scenario(self, d: dict):
-        from optimize.formulations import DPScenario
+        from optimize.formulations.scenario import DPScenario
 
         scen = DPScenario.from_dict(d)
         if self.link:
@@ -175,28 +175,11 @@ class Study:
         return out
 
 
-_CODE_DIGEST = None
-
-
 def code_version() -> str:
-    """``calib.__version__`` plus a digest of the model and optimisation sources (``calib/*.py``,
-    ``optimize/*.py``): a result store never serves a result computed by different code, even between
-    releases (any edit of those files recomputes the cases)."""
-    global _CODE_DIGEST
-    if _CODE_DIGEST is None:
-        import hashlib
+    """The version plus a digest of the ``calib`` and ``optimize`` sources (:func:`calib.store.code_version`)."""
+    from calib.store import code_version as _code_version
 
-        import calib
-        import optimize
-
-        h = hashlib.sha256()
-        for pkg in (calib, optimize):
-            root = Path(pkg.__file__).parent
-            for f in sorted(root.glob("*.py")):
-                h.update(f.name.encode())
-                h.update(f.read_bytes())
-        _CODE_DIGEST = f"{calib.__version__}+{h.hexdigest()[:12]}"
-    return _CODE_DIGEST
+    return _code_version("calib", "optimize")
 
 
 def _scenario_dict(scen) -> dict:
@@ -217,7 +200,7 @@ def _fingerprint(pset) -> dict:
 def montecarlo_draws(artifact, n: int, seed: int = 1, label: str | None = None) -> list[ParamSpec]:
     """``n`` parameter sets drawn from the estimated parameters' normal(value, stderr), clipped to bounds."""
     from calib.errors import ParameterError
-    from calib.params import ParameterSet
+    from calib.model.params import ParameterSet
 
     base = artifact if isinstance(artifact, ParameterSet) else ParameterSet.load(artifact)
     label = label or (Path(artifact).stem if not isinstance(artifact, ParameterSet) else
@@ -271,7 +254,7 @@ def study_from_dict(d: dict, base_dir=".", source: str = "<dict>", default_name:
     relative parameter paths are relative to ``base_dir``. For callers that build studies in code (the
     dashboard)."""
     from calib.errors import ScenarioError
-    from calib.params import ParameterSet
+    from calib.model.params import ParameterSet
 
     base_dir = Path(base_dir)
     known = {"study", "scenario", "vary", "case", "params", "link"}
@@ -343,9 +326,10 @@ def run_case(case: dict) -> dict:
         _limit_threads()
         if case.get("hold_s"):
             time.sleep(float(case["hold_s"]))
-        from calib.params import ParameterSet
-        from optimize.formulations import DPGrids, DPScenario, solve_formulation
-        from optimize.rulebased import tune_rule_based
+        from calib.model.params import ParameterSet
+        from optimize.formulations.scenario import DPGrids, DPScenario
+        from optimize.formulations.solve import solve_formulation
+        from optimize.tuning import tune_rule_based
 
         ps = ParameterSet.from_dict(case["params"])
         scen = DPScenario.from_dict({k: v for k, v in case["scenario"].items() if v is not None})

@@ -1,5 +1,5 @@
 """Calibrate page: choose logs for fitting and validation and the parameters to fit or fix, run
-:func:`calib.calibrate.calibrate`, see the parameter table with uncertainties and identifiability,
+:func:`calib.fit.driver.calibrate`, see the parameter table with uncertainties and identifiability,
 measured-vs-simulated plots, and download the calibration file."""
 import matplotlib.pyplot as plt
 import streamlit as st
@@ -14,7 +14,7 @@ st.title("Calibrate")
 @st.cache_resource(show_spinner=False, max_entries=8)
 def _calibrate(key, _fit_logs, _val_logs, _base, fit, fix):
     """Cached by ``key`` (the logs' SHA-256, truncation, base parameters and options), never by session."""
-    from calib.calibrate import calibrate
+    from calib.fit.driver import calibrate
 
     return calibrate(_fit_logs, base=_base, fit=list(fit) if fit is not None else None, fix=list(fix),
                      validate=_val_logs or None, progress=False)
@@ -22,7 +22,7 @@ def _calibrate(key, _fit_logs, _val_logs, _base, fit, fix):
 
 @st.cache_resource(show_spinner=False, max_entries=32)
 def _replay(key, _log, _params):
-    from calib.validate import replay
+    from calib.fit.validate import replay
 
     return replay(_log, _params)
 
@@ -67,7 +67,7 @@ def _page():
     base = None
     base_ok = True
     if base_file is not None:
-        from calib.params import ParameterSet
+        from calib.model.params import ParameterSet
 
         try:
             p = dash.save_upload(state, base_file.name, base_file.getvalue(), subdir="params")
@@ -79,7 +79,7 @@ def _page():
 
     run = st.button("Run calibration", type="primary", disabled=not fit_names or not base_ok, key="cal_run")
     if run:
-        from calib.params import default_parameters
+        from calib.model.params import default_parameters
 
         bar = st.progress(0.0, text="preparing the logs")
         try:
@@ -145,7 +145,7 @@ def _page():
         st.dataframe(rows, hide_index=True, width="stretch")
 
     st.subheader("Measured vs simulated")
-    from calib.validate import plot_validation  # noqa: E402
+    from calib.fit.validate import plot_validation  # noqa: E402
 
     for lbl, rep, held_out in cal["plots"]:
         fig = plot_validation(rep, title=f"{lbl}: measured vs simulated" + (" (held out)" if held_out else " (fit)"))

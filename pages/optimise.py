@@ -24,9 +24,9 @@ def _solve(key, _params, _scenario, _grids, strategy):
     return run_case_study(_params, _scenario, strategies=(strategy,), progress=False, grids=_grids)
 
 
-from calib.cycles import available_cycles  # noqa: E402
-from calib.params import ParameterSet, default_parameters  # noqa: E402
-from optimize.formulations import DPGrids, DPScenario  # noqa: E402
+from calib.model.cycles import available_cycles  # noqa: E402
+from calib.model.params import ParameterSet, default_parameters  # noqa: E402
+from optimize.formulations.scenario import DPGrids, DPScenario  # noqa: E402
 
 
 
@@ -123,7 +123,7 @@ def _page():
             cycle_ok = False
         else:
             try:
-                from calib.cycles import load_cycle
+                from calib.model.cycles import load_cycle
 
                 p = dash.save_upload(state, cf.name, cf.getvalue(), subdir="cycles")
                 c = load_cycle(str(p))

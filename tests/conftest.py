@@ -5,11 +5,12 @@ import pytest
 
 matplotlib.use("Agg")
 os.environ.setdefault("MPLBACKEND", "Agg")
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as the application sets it (iptm/__init__.py)
 
 
 @pytest.fixture(scope="session")
 def params():
-    from calib.params import default_parameters
+    from calib.model.params import default_parameters
 
     return default_parameters()
 

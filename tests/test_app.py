@@ -87,7 +87,7 @@ def test_session_state_helpers(small_csv):
     assert dash.truncate(entry.log, 60).duration_s <= 60
     cyc = dash.cycle_csv_from_log(a, entry)
     assert cyc.read_text().startswith("time_s,speed_kph")
-    from calib.params import default_parameters
+    from calib.model.params import default_parameters
 
     tbl = dash.parameter_table(default_parameters())
     assert list(tbl["parameter"]) == dash.calibratable_parameters()

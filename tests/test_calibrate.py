@@ -6,13 +6,13 @@ import math
 import numpy as np
 import pytest
 
-from calib.calibrate import calibrate
+from calib.fit.driver import calibrate
 from calib.errors import ParameterError
 from calib.ingest import to_drivelog
-from calib.params import ParameterSet, default_parameters
-from calib.simulate import simulate
+from calib.model.params import ParameterSet, default_parameters
+from calib.model.simulate import simulate
 from calib.synth import Scenario, draw_truth, synthesise
-from calib.validate import plot_validation, replay
+from calib.fit.validate import plot_validation, replay
 
 FIT = [Scenario("fit_cold", "udds", -10.0, 0.60, -10.0, -10.0, T_bat=-5.0, with_bay_temp=True),
        Scenario("fit_warm", "hwfet", -5.0, 0.55, 65.0, 15.0, T_bat=5.0),
@@ -153,7 +153,7 @@ def test_fit_subset_and_fix():
 
 
 def test_cli_calibrate(tmp_path, capsys):
-    from calib.writers import write_streams
+    from calib.ingest.writers import write_streams
     from iptm.cli import main
 
     truth = draw_truth(1)

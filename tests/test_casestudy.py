@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from optimize.casestudy import run_case_study
-from optimize.formulations import DPGrids, DPScenario
+from optimize.formulations.scenario import DPGrids, DPScenario
 
 SCEN = DPScenario(duration_s=200.0)  # warm start as in the paper (cold starts: see report)
 GRIDS = DPGrids(soc=0.01, tcl=2.0, tcab=1.0, pbat=1000.0, qheat=150.0)

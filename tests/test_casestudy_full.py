@@ -1,7 +1,7 @@
 """Full-size checks (paper grids, 993-s ARTEMIS Urban): `pytest -m slow`."""
 import pytest
 
-from optimize.formulations import DPGrids, DPScenario
+from optimize.formulations.scenario import DPGrids, DPScenario
 
 pytestmark = pytest.mark.slow
 

@@ -4,9 +4,9 @@ import functools
 import numpy as np
 import pytest
 
-from calib.fit_battery import NEEDS, fit_battery, hat_basis
+from calib.fit.battery import NEEDS, fit_battery, hat_basis
 from calib.ingest import to_drivelog
-from calib.params import default_parameters
+from calib.model.params import default_parameters
 from calib.synth import Scenario, draw_truth, synthesise
 
 FIT = [Scenario("bat_cold", "nycc", -10.0, 0.60, -10.0, -10.0, T_bat=-5.0),

@@ -3,9 +3,9 @@ import functools
 
 import pytest
 
-from calib.fit_thermal import fit_thermal
+from calib.fit.thermal import fit_thermal
 from calib.ingest import to_drivelog
-from calib.params import default_parameters
+from calib.model.params import default_parameters
 from calib.synth import Scenario, draw_truth, synthesise
 
 FIT = [Scenario("cold", "udds", -10.0, 0.60, -10.0, -10.0, T_bat=-5.0, with_bay_temp=True),

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from optimize.formulations import (DPGrids, DPScenario, build_problem, parse_grid_spec, solve_baseline,
-                                   solve_thermal, solve_thermal_cabin)
+from optimize.formulations.scenario import DPGrids, DPScenario, parse_grid_spec
+from optimize.formulations.solve import build_problem, solve_baseline, solve_thermal, solve_thermal_cabin
 
 SHORT = DPScenario(duration_s=150.0)
 # cold start: the coolant matters (f_cl > 1, heater limited at first)
@@ -41,7 +41,7 @@ def test_charge_sustaining_and_energy_balance(params, scen):
 
 
 def test_dp_beats_tuned_rule(params):
-    from optimize.rulebased import tune_rule_based
+    from optimize.tuning import tune_rule_based
 
     cyc = COLD.load_cycle()
     tr = tune_rule_based(params, cyc, T_amb=COLD.T_amb, soc0=COLD.soc0, T_cl0=COLD.T_cl0, T_cab0=COLD.T_cab0,
@@ -57,8 +57,8 @@ def test_dp_beats_tuned_rule(params):
     (3, DPScenario(duration_s=25.0, T_cl0=28.0), DPGrids(soc=0.02, tcl=4.0, pbat=2500.0, qheat=200.0)),
 ])
 def test_fused_kernel_equals_generic_engine(params, nx, scen, grids):
-    from optimize._fused import backward_pass_fused
-    from optimize.dp import backward_pass, forward_pass
+    from optimize.formulations.fused import backward_pass_fused
+    from optimize.dp.engine import backward_pass, forward_pass
 
     b = build_problem(params, scen, grids, nx)
     vg = backward_pass(b.prob)

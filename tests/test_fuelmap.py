@@ -3,9 +3,9 @@ import numpy as np
 import pytest
 
 from calib.errors import IptmError
-from calib.fuelmap import RPM, apply_fuel_map, optimal_operating_line, read_fuel_map
-from calib.params import default_parameters
-from calib.simulate import simulate
+from calib.model.fuelmap import RPM, apply_fuel_map, optimal_operating_line, read_fuel_map
+from calib.model.params import default_parameters
+from calib.model.simulate import simulate
 from iptm.cli import main
 
 

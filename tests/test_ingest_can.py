@@ -8,7 +8,7 @@ import pytest
 from calib.errors import LogFormatError
 from calib.ingest import PRIUS_DBC, decode_can_signals, read_log, read_streams
 from calib.ingest.fabricate import fabricate_streams
-from calib.writers import can_frames, write_streams
+from calib.ingest.writers import can_frames, write_streams
 
 DATA = Path(__file__).parent / "data" / "can"
 RAV4 = DATA / "toyota_rav4_2017_highway_60s.log"

@@ -5,7 +5,7 @@ import pytest
 from calib.errors import LogFormatError
 from calib.ingest import read_log, read_streams
 from calib.ingest.fabricate import fabricate_streams
-from calib.writers import write_streams
+from calib.ingest.writers import write_streams
 
 
 def _write(tmp_path, text, name="log.csv"):

@@ -4,7 +4,7 @@ import pytest
 from calib.errors import IptmError, LogFormatError
 from calib.ingest import read_log
 from calib.ingest.fabricate import fabricate_streams
-from calib.writers import write_streams
+from calib.ingest.writers import write_streams
 
 
 @pytest.fixture(scope="module")

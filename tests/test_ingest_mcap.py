@@ -8,7 +8,7 @@ from mcap.writer import CompressionType, Writer
 from calib.errors import LogFormatError
 from calib.ingest import DEFAULT_TOPIC_MAP, read_streams
 from calib.ingest.fabricate import fabricate_streams
-from calib.writers import write_streams
+from calib.ingest.writers import write_streams
 
 
 def _mcap(path, messages, metadata=None):

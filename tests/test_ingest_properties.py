@@ -14,7 +14,7 @@ from calib.drivelog import DriveLog
 from calib.errors import IptmError
 from calib.ingest import read_log
 from calib.ingest.fabricate import fabricate_streams
-from calib.writers import write_streams
+from calib.ingest.writers import write_streams
 
 FORMATS = {"csv": "csv", "mcap": "mcap", "candump": "log", "blf": "blf", "asc": "asc"}
 SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])

@@ -2,7 +2,7 @@
 import pytest
 
 from calib.errors import ParameterError
-from calib.params import ParameterSet, default_parameters
+from calib.model.params import ParameterSet, default_parameters
 
 
 def test_defaults_validate_and_carry_provenance(params):

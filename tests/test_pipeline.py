@@ -5,12 +5,12 @@ from pathlib import Path
 import pytest
 
 from calib.errors import IptmError
-from calib.params import ParameterSet
+from calib.model.params import ParameterSet
 from calib.synth import Scenario, draw_truth, synthesise
-from calib.writers import write_streams
+from calib.ingest.writers import write_streams
 from iptm import pipeline
 from optimize.casestudy import run_case_study
-from optimize.formulations import DPGrids, DPScenario
+from optimize.formulations.scenario import DPGrids, DPScenario
 
 GRIDS = DPGrids(soc=0.02, tcl=2.0, tcab=1.0, pbat=1000.0, qheat=100.0)
 SCEN = DPScenario(duration_s=150.0)
@@ -78,7 +78,7 @@ def test_bad_log_stops_before_heavy_work(small_logs, tmp_path, monkeypatch):
     def boom(*a, **k):
         raise AssertionError("calibration must not start")
 
-    monkeypatch.setattr("calib.calibrate.calibrate", boom)
+    monkeypatch.setattr("calib.fit.driver.calibrate", boom)
     cfg = pipeline.RunConfig(logs=[small_logs[0], bad, small_logs[1]], scenario=SCEN, grids=GRIDS,
                              reports_dir=tmp_path / "reports", cache_dir=None, progress=False)
     with pytest.raises(IptmError, match="broken.mcap"):

@@ -2,11 +2,11 @@
 import numpy as np
 import pytest
 
-from calib.epa import epa_comparison
+from calib.model.epa import epa_comparison
 from calib.errors import ScenarioError
-from calib.model import IDLE, OFF, ON
-from calib.rulebased import RuleParams
-from calib.simulate import simulate
+from calib.model.equations import IDLE, OFF, ON
+from calib.model.rulebased import RuleParams
+from calib.model.simulate import simulate
 
 
 @pytest.fixture(scope="module")

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from calib.simulate import sim_from_arrays, sim_to_arrays, simulate
+from calib.model.simulate import sim_from_arrays, sim_to_arrays, simulate
 from calib.store import Store, content_key
 
 

@@ -18,7 +18,7 @@ import pytest
 pytest.importorskip("distributed")
 
 from calib.errors import ParameterError, ScenarioError  # noqa: E402
-from calib.params import default_parameters  # noqa: E402
+from calib.model.params import default_parameters  # noqa: E402
 from optimize.sweep import (Study, load_study, montecarlo_draws, plot_study, run_case, run_sequential,  # noqa: E402
                             run_study, write_table)
 

@@ -16,15 +16,15 @@ from pathlib import Path
 
 import pandas as pd
 
-from ..drivelog import CHANNELS, DriveLog, LogMeta
-from ..errors import LogFormatError
-from ..fileio import atomic_path, write_json
-from .canlog import CAN_FORMATS, DEFAULT_SIGNAL_MAP, PRIUS_DBC, TOYOTA_2017_DBC, decode_can_signals, read_can_streams
-from .csvlog import read_csv_streams, sniff_is_csv
-from .mcaplog import DEFAULT_TOPIC_MAP, read_mcap_streams
-from .mdflog import read_mdf_streams
-from .report import channel_report, format_report
-from .resample import to_drivelog
+from calib.drivelog import CHANNELS, DriveLog, LogMeta
+from calib.errors import LogFormatError
+from calib.fileio import atomic_path, write_json
+from calib.ingest.canlog import CAN_FORMATS, DEFAULT_SIGNAL_MAP, PRIUS_DBC, TOYOTA_2017_DBC, decode_can_signals, read_can_streams
+from calib.ingest.csvlog import read_csv_streams, sniff_is_csv
+from calib.ingest.mcaplog import DEFAULT_TOPIC_MAP, read_mcap_streams
+from calib.ingest.mdflog import read_mdf_streams
+from calib.ingest.channels import channel_report, format_report
+from calib.ingest.resample import to_drivelog
 
 FORMATS = ("csv", "mcap", "candump", "asc", "blf", "trc", "mf4")
 _EXT = {".csv": "csv", ".txt": "csv", ".mcap": "mcap", ".log": "candump", ".candump": "candump",

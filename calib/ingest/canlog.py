@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..drivelog import LogMeta, file_sha256
-from ..errors import LogFormatError
-from .common import check_nonempty, make_series, parse_target, sniff_text, to_channel_unit
+from calib.drivelog import LogMeta, file_sha256
+from calib.errors import LogFormatError
+from calib.ingest.common import check_nonempty, make_series, parse_target, sniff_text, to_channel_unit
 
 #: Our Prius DBC, shipped with the package.
 PRIUS_DBC = Path(str(resources.files("calib") / "data" / "can" / "prius_iptm.dbc"))

@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..drivelog import CHANNELS
-from ..errors import LogFormatError
-from ..units import UnitError, convert, parse_unit
+from calib.drivelog import CHANNELS
+from calib.errors import LogFormatError
+from calib.units import UnitError, convert, parse_unit
 
 # Base names a human header uses for each channel (the canonical name without its unit suffix), plus a
 # few common synonyms. Matching is case-insensitive and ignores spaces/dashes.

@@ -26,10 +26,10 @@ import re
 import numpy as np
 import pandas as pd
 
-from ..drivelog import CHANNELS, LogMeta, file_sha256
-from ..errors import LogFormatError
-from ..units import UnitError, convert, parse_unit
-from .common import canonical_name, implied_unit, make_series, parse_target, sniff_text, split_spec, to_channel_unit
+from calib.drivelog import CHANNELS, LogMeta, file_sha256
+from calib.errors import LogFormatError
+from calib.units import UnitError, convert, parse_unit
+from calib.ingest.common import canonical_name, implied_unit, make_series, parse_target, sniff_text, split_spec, to_channel_unit
 
 TIME_NAMES = {"time", "t", "timestamp", "time_s", "times", "time_sec", "elapsed"}
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from ..drivelog import LogMeta
+from calib.drivelog import LogMeta
 
 #: Default sample rates, Hz (CAN-like: fast powertrain signals, slow thermal ones).
 DEFAULT_RATES = {

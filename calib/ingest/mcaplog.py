@@ -2,7 +2,7 @@
 
 Timestamps are the messages' ``log_time`` (ns). The topic/field -> channel map is configuration:
 ``{topic: {field: "channel [unit]"}}`` (a dotted field reaches into nested objects). The default,
-:data:`DEFAULT_TOPIC_MAP`, is the layout :mod:`calib.writers` produces; pass ``topic_map`` to read other
+:data:`DEFAULT_TOPIC_MAP`, is the layout :mod:`calib.ingest.writers` produces; pass ``topic_map`` to read other
 layouts (its topics replace the default's topics of the same name; other default topics stay).
 Messages slightly out of log-time order are sorted and counted in ``meta.notes``.
 """
@@ -13,9 +13,9 @@ import math
 
 import numpy as np
 
-from ..drivelog import LogMeta, file_sha256
-from ..errors import LogFormatError
-from .common import check_nonempty, make_series, parse_target, to_channel_unit
+from calib.drivelog import LogMeta, file_sha256
+from calib.errors import LogFormatError
+from calib.ingest.common import check_nonempty, make_series, parse_target, to_channel_unit
 
 #: Default topic -> field -> "channel [unit]" map (the layout the log writers produce).
 DEFAULT_TOPIC_MAP: dict[str, dict[str, str]] = {

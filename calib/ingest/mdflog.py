@@ -11,9 +11,9 @@ import sys
 
 import numpy as np
 
-from ..drivelog import LogMeta, file_sha256
-from ..errors import LogFormatError
-from .common import canonical_name, check_nonempty, make_series, parse_target, split_spec, to_channel_unit
+from calib.drivelog import LogMeta, file_sha256
+from calib.errors import LogFormatError
+from calib.ingest.common import canonical_name, check_nonempty, make_series, parse_target, split_spec, to_channel_unit
 
 
 def _quiet_asammdf_del(unraisable, _prev=None):

@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from ..drivelog import CHANNELS, DriveLog, LogMeta
-from ..errors import IptmError
+from calib.drivelog import CHANNELS, DriveLog, LogMeta
+from calib.errors import IptmError
 
 
 def resample_stream(s: pd.Series, grid: np.ndarray, dt: float, max_gap_s: float) -> np.ndarray:

@@ -1,7 +1,7 @@
 """Calibration benchmark: full-size bundled winter logs from random truths, recovery and validation.
 
 For each seed a truth is drawn (:func:`calib.synth.draw_truth`, never the defaults), the three bundled
-scenarios (about 75 min of driving) are synthesised, and :func:`calib.calibrate.calibrate` is run
+scenarios (about 75 min of driving) are synthesised, and :func:`calib.fit.driver.calibrate` is run
 (1) on all three logs (the timed figure: the issue's < 60 s on 2 cores), and (2) on two of them with the
 third held out for validation, each log in turn. Printed: wall time, the recovery table (truth, estimate,
 standard error, |err|/truth, within 3 se) of every parameter flagged estimated, and the held-out
@@ -39,7 +39,7 @@ def _recovery(params, truth):
 
 
 def run(quick: bool = False) -> dict:
-    from calib.calibrate import calibrate
+    from calib.fit.driver import calibrate
     from calib.ingest import to_drivelog
     from calib.synth import BUNDLED, draw_truth, synthesise
 

@@ -12,8 +12,9 @@ import time
 def run(quick: bool = False) -> dict:
     import numba
 
-    from calib.params import default_parameters
-    from optimize.formulations import DPGrids, DPScenario, peak_rss_mb, solve_formulation
+    from calib.model.params import default_parameters
+    from optimize.formulations.scenario import DPGrids, DPScenario
+    from optimize.formulations.solve import peak_rss_mb, solve_formulation
 
     ps = default_parameters()
     scen = DPScenario(duration_s=120.0) if quick else DPScenario()

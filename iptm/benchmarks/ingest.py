@@ -57,7 +57,7 @@ def build_dump(path, duration_s: float = 1800.0, seed: int = 0) -> int:
     """Write the synthetic dump; returns the number of frames."""
     from calib.drivelog import LogMeta
     from calib.ingest.fabricate import fabricate_streams
-    from calib.writers import can_frames, write_can_frames
+    from calib.ingest.writers import can_frames, write_can_frames
 
     streams, meta = fabricate_streams(duration_s, seed=seed, rates=RATES, dropout=None)
     fr = can_frames(streams, synthetic=True)

@@ -5,9 +5,9 @@ import time
 
 
 def run(quick: bool = False) -> dict:
-    from calib.epa import epa_comparison
-    from calib.params import default_parameters
-    from calib.simulate import simulate
+    from calib.model.epa import epa_comparison
+    from calib.model.params import default_parameters
+    from calib.model.simulate import simulate
 
     ps = default_parameters()
     simulate(ps, "artemis_urban")  # compile / load the numba cache outside the timing

@@ -42,11 +42,11 @@ def run(args) -> int:
 
     from tqdm.auto import tqdm
 
-    from calib.calibrate import calibrate
+    from calib.fit.driver import calibrate
     from calib.drivelog import file_sha256
     from calib.fileio import write_json
-    from calib.params import ParameterSet
-    from calib.validate import plot_validation, replay
+    from calib.model.params import ParameterSet
+    from calib.fit.validate import plot_validation, replay
 
     paths = list(args.logs) + list(args.validate)
     logs, val = [], []

@@ -36,7 +36,7 @@ def _scenario(args):
     from pathlib import Path
 
     from calib.errors import ScenarioError
-    from optimize.formulations import DPScenario
+    from optimize.formulations.scenario import DPScenario
 
     d = {}
     if args.scenario:
@@ -60,7 +60,7 @@ def run(args) -> int:
     from calib.errors import ScenarioError
     from calib.fileio import write_json
     from iptm.commands.simulate import load_params
-    from optimize.formulations import parse_grid_spec
+    from optimize.formulations.scenario import parse_grid_spec
 
     ps = load_params(args.params)
     scen = _scenario(args)

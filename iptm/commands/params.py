@@ -16,11 +16,11 @@ def register(sub):
 
 def run(args) -> int:
     from calib.fileio import write_json
-    from calib.params import ParameterSet, default_parameters
+    from calib.model.params import ParameterSet, default_parameters
 
     ps = ParameterSet.load(args.params) if args.params else default_parameters()
     if args.fuel_map:
-        from calib.fuelmap import apply_fuel_map
+        from calib.model.fuelmap import apply_fuel_map
 
         ps = apply_fuel_map(ps, args.fuel_map)
     ps.save(args.out)

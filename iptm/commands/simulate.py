@@ -22,14 +22,14 @@ def register(sub):
 
 
 def load_params(path):
-    from calib.params import ParameterSet, default_parameters
+    from calib.model.params import ParameterSet, default_parameters
 
     return ParameterSet.load(path) if path else default_parameters()
 
 
 def run(args) -> int:
     from calib.fileio import atomic_path, write_json
-    from calib.simulate import simulate
+    from calib.model.simulate import simulate
 
     ps = load_params(args.params)
     res = simulate(ps, args.cycle, T_amb=args.ambient, soc0=args.soc0, T_cl0=args.tcl0, T_cab0=args.tcab0,

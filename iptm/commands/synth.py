@@ -24,9 +24,9 @@ def run(args) -> int:
 
     from calib.errors import IptmError
     from calib.fileio import write_json
-    from calib.params import ParameterSet
+    from calib.model.params import ParameterSet
     from calib.synth import BUNDLED, draw_truth, synthesise
-    from calib.writers import write_streams
+    from calib.ingest.writers import write_streams
 
     fmts = [f.strip() for f in args.formats.split(",") if f.strip()]
     bad = [f for f in fmts if f not in FORMATS]

@@ -11,8 +11,8 @@ import itertools
 from dataclasses import dataclass, replace
 
 
-from calib.rulebased import RuleParams
-from calib.simulate import SimResult, simulate
+from calib.model.rulebased import RuleParams
+from calib.model.simulate import SimResult, simulate
 
 #: The searched thresholds (every combination is simulated).
 SEARCH_GRID = {

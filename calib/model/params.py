@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ParameterError
+from calib.errors import ParameterError
 
 DATA = resources.files("calib") / "data"
 
@@ -170,7 +170,7 @@ def default_parameters() -> "ParameterSet":
         _p("n_ool_rpm", n_ool, "rpm", 600, 6000, "iptm choice through 142 N m @ 3600 rpm and 72 kW @ 5200 rpm",
            "engine speed on the optimal operating line", x=P_ool, x_name="P_e", x_unit="W", vary=False),
         _p("fuel_scale", 1.07, "dimensionless", 0.5, 2.0,
-           "tuned to EPA warm UDDS/HWFET/US06 with the rule-based controller (calib.epa.tune_fuel_scale)",
+           "tuned to EPA warm UDDS/HWFET/US06 with the rule-based controller (calib.model.epa.tune_fuel_scale)",
            "warm fuel-map scale"),
         _p("W_idle_g_per_s", 0.10, "g/s", 0.02, 0.5, "spec/model.md s.4", "idle fuel rate, warm"),
         _p("f_cl", [1.5, 1.2, 1.05, 1.0], "dimensionless", 1.0, 3.0, "spec/model.md s.4 (prior shape)",
@@ -197,7 +197,7 @@ def default_parameters() -> "ParameterSet":
         _p("Q_sun_W", 0.0, "W", -500.0, 2000.0, "spec/model.md s.6 (prior)", "solar and occupant gains"),
     ]
     return ParameterSet({p.name: p for p in plist}, meta={"name": "2017 Toyota Prius, default",
-                                                         "origin": "calib.params.default_parameters"})
+                                                         "origin": "calib.model.params.default_parameters"})
 
 
 # The compact form the compiled model reads (numba accepts namedtuples of floats and arrays).
@@ -307,7 +307,7 @@ class ParameterSet:
 
     def save(self, path) -> None:
         """Write as TOML (``.toml``) or JSON (``.json``), atomically."""
-        from .fileio import write_json, write_text
+        from calib.fileio import write_json, write_text
 
         path = Path(path)
         d = self.to_dict()
@@ -412,7 +412,7 @@ def _convert(val, unit: str, target: str, what: str):
         return val
     global _UREG
     try:
-        from .units import ureg as _u  # shared registry with aliases (ingestion)
+        from calib.units import ureg as _u  # shared registry with aliases (ingestion)
     except ImportError:  # pragma: no cover - units module is part of the package
         _u = None
     import pint

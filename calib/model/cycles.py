@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .errors import IptmError, MissingChannelsError
+from calib.errors import IptmError, MissingChannelsError
 
 CYCLE_DIR = resources.files("calib") / "data" / "cycles"
 
@@ -64,7 +64,7 @@ def _resample(name, t, v, Ts):
 
 def load_cycle(spec, Ts: float = 1.0) -> Cycle:
     """Load a cycle by bundled name, CSV path, or from a DriveLog's speed channel."""
-    from .drivelog import DriveLog
+    from calib.drivelog import DriveLog
 
     if isinstance(spec, Cycle):
         return spec

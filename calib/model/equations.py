@@ -1,7 +1,7 @@
 """The vehicle model of spec/model.md: one implementation for simulation, fitting and DP.
 
 Every equation is a small ``numba`` function on scalars taking the compiled parameter tuple
-(:meth:`calib.params.ParameterSet.model_params`). Compiled kernels (the simulator's step, the fitters'
+(:meth:`calib.model.params.ParameterSet.model_params`). Compiled kernels (the simulator's step, the fitters'
 output-error loops, the DP kernels in :mod:`optimize`) call these same functions inline;
 :func:`evaluate` broadcasts them over numpy arrays of any shape (whole DP grids, whole logs).
 

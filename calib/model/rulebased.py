@@ -7,18 +7,18 @@ demand plus a SOC-recovery term, never below a load-levelling minimum; it turns 
 idles rather than stopping. The heater requests a fixed demand.
 
 It lives in ``calib`` because it is also the plant's own controller when logs are synthesised; the
-per-scenario threshold tuning lives in :mod:`optimize.rulebased`.
+per-scenario threshold tuning lives in :mod:`optimize.tuning`.
 """
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-from .model import IDLE, OFF, ON
+from calib.model.equations import IDLE, OFF, ON
 
 
 @dataclass
 class RuleParams:
-    """Thresholds of the rule-based controller (tuned per scenario by :mod:`optimize.rulebased`)."""
+    """Thresholds of the rule-based controller (tuned per scenario by :mod:`optimize.tuning`)."""
 
     P_on_W: float = 9000.0  # wheel power above which the engine starts
     P_off_W: float = 4000.0  # wheel power below which it may stop (hysteresis)

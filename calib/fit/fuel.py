@@ -1,9 +1,9 @@
 """Fuel fit (spec/model.md s.4 and s.8): warm map scale, idle fuel, cold factor table.
 
 The model is ``W_f = max(fuel_scale * P_e / (eta_ool(P_e) LHV), W_idle) f_cl(T_cl)`` with the engine on and
-``W_idle f_cl(T_cl)`` idling (:func:`calib.model.fuel_rate`). One lmfit least-squares fit over the
+``W_idle f_cl(T_cl)`` idling (:func:`calib.model.equations.fuel_rate`). One lmfit least-squares fit over the
 *stable* 1 s bins of all logs (engine mode the same in the bin and both neighbours, see
-:func:`calib.validate.stable_mode`, and engine power within 3 % of both neighbours, so that the bin's mean
+:func:`calib.fit.validate.stable_mode`, and engine power within 3 % of both neighbours, so that the bin's mean
 speed and torque describe one operating point; when the engine follows the optimal operating line,
 bins whose mean speed is off the line by > 0.5 % are mixtures of two operating points and are dropped):
 
@@ -17,17 +17,17 @@ bins whose mean speed is off the line by > 0.5 % are mixtures of two operating p
 Standard errors include the calibration uncertainty of the inputs (engine power 1 %, coolant
 temperature 0.5 K), propagated by refitting with each input moved by one sd.
 
-Every evaluation calls :func:`calib.model.fuel_rate` in a compiled loop
-(:func:`calib.validate.fuel_replay`).
+Every evaluation calls :func:`calib.model.equations.fuel_rate` in a compiled loop
+(:func:`calib.fit.validate.fuel_replay`).
 """
 from __future__ import annotations
 
 import numpy as np
 
-from .calibrate import INPUT_REL_SD, MIN_SAMPLES, ParamEstimate, SubsystemFit, lmfit_identify, not_fitted, usable_logs
-from .fit_battery import hat_basis
-from .model import IDLE, ON
-from .validate import fuel_replay, log_arrays
+from calib.fit.toolkit import INPUT_REL_SD, MIN_SAMPLES, ParamEstimate, SubsystemFit, lmfit_identify, not_fitted, usable_logs
+from calib.fit.battery import hat_basis
+from calib.model.equations import IDLE, ON
+from calib.fit.replay import fuel_replay, log_arrays
 
 NEEDS = ("engine_speed_rpm", "engine_torque_Nm", "fuel_rate_g_per_s", "coolant_temp_degC")
 PARAMS = ("fuel_scale", "W_idle_g_per_s", "f_cl")

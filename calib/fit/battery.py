@@ -18,8 +18,7 @@ import math
 
 import numpy as np
 
-from .calibrate import (U_OC_SE_MAX_V, ParamEstimate, SubsystemFit, inflation, judge,
-                        not_fitted, usable_logs)
+from calib.fit.toolkit import U_OC_SE_MAX_V, ParamEstimate, SubsystemFit, inflation, judge, not_fitted, usable_logs
 
 NEEDS = ("bat_current_A", "bat_voltage_V", "soc")
 PARAMS = ("U_oc_V", "R_int_ohm", "C_bat_Ah", "R_int_tc_per_K")

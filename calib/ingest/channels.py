@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from ..drivelog import CHANNELS, DriveLog
+from calib.drivelog import CHANNELS, DriveLog
 
 
 def _gaps(t: np.ndarray, threshold: float) -> tuple[int, float]:

@@ -15,7 +15,7 @@ with the engine to rounding; cross-checked in tests/test_formulations.py) by exp
   (the engine's own trilinear formula, first stage), so the inner loop is bilinear; where the heater core
   limits the heat (cold coolant) the full trilinear interpolation is used.
 
-The forward pass is the engine's (:func:`optimize.dp.forward_pass`) on the value functions produced here.
+The forward pass is the engine's (:func:`optimize.dp.engine.forward_pass`) on the value functions produced here.
 """
 from __future__ import annotations
 
@@ -23,11 +23,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from .formulations import (_C_CH, _C_CHI, _C_PEN, _C_SH, _C_SHI, _C_SLO, _C_TH, _C_THI, _C_TLO, _C_TS,
-                           _C_TAMB, _C_WBL, _CCAB, _CENG, _CP, _EPS, _GAMMA, _LHV, _MS0, _QSUN, _RECIRC,
-                           _T_OK, _T_PE, _T_SOC0, _T_WF, _UACAB, _A_FCLG, _A_LOSSG)
-from ._dpkernels import _interp_slow as _slow  # the engine's exact multilinear interpolation
-from .dp import ValueFunctions
+from optimize.formulations.layout import _C_CH, _C_CHI, _C_PEN, _C_SH, _C_SHI, _C_SLO, _C_TH, _C_THI, _C_TLO, _C_TS, _C_TAMB, _C_WBL, _CCAB, _CENG, _CP, _EPS, _GAMMA, _LHV, _MS0, _QSUN, _RECIRC, _T_OK, _T_PE, _T_SOC0, _T_WF, _UACAB, _A_FCLG, _A_LOSSG
+from optimize.dp.kernels import _interp_slow as _slow  # the engine's exact multilinear interpolation
+from optimize.dp.engine import ValueFunctions
 
 _SNAP = 1e-9
 
@@ -384,7 +382,7 @@ def backward_pass_fused(prob) -> ValueFunctions:
     :func:`optimize.formulations.build_problem`; returns the engine's :class:`ValueFunctions`."""
     import time
 
-    from .formulations import _A_BIG
+    from optimize.formulations.layout import _A_BIG
 
     P = prob.params
     nx = prob.n_x

@@ -1,8 +1,8 @@
 """Cabin and heater-core fit (spec/model.md s.6 and s.8).
 
 - ``C_cab``, ``UA_cab``, ``Q_sun``: output error. The cabin temperature is simulated from the logged heater
-  heat and ambient temperature by eq. 10 in a compiled loop (:func:`calib.validate.cabin_replay`, which
-  calls :func:`calib.model.cabin_rate`) and matched to the logged cabin temperature with lmfit (one
+  heat and ambient temperature by eq. 10 in a compiled loop (:func:`calib.fit.validate.cabin_replay`, which
+  calls :func:`calib.model.equations.cabin_rate`) and matched to the logged cabin temperature with lmfit (one
   residual vector across logs, one initial cabin temperature per log as a nuisance parameter). Standard
   errors include the calibration uncertainty of the heater power (1 %) and of the cabin sensor (0.5 K). The heater
   heat is the logged heater power, or ``W_bl c_p (T_vent - T_in)`` from vent temperature and blower flow.
@@ -18,9 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .calibrate import (output_error_params, usable_logs, INPUT_REL_SD, KEY_PARAMETERS, MIN_SAMPLES, ParamEstimate, SubsystemFit, inflation, judge,
-                        lmfit_identify, not_fitted)
-from .validate import _fill, cabin_replay, first_valid_mean, log_arrays
+from calib.fit.toolkit import output_error_params, usable_logs, INPUT_REL_SD, KEY_PARAMETERS, MIN_SAMPLES, ParamEstimate, SubsystemFit, inflation, judge, lmfit_identify, not_fitted
+from calib.fit.replay import _fill, cabin_replay, first_valid_mean, log_arrays
 
 NEEDS = ("cabin_temp_degC", "ambient_temp_degC")  # + heater_power_W or vent_temp_degC + blower_flow_kg_per_s
 NEEDS_EPS = ("vent_temp_degC", "coolant_temp_degC", "blower_flow_kg_per_s", "ambient_temp_degC")

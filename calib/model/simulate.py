@@ -12,9 +12,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from .cycles import Cycle, load_cycle
-from .errors import ScenarioError
-from .model import INFEASIBLE_REASONS, OFF, ON, OUTPUTS, IDLE, battery_ocv_r, step, traction_power
+from calib.model.cycles import Cycle, load_cycle
+from calib.errors import ScenarioError
+from calib.model.equations import INFEASIBLE_REASONS, OFF, ON, OUTPUTS, IDLE, battery_ocv_r, step, traction_power
 
 GASOLINE_KG_PER_L = 0.74
 KM_PER_L_PER_MPG = 0.4251
@@ -33,7 +33,7 @@ class SimResult:
     e_mode, P_bat_mg_cmd, Q_heat_cmd : ndarray (N,)
         Controls applied during each step.
     flows : dict of ndarray (N,)
-        Every output of :func:`calib.model.step` during each step.
+        Every output of :func:`calib.model.equations.step` during each step.
     info : dict
         Scenario and controller description.
     """
@@ -186,7 +186,7 @@ class SimResult:
                      f"{self.info.get('controller', '')[:60]}", fontsize=10)
         fig.tight_layout()
         if path is not None:
-            from .fileio import save_figure
+            from calib.fileio import save_figure
 
             save_figure(fig, path)
         return fig
@@ -208,7 +208,7 @@ def simulate(params, cycle, controller=None, *, T_amb=-10.0, soc0=0.6, T_cl0=70.
     T_bat : float or array, optional
         Battery temperature (default: the resistance table's reference temperature).
     """
-    from .rulebased import RuleBasedController, RuleParams
+    from calib.model.rulebased import RuleBasedController, RuleParams
 
     cyc: Cycle = load_cycle(cycle)
     mp = params.model_params() if hasattr(params, "model_params") else params
@@ -265,7 +265,7 @@ def sim_from_arrays(d: dict) -> SimResult:
     """Inverse of :func:`sim_to_arrays`."""
     import json
 
-    from .params import ModelParams
+    from calib.model.params import ModelParams
 
     mp = ModelParams(**{f: (d[f"mp__{f}"] if d[f"mp__{f}"].ndim else float(d[f"mp__{f}"]))
                         for f in ModelParams._fields})

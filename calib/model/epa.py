@@ -2,7 +2,7 @@
 
 The rule-based controller drives the model over UDDS, HWFET and US06 warm (24 degC ambient, coolant at
 90 degC, heater off, start SOC 0.6). Economy is corrected for the SOC difference (the electric-energy
-conversion of :meth:`calib.simulate.SimResult.fuel_equivalents`) and compared with:
+conversion of :meth:`calib.model.simulate.SimResult.fuel_equivalents`) and compared with:
 
 - UDDS: FTP bags 3-4 (hot start; bag 3 3.59 mi at 62.72 mpg, bag 4 3.91 mi at 114.35 mpg -> 82.0 mpg);
 - HWFET: 71.2 mpg (HWFE); US06: 48.6 mpg.
@@ -19,8 +19,8 @@ WARM = dict(T_amb=24.0, soc0=0.6, T_cl0=90.0, T_cab0=22.0, Q_heat=0.0)
 
 def epa_comparison(params) -> pd.DataFrame:
     """Model (rule-based, warm, SOC-corrected) vs EPA mpg per cycle, with the relative error."""
-    from .rulebased import RuleParams
-    from .simulate import simulate
+    from calib.model.rulebased import RuleParams
+    from calib.model.simulate import simulate
 
     rows = []
     for cyc, target in EPA_MPG.items():

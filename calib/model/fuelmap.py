@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import IptmError
+from calib.errors import IptmError
 
 _ALIASES = {"speed": ("speed", "engine_speed", "n", "n_e", "rpm"),
             "torque": ("torque", "engine_torque", "tau", "trq"),
@@ -53,7 +53,7 @@ def read_fuel_map(path) -> FuelMap:
     """Read a long-form fuel-map CSV (see module docstring); one clear error for anything wrong."""
     import pandas as pd
 
-    from .units import convert
+    from calib.units import convert
 
     path = Path(path)
     try:
@@ -138,7 +138,7 @@ def apply_fuel_map(params, path):
     eta = np.clip(eta, *params.param("eta_ool").bounds)
     n = np.clip(n, *params.param("n_ool_rpm").bounds)
     new = params.copy()
-    src = f"measured fuel map {Path(path).name} (sha256 {fm.sha256[:12]}), OOL derived by calib.fuelmap"
+    src = f"measured fuel map {Path(path).name} (sha256 {fm.sha256[:12]}), OOL derived by calib.model.fuelmap"
     for name, vals in (("eta_ool", eta), ("n_ool_rpm", n)):
         p = new.param(name)
         p.x, p.value, p.source, p.status = [float(v) for v in P], [float(v) for v in vals], src, "prior"

@@ -6,7 +6,7 @@
 - ``C_eng``, ``gamma_exh``, ``hA_eng`` (and ``T_open``, ``k_rad`` when the coolant spent >= 120 s above
   the thermostat): lmfit least squares on the coolant temperature *simulated* from the logged inputs
   (fuel rate -> ``Q_fuel``, engine speed x torque -> ``P_e``, heater power, ambient) by eq. 3 in a compiled
-  loop (:func:`calib.validate.coolant_replay`, which calls :func:`calib.model.coolant_flows`), against the
+  loop (:func:`calib.fit.validate.coolant_replay`, which calls :func:`calib.model.equations.coolant_flows`), against the
   logged coolant temperature; one residual vector across logs, one initial temperature per log as a
   nuisance parameter. Samples where the coolant was not logged (long gaps) are left out of the residual.
   Standard errors include the calibration uncertainty of the inputs (fuel rate, engine power, heater power:
@@ -16,9 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .calibrate import (output_error_params, usable_logs, INPUT_REL_SD, KEY_PARAMETERS, ParamEstimate, SubsystemFit, judge, lmfit_identify,
-                        not_fitted)
-from .validate import _fill, coolant_replay, first_valid_mean, log_arrays
+from calib.fit.toolkit import output_error_params, usable_logs, INPUT_REL_SD, KEY_PARAMETERS, ParamEstimate, SubsystemFit, judge, lmfit_identify, not_fitted
+from calib.fit.replay import _fill, coolant_replay, first_valid_mean, log_arrays
 
 NEEDS = ("coolant_temp_degC", "fuel_rate_g_per_s", "engine_speed_rpm", "engine_torque_Nm", "ambient_temp_degC")
 HEATER = ("heater_power_W",)  # or vent_temp_degC + blower_flow_kg_per_s
@@ -48,7 +47,7 @@ def _kappa(use, fit, base):
         ys.append(Tb[ok] - Ta[ok])
     if not xs or sum(x.size for x in xs) < 60:
         return None
-    from .calibrate import inflation
+    from calib.fit.toolkit import inflation
 
     x, y = np.concatenate(xs), np.concatenate(ys)
     k = float(x @ y / (x @ x))

@@ -22,11 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .drivelog import CHANNELS, LogMeta
-from .errors import IptmError
-from .fileio import atomic_path
-from .ingest.common import HUMAN_NAME
-from .units import convert
+from calib.drivelog import CHANNELS, LogMeta
+from calib.errors import IptmError
+from calib.fileio import atomic_path
+from calib.ingest.common import HUMAN_NAME
+from calib.units import convert
 
 #: Units the CSV writer uses (a human logger's choice, not SI).
 CSV_UNITS = {
@@ -139,8 +139,8 @@ def _write_csv(streams, meta: LogMeta, path: Path) -> None:
 
 def _mcap_layout():
     """channel -> (topic, field, unit) from the default topic map (so reader and writer agree)."""
-    from .ingest.common import split_spec
-    from .ingest.mcaplog import DEFAULT_TOPIC_MAP
+    from calib.ingest.common import split_spec
+    from calib.ingest.mcaplog import DEFAULT_TOPIC_MAP
 
     out = {}
     for topic, fields in DEFAULT_TOPIC_MAP.items():
@@ -229,7 +229,7 @@ def can_frames(streams: dict, dbc=None, signal_map: dict | None = None, syntheti
     dict
         ``{"t": float seconds from start, "id": int, "data": uint8 (n, 8), "dlc": uint8}``, time-sorted.
     """
-    from .ingest.canlog import PRIUS_DBC, load_dbc, resolve_signal_map
+    from calib.ingest.canlog import PRIUS_DBC, load_dbc, resolve_signal_map
 
     dbc = Path(dbc) if dbc is not None else PRIUS_DBC
     db = load_dbc(dbc)

@@ -76,7 +76,7 @@ Worked example (scalar LQ: x_{k+1} = x_k + u_k, cost u^2, terminal 10 x_N^2)::
 
     import numpy as np
     from numba import njit
-    from optimize.dp import DPProblem, solve
+    from optimize.dp.engine import DPProblem, solve
 
     @njit(cache=True)
     def lq(k, x, u, w_k, p, tab, iu, ix, x_next):
@@ -110,7 +110,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from . import _dpkernels as _k
+from optimize.dp import kernels as _k
 
 __all__ = ["DPProblem", "DPResult", "ValueFunctions", "cartesian", "solve", "backward_pass",
            "forward_pass", "interpolate"]

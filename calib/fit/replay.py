@@ -1,23 +1,5 @@
-"""Validation of a parameter set on a drive log: replay simulation, error metrics, Fig. 3-style plots.
-
-The replay drives the model of :mod:`calib.model` with the *inputs* a log records and compares the
-*outputs* it simulates with the ones the log measured:
-
-- inputs: the engine operating point (logged speed x torque gives ``P_e``; the engine mode is read from
-  the logged speed and torque), the battery terminal power ``V I`` (or, when voltage/current are missing,
-  the power split from the logged speed and engine power), the heat drawn by the heater core (logged, or
-  ``W_bl c_p (T_vent - T_in)`` from vent temperature and blower flow), ambient and battery temperature;
-- simulated outputs: SOC (eq. 1 with the calibrated ``U_oc``, ``R_int``, ``C_bat``), coolant temperature
-  (eq. 3 fed with the *simulated* fuel rate, so the cold factor acts on the simulated coolant), cabin
-  temperature (eq. 10), fuel rate (eqs. 4-5) and cumulative fuel.
-
-The initial states are the mean of the first five valid logged values. The measured fuel rate is taken
-as zero where the engine is stopped (speed below 150 rpm). The loop is compiled (``numba``) and calls the same
-equation functions as the simulator and the fitters.
-
-Also here: :func:`log_arrays`, the per-log input arrays every fitter uses (engine mode classification,
-engine power, heater power), so all fits read a log the same way.
-"""
+"""Reading a log into the arrays every fitter uses, and the compiled replay kernels (coolant, cabin,
+fuel, full) that drive the model's equations with logged inputs. See :mod:`calib.fit.validate`."""
 from __future__ import annotations
 
 import math
@@ -26,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
-from .model import IDLE, OFF, ON, battery, coolant_flows, cabin_rate, fuel_rate, power_split, traction_power
+from calib.model.equations import IDLE, OFF, ON, battery, coolant_flows, cabin_rate, fuel_rate, power_split, traction_power
 
 RPM = 2.0 * math.pi / 60.0
 
@@ -329,118 +311,3 @@ def _split_battery_power(p, v, P_e, dt):
             Pbm = power_split(p, OFF, 0.0, Pt)[1]
         P[k] = Pbm + p.P_aux
     return P
-
-
-# --------------------------------------------------------------------------------------------------
-# replay and metrics
-# --------------------------------------------------------------------------------------------------
-@dataclass
-class Replay:
-    """Measured and simulated signals of one log (arrays on the log's time base)."""
-
-    name: str
-    t: np.ndarray
-    measured: dict
-    simulated: dict
-    inputs: str = ""
-
-    def metrics(self) -> dict:
-        """Per channel RMSE, max abs error, bias (sim - meas) and sample count; cumulative fuel error."""
-        out = {}
-        for key in CHANNEL_METRICS:
-            m, s = self.measured.get(key), self.simulated.get(key)
-            if m is None or s is None:
-                continue
-            ok = np.isfinite(m) & np.isfinite(s)
-            if ok.sum() < 2:
-                continue
-            e = s[ok] - m[ok]
-            out[key] = {"rmse": float(np.sqrt(np.mean(e * e))), "max_abs": float(np.max(np.abs(e))),
-                        "bias": float(np.mean(e)), "n": int(ok.sum()), "unit": CHANNEL_METRICS[key][1]}
-        mf, sf = self.measured.get("fuel_rate"), self.simulated.get("fuel_rate")
-        if mf is not None and sf is not None and np.isfinite(mf).sum() > 2:
-            dt = float(np.median(np.diff(self.t))) if self.t.size > 1 else 1.0
-            cm = float(np.nansum(_fill(mf, 0.0)) * dt)
-            cs = float(np.nansum(sf) * dt)
-            out["cumulative_fuel"] = {"measured_g": cm, "simulated_g": cs,
-                                      "error_pct": 100.0 * (cs - cm) / cm if cm > 0 else float("nan")}
-        return out
-
-
-def replay(log, params) -> Replay:
-    """Simulate ``log`` from its logged inputs with ``params`` (a ParameterSet or compiled tuple)."""
-    mp = params.model_params() if hasattr(params, "model_params") else params
-    la = log_arrays(log, mp)
-    c = la.ch
-    n = la.t.size
-    P_e = la.f_on * la.P_on
-    T_amb = _fill(c["ambient_temp_degC"], -10.0)
-    T_bat = _fill(c["bat_temp_degC"], mp.T_bat_ref)
-    Q_heat = np.maximum(_fill(la.Q_heat, 0.0), 0.0)
-    if la.has("bat_current_A", "bat_voltage_V"):
-        P_bat = _fill(c["bat_current_A"] * c["bat_voltage_V"], 0.0)
-        src = "battery power V*I"
-    else:
-        P_bat = _split_battery_power(mp, _fill(c["speed_mps"], 0.0), P_e, la.dt)
-        src = "battery power from the power split"
-    soc0 = first_valid_mean(c["soc"], 5, 0.6)
-    T_cl0 = first_valid_mean(c["coolant_temp_degC"], 5, float(T_amb[0]))
-    T_cab0 = first_valid_mean(c["cabin_temp_degC"], 5, float(T_amb[0]))
-    soc, T_cl, T_cab, W = full_replay(mp, la.dt, soc0, T_cl0, T_cab0, la.f_on, la.P_on, la.f_idle, P_bat, T_bat,
-                                      T_amb, Q_heat)
-    # a stopped engine burns nothing: zero the fuel-flow reading there (sensor noise clipped at zero
-    # would otherwise count as fuel)
-    W_meas = np.where((la.f_on + la.f_idle > 0) | ~np.isfinite(c["engine_speed_rpm"]), c["fuel_rate_g_per_s"], 0.0)
-    measured = {"soc": c["soc"], "coolant_temp": c["coolant_temp_degC"], "cabin_temp": c["cabin_temp_degC"],
-                "fuel_rate": W_meas}
-    simulated = {"soc": soc, "coolant_temp": T_cl, "cabin_temp": T_cab, "fuel_rate": W}
-    for k in list(measured):
-        if not np.isfinite(measured[k]).any():
-            measured.pop(k)
-    return Replay(la.name, la.t, measured, simulated, inputs=f"{src}; heater from {la.heater_source or 'none'}")
-
-
-def validate(logs, params) -> dict:
-    """Replay every log; returns ``{log label: metrics}`` (see :meth:`Replay.metrics`)."""
-    return {r.name: r.metrics() for r in (replay(lg, params) for lg in logs)}
-
-
-def plot_validation(rep: Replay, path=None, title=None):
-    """Measured vs simulated (paper Fig. 3 style): SOC, coolant, cabin, fuel rate and cumulative fuel.
-
-    Written atomically when ``path`` is given (Agg backend). Returns the Figure.
-    """
-    import matplotlib
-
-    if path is not None:
-        matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
-    t = rep.t / 60.0
-    fig, ax = plt.subplots(5, 1, figsize=(8, 11), sharex=True)
-    panels = [("soc", "SOC [-]"), ("coolant_temp", "coolant temp. [degC]"), ("cabin_temp", "cabin temp. [degC]"),
-              ("fuel_rate", "fuel rate [g/s]")]
-    for a, (k, lab) in zip(ax, panels):
-        if k in rep.measured:
-            a.plot(t, rep.measured[k], "k-", lw=0.8, label="measured")
-        if k in rep.simulated:
-            a.plot(t, rep.simulated[k], "r--", lw=1.0, label="simulated")
-        a.set_ylabel(lab)
-        a.grid(alpha=0.3)
-    ax[0].legend(loc="best", fontsize=8)
-    dt = float(np.median(np.diff(rep.t))) if rep.t.size > 1 else 1.0
-    if "fuel_rate" in rep.measured:
-        ax[4].plot(t, np.cumsum(_fill(rep.measured["fuel_rate"], 0.0)) * dt, "k-", lw=0.8, label="measured")
-    ax[4].plot(t, np.cumsum(np.nan_to_num(rep.simulated["fuel_rate"])) * dt, "r--", lw=1.0, label="simulated")
-    ax[4].set_ylabel("cumulative fuel [g]")
-    ax[4].set_xlabel("time [min]")
-    ax[4].grid(alpha=0.3)
-    m = rep.metrics()
-    sub = ", ".join(f"{k} RMSE {v['rmse']:.3g}" for k, v in m.items() if "rmse" in v)
-    fig.suptitle((title or f"Validation: {rep.name}") + "\n" + sub, fontsize=9)
-    fig.tight_layout()
-    if path is not None:
-        from .fileio import save_figure
-
-        save_figure(fig, path)
-    return fig

@@ -1,0 +1,114 @@
+"""DP scenario (drive, ambient, initial state, heater demand) and grids (the paper's Table II by default)."""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields, replace
+
+import numpy as np
+
+from calib.errors import ScenarioError
+from calib.model.cycles import Cycle, load_cycle
+
+FORMULATIONS = ("baseline", "thermal", "thermal_cabin")
+
+
+# ---------------------------------------------------------------------------------------------------
+# scenario and grids
+# ---------------------------------------------------------------------------------------------------
+@dataclass
+class DPScenario:
+    """A DP scenario (spec/optimization.md s.4 defaults). Plain fields: read/written as TOML/JSON.
+
+    cycle: bundled cycle name or CSV path; ``duration_s`` truncates it (None: whole cycle).
+    cab_lb_offset: the cabin lower bound is the 1500-W reference trajectory minus this (degC).
+    soc_tol: tolerance of the charge-sustaining check on re-simulated results (``SOC_N >= SOC_0 - soc_tol``).
+    """
+
+    cycle: str = "artemis_urban"
+    T_amb: float = -10.0
+    soc0: float = 0.6
+    T_cl0: float = 70.0
+    T_cab0: float = 20.0
+    Q_heat: float = 1500.0
+    Q_heat_min: float = 1200.0
+    Q_heat_max: float = 1800.0
+    soc_min: float = 0.4
+    soc_max: float = 0.8
+    T_cl_min: float = 0.0
+    T_cl_max: float = 100.0
+    cab_lb_offset: float = 1.0
+    T_cab_ub: float = 22.0
+    duration_s: float | None = None
+    soc_tol: float = 1e-3
+    cab_terminal_g_per_K: float = 10.0
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "DPScenario":
+        names = {f.name for f in fields(cls)}
+        bad = set(d) - names
+        if bad:
+            raise ScenarioError(f"unknown scenario field(s) {sorted(bad)}; known: {sorted(names)}")
+        return cls(**d)
+
+    def to_dict(self) -> dict:
+        return {k: v for k, v in asdict(self).items() if v is not None}
+
+    def load_cycle(self, cycle=None) -> Cycle:
+        cyc = load_cycle(self.cycle if cycle is None else cycle)
+        if self.duration_s is not None:
+            n = int(round(self.duration_s / cyc.Ts))
+            if n < 1:
+                raise ScenarioError("duration_s must be at least one step")
+            n = min(n, cyc.n_steps)
+            cyc = Cycle(f"{cyc.name}[0:{n * cyc.Ts:g}s]", cyc.t[: n + 1].copy(), cyc.v[: n + 1].copy(),
+                        None if cyc.grade is None else cyc.grade[: n + 1].copy())
+        return cyc
+
+
+@dataclass
+class DPGrids:
+    """Grid steps (paper Table II): SOC (-), T_cl (degC), T_cab (degC), P_bat (W), Q_heat (W)."""
+
+    soc: float = 0.01
+    tcl: float = 1.0
+    tcab: float = 1.0
+    pbat: float = 500.0
+    qheat: float = 50.0
+
+    def halved(self) -> "DPGrids":
+        return DPGrids(*(v / 2 for v in asdict(self).values()))
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def parse_grid_spec(spec: str | None, base: DPGrids | None = None) -> DPGrids:
+    """``"soc=0.01,tcl=1,tcab=1,pbat=500,qheat=50"`` (any subset) -> :class:`DPGrids`."""
+    g = base or DPGrids()
+    if not spec:
+        return g
+    vals = {}
+    for part in spec.split(","):
+        if not part.strip():
+            continue
+        if "=" not in part:
+            raise ScenarioError(f"grid spec {part!r}: expected name=step")
+        k, v = (s.strip() for s in part.split("=", 1))
+        if k not in DPGrids.__dataclass_fields__:
+            raise ScenarioError(f"grid spec: unknown grid {k!r}; known: soc, tcl, tcab, pbat, qheat")
+        try:
+            x = float(v)
+        except ValueError:
+            raise ScenarioError(f"grid spec: {k}={v!r} is not a number") from None
+        if not x > 0:
+            raise ScenarioError(f"grid spec: {k} step must be positive")
+        vals[k] = x
+    return replace(g, **vals)
+
+
+def _grid(lo, hi, step):
+    n = int(math.floor((hi - lo) / step + 1e-9)) + 1
+    if n < 2:
+        raise ScenarioError(f"grid {lo}:{step}:{hi} has fewer than two points")
+    return lo + step * np.arange(n)
+

@@ -1,0 +1,315 @@
+"""Assembling and solving the three formulations (see :mod:`optimize.formulations`)."""
+from __future__ import annotations
+
+import math
+import resource
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+
+
+import numba
+import numpy as np
+
+from calib.model.cycles import Cycle
+from calib.errors import ScenarioError
+from calib.model.equations import IDLE, OFF, ON, f_cold, radiator, traction_power
+
+from ..dp.engine import DPProblem, DPResult, backward_pass, forward_pass
+from .layout import (LEVEL_TOL, PENALTY_G_PER_STEP, _C_CH, _C_CHI, _C_NQ, _C_NX, _C_PEN, _C_SH, _C_SHI,
+                     _C_SLO, _C_TAMB, _C_TBAT, _C_TH, _C_THI, _C_TLO, _C_TS, _C_WBL, _MS, _T_SOC0,
+                     pack_params)
+from .scenario import DPGrids, DPScenario, _grid
+from .transition import build_tables, hev_precompute, hev_transition
+
+
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process so far (MB; ru_maxrss, process-wide peak)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+@dataclass
+class DPOutcome:
+    """Result of one formulation: the re-simulated :class:`SimResult` and the DP figures."""
+
+    formulation: str
+    sim: object
+    dp: DPResult = field(repr=False)
+    dp_cost: float
+    predicted_cost: float
+    t_backward: float
+    t_forward: float
+    t_total: float
+    n_evaluations: int
+    n_states: int
+    n_controls: int
+    peak_rss_mb: float
+    grids: dict
+    scenario: dict
+    on_thermal: object = None  # Baseline-DP's controls on the full thermal model
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def evals_per_second(self) -> float:
+        return self.n_evaluations / self.t_backward if self.t_backward > 0 else float("nan")
+
+    @property
+    def fuel_g(self) -> float:
+        return self.sim.fuel_g
+
+    def charge_sustaining(self, soc_tol: float | None = None) -> bool:
+        tol = self.scenario.get("soc_tol", 1e-3) if soc_tol is None else soc_tol
+        ok = self.sim.soc[-1] >= self.sim.soc[0] - tol
+        if self.on_thermal is not None:
+            ok = ok and self.on_thermal.soc[-1] >= self.on_thermal.soc[0] - tol
+        return bool(ok)
+
+    def describe(self) -> dict:
+        return {"formulation": self.formulation, "fuel_g": self.sim.fuel_g, "dp_cost_g": self.dp_cost,
+                "predicted_cost_g": self.predicted_cost, "feasible": bool(self.dp.feasible),
+                "t_backward_s": self.t_backward, "t_forward_s": self.t_forward, "t_total_s": self.t_total,
+                "n_evaluations": self.n_evaluations, "evals_per_second": self.evals_per_second,
+                "n_states": self.n_states, "n_controls": self.n_controls, "peak_rss_mb": self.peak_rss_mb,
+                "grids": self.grids, **self.extra}
+
+
+class _Replay:
+    """Open-loop controller replaying a control sequence (for :func:`calib.model.simulate.simulate`)."""
+
+    def __init__(self, e_mode, P_bat_mg, Q_cmd, name):
+        self.e, self.p, self.q, self.name = e_mode, P_bat_mg, Q_cmd, name
+
+    def __call__(self, k, soc, T_cl, T_cab, P_trac, Ts=1.0):
+        return int(self.e[k]), float(self.p[k]), float(self.q[k])
+
+    def describe(self):
+        return self.name
+
+
+def replay(params, cycle, e_mode, P_bat_mg, Q_cmd, scen: DPScenario, name: str):
+    """Re-simulate a control sequence through :func:`calib.model.equations.step` from the scenario's initial state."""
+    from calib.model.simulate import simulate
+
+    return simulate(params, cycle, _Replay(e_mode, P_bat_mg, Q_cmd, name), T_amb=scen.T_amb, soc0=scen.soc0,
+                    T_cl0=scen.T_cl0, T_cab0=scen.T_cab0, Q_heat=scen.Q_heat)
+
+
+# ---------------------------------------------------------------------------------------------------
+# problem assembly
+# ---------------------------------------------------------------------------------------------------
+def _mp(params):
+    return params.model_params() if hasattr(params, "model_params") else params
+
+
+def reference_cabin(params, cycle: Cycle, scen: DPScenario) -> np.ndarray:
+    """Cabin trajectory (N+1,) under a constant ``Q_heat`` demand (heater-limited; rule-based coolant)."""
+    from calib.model.simulate import simulate
+
+    res = simulate(params, cycle, T_amb=scen.T_amb, soc0=scen.soc0, T_cl0=scen.T_cl0, T_cab0=scen.T_cab0,
+                   Q_heat=scen.Q_heat)
+    return res.T_cab.copy()
+
+
+def _power_controls(mp, grids: DPGrids) -> np.ndarray:
+    P_bat = _grid(mp.P_bat_min, mp.P_bat_max, grids.pbat)
+    rows = [(OFF, 0.0), (IDLE, 0.0)] + [(ON, pb - mp.P_aux) for pb in P_bat]
+    return np.array(rows, dtype=np.float64)
+
+
+def _traction(mp, cyc: Cycle) -> np.ndarray:
+    N, Ts = cyc.n_steps, cyc.Ts
+    grade = cyc.grade if cyc.grade is not None else np.zeros(N + 1)
+    return np.array([traction_power(mp, cyc.v[k], cyc.v[k + 1], grade[k], Ts) for k in range(N)])
+
+
+def _t_cl_tables(mp, tclg, T_amb):
+    fcl = np.array([f_cold(mp, t) for t in tclg])
+    T_com = T_amb + mp.kappa * (tclg - T_amb)
+    loss = mp.hA_eng * (tclg - T_com) + np.array([radiator(mp, t) for t in tclg])
+    return fcl, loss
+
+
+@dataclass
+class _Built:
+    prob: DPProblem
+    x0: np.ndarray
+    cyc: Cycle
+    extra: dict
+    mp: object = None
+
+
+def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: float | None = None,
+                  warm: bool = False, cycle=None) -> _Built:
+    """Assemble the :class:`DPProblem` of a formulation with ``nx`` states (1, 2 or 3)."""
+    mp = _mp(params)
+    if warm:
+        mp = mp._replace(f_cl=np.ones_like(mp.f_cl))
+    cyc = scen.load_cycle(cycle)
+    N, Ts = cyc.n_steps, cyc.Ts
+    if not (scen.soc_min <= scen.soc0 <= scen.soc_max):
+        raise ScenarioError(f"soc0 {scen.soc0} outside the SOC grid [{scen.soc_min}, {scen.soc_max}]")
+    socg = _grid(scen.soc_min, scen.soc_max, grids.soc)
+    tclg = _grid(scen.T_cl_min, scen.T_cl_max, grids.tcl)
+    fclg, lossg = _t_cl_tables(mp, tclg, scen.T_amb)
+    pc = _power_controls(mp, grids)
+    P_trac = _traction(mp, cyc)
+    extra = {}
+    w = np.zeros((N, 3))
+    w[:, 0] = P_trac
+    terminal = None
+    grid_list = [socg]
+    bounds = [(scen.soc0, None)]
+    x0 = [scen.soc0]
+    if nx >= 2:
+        if not (scen.T_cl_min <= scen.T_cl0 <= scen.T_cl_max):
+            raise ScenarioError(f"T_cl0 {scen.T_cl0} outside the coolant grid")
+        grid_list.append(tclg)
+        bounds.append((None, None))
+        x0.append(scen.T_cl0)
+    if nx >= 2:
+        ref = reference_cabin(params, cyc, scen)
+        w[:, 1] = ref[:-1]
+        extra["T_cab_ref_final"] = float(ref[-1])
+        extra["T_cab_ref_mean"] = float(np.mean(ref))
+    if nx == 3:
+        lb = ref - scen.cab_lb_offset
+        lb[0] = min(lb[0], scen.T_cab0)
+        w[:, 2] = lb[1:]
+        lo = math.floor(float(np.min(lb)) + 1e-9)
+        hi = max(scen.T_cab_ub, float(ref[-1]), scen.T_cab0)
+        if hi - lo < grids.tcab:
+            hi = lo + grids.tcab
+        tcabg = _grid(lo, hi, grids.tcab)
+        if tcabg[-1] < hi - 1e-9:
+            tcabg = np.append(tcabg, tcabg[-1] + grids.tcab)
+        grid_list.append(tcabg)
+        bounds.append((None, None))
+        T_term = float(ref[-1])
+        h_cab = float(tcabg[1] - tcabg[0])
+        rate = float(scen.cab_terminal_g_per_K)
+        terminal = lambda X: rate * np.maximum(T_term - X[:, 2], 0.0)  # noqa: E731
+        x0.append(scen.T_cab0)
+        Q = _grid(scen.Q_heat_min, scen.Q_heat_max, grids.qheat)
+        extra.update(T_cab_lb_min=float(np.min(lb)), T_cab_ub=float(tcabg[-1]),
+                     T_cab_terminal_min=float(ref[-1]))
+    else:
+        Q = np.array([scen.Q_heat if heater is None else heater])
+    nq = Q.size
+    controls = np.column_stack([np.repeat(pc, nq, axis=0), np.tile(Q, pc.shape[0])])
+    cfg = np.zeros(16)
+    cfg[_C_SLO], cfg[_C_SHI], cfg[_C_SH] = socg[0], socg[-1], socg[1] - socg[0]
+    cfg[_C_TLO], cfg[_C_THI], cfg[_C_TH] = tclg[0], tclg[-1], tclg[1] - tclg[0]
+    if nx == 3:
+        cfg[_C_CHI], cfg[_C_CH] = scen.T_cab_ub, grids.tcab
+    cfg[_C_PEN] = PENALTY_G_PER_STEP
+    cfg[_C_NX], cfg[_C_NQ], cfg[_C_TAMB], cfg[_C_TS] = nx, nq, scen.T_amb, Ts
+    cfg[_C_TBAT], cfg[_C_WBL] = mp.T_bat_ref, mp.W_bl
+    ms = np.array([float(getattr(mp, n)) for n in _MS])
+    big = build_tables(mp, pc, socg, P_trac, float(Ts), float(mp.T_bat_ref))
+    c = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
+    p = pack_params(cfg, ms, [socg, fclg, lossg, c(mp.soc_bp), c(mp.U_oc), c(mp.soc_bp_R), c(mp.R_int),
+                              c(mp.T_fcl), c(mp.f_cl), big])
+    prob = DPProblem(grids=grid_list, controls=controls, N=N, transition=hev_transition, w=w, params=p,
+                     terminal_bounds=bounds, terminal_cost=terminal, boundary="levelset", clip=True,
+                     level_tol=LEVEL_TOL, precompute=hev_precompute,
+                     table_shape=(pc.shape[0], _T_SOC0 + socg.size))
+    return _Built(prob, np.array(x0), cyc, extra, mp)
+
+
+def _solve(b: _Built, engine: str):
+    if engine == "fused" and b.prob.n_x >= 2:
+        from .fused import backward_pass_fused
+
+        vf = backward_pass_fused(b.prob)
+    else:
+        vf = backward_pass(b.prob)
+    res = forward_pass(b.prob, vf, b.x0)
+    return res
+
+
+def _outcome(name, params, b, res, scen, grids, sim, t0, on_thermal=None):
+    if not res.feasible:
+        raise ScenarioError(f"{name}: no feasible charge-sustaining solution on these grids (steps completed "
+                            f"{res.steps_completed}/{b.prob.N}, terminal level {res.terminal_level:.3g})")
+    return DPOutcome(formulation=name, sim=sim, dp=res, dp_cost=float(res.cost),
+                     predicted_cost=float(res.predicted_cost[0]), t_backward=res.t_backward,
+                     t_forward=res.t_forward, t_total=time.perf_counter() - t0,
+                     n_evaluations=int(res.n_evaluations), n_states=b.prob.n_states,
+                     n_controls=b.prob.n_controls, peak_rss_mb=peak_rss_mb(), grids=grids.to_dict(),
+                     scenario=scen.to_dict(), on_thermal=on_thermal, extra=b.extra)
+
+
+@contextmanager
+def _threads(n):
+    """Temporarily run numba parallel kernels on ``n`` threads (None: unchanged)."""
+    if n is None:
+        yield
+        return
+    old = numba.get_num_threads()
+    numba.set_num_threads(max(1, min(int(n), numba.config.NUMBA_NUM_THREADS)))
+    try:
+        yield
+    finally:
+        numba.set_num_threads(old)
+
+
+def solve_baseline(params, scenario: DPScenario | None = None, grids: DPGrids | None = None, *,
+                   threads: int | None = 1) -> DPOutcome:
+    """Baseline-DP (SOC only, f_cl = 1). ``.sim``: its own optimum (f_cl = 1); ``.on_thermal``: its
+    controls re-simulated on the full thermal model with the scenario's heater demand.
+
+    Solved by the generic engine on one thread by default: 41 states per step are too few to pay for a
+    parallel region per step."""
+    scen, grids = scenario or DPScenario(), grids or DPGrids()
+    t0 = time.perf_counter()
+    b = build_problem(params, scen, grids, 1, warm=True)
+    with _threads(threads):
+        res = _solve(b, "generic")
+    mp_warm = b.mp
+    e, pbm = res.u[:, 0], res.u[:, 1]
+    q = np.full(b.prob.N, scen.Q_heat)
+    sim = replay(mp_warm, b.cyc, e, pbm, q, scen, "Baseline-DP (f_cl = 1)")
+    sim.info["params"] = params.meta.get("name", "") if hasattr(params, "meta") else ""
+    on = replay(params, b.cyc, e, pbm, q, scen, "Baseline-DP policy on the thermal model")
+    return _outcome("baseline", params, b, res, scen, grids, sim, t0, on_thermal=on)
+
+
+def solve_thermal(params, scenario: DPScenario | None = None, grids: DPGrids | None = None, *,
+                  heater: float | None = None, warm: bool = False, engine: str = "fused",
+                  threads: int | None = None) -> DPOutcome:
+    """Thermal-DP (SOC, T_cl). ``heater`` overrides the scenario's demand (e.g. 0 W); ``warm=True``
+    sets f_cl = 1 (with heater 0 W it must reproduce Baseline-DP)."""
+    scen, grids = scenario or DPScenario(), grids or DPGrids()
+    t0 = time.perf_counter()
+    b = build_problem(params, scen, grids, 2, heater=heater, warm=warm)
+    with _threads(threads):
+        res = _solve(b, engine)
+    mp_used = b.mp
+    q = res.u[:, 2]
+    sim = replay(mp_used if warm else params, b.cyc, res.u[:, 0], res.u[:, 1], q, scen, "Thermal-DP")
+    out = _outcome("thermal", params, b, res, scen, grids, sim, t0)
+    out.extra["engine"] = engine
+    return out
+
+
+def solve_thermal_cabin(params, scenario: DPScenario | None = None, grids: DPGrids | None = None, *,
+                        engine: str = "fused", threads: int | None = None) -> DPOutcome:
+    """Thermal-Cabin-DP (SOC, T_cl, T_cab; Q_heat a control). ``engine``: "fused" (default) or "generic"."""
+    scen, grids = scenario or DPScenario(), grids or DPGrids()
+    t0 = time.perf_counter()
+    b = build_problem(params, scen, grids, 3)
+    with _threads(threads):
+        res = _solve(b, engine)
+    sim = replay(params, b.cyc, res.u[:, 0], res.u[:, 1], res.u[:, 2], scen, "Thermal-Cabin-DP")
+    out = _outcome("thermal_cabin", params, b, res, scen, grids, sim, t0)
+    out.extra["engine"] = engine
+    return out
+
+
+def solve_formulation(name: str, params, scenario=None, grids=None, **kw) -> DPOutcome:
+    fn = {"baseline": solve_baseline, "thermal": solve_thermal, "thermal_cabin": solve_thermal_cabin}
+    if name not in fn:
+        raise ScenarioError(f"unknown formulation {name!r}; choose from {', '.join(fn)}")
+    return fn[name](params, scenario, grids, **kw)

@@ -1,0 +1,156 @@
+"""The compiled HEV transition shared by the three formulations, and its per-step tables."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from calib.model.equations import IDLE, OFF, battery_ocv_r, fuel_map, power_split
+
+from .layout import (_A_BIG, _A_FCL, _A_FCLG, _A_LOSSG, _A_RINT, _A_SOCBP, _A_SOCBPR, _A_TFCL, _A_UOC, _CBAT,
+                     _CCAB, _CENG, _CP, _C_CH, _C_CHI, _C_NQ, _C_NX, _C_PEN, _C_SH, _C_SHI, _C_SLO, _C_TAMB,
+                     _C_TBAT, _C_TH, _C_THI, _C_TLO, _C_TS, _C_WBL, _EPS, _GAMMA, _HA, _KAPPA, _KRAD, _LHV,
+                     _MS0, _QRADMAX, _QSUN, _RECIRC, _R_TC, _TBREF, _TOPEN, _T_OK, _T_PBAT, _T_PE, _T_SOC0,
+                     _T_WF, _UACAB, _arr)
+
+@njit(cache=True)
+def build_tables(mp, pc, socg, P_trac, Ts, T_bat):  # pragma: no cover - compiled
+    """(N, n_p, 4 + n_soc): per step and power control: feasible, P_e, warm fuel (g/s), P_bat and the
+    next SOC at every SOC node (NaN: infeasible). Uses the model functions of :mod:`calib.model`."""
+    N = P_trac.shape[0]
+    nsoc = socg.shape[0]
+    out = np.empty((N, pc.shape[0], _T_SOC0 + nsoc))
+    Us = np.empty(nsoc)
+    Rs = np.empty(nsoc)
+    for i in range(nsoc):
+        Us[i], Rs[i] = battery_ocv_r(mp, socg[i], T_bat)
+    for k in range(N):
+        for ip in range(pc.shape[0]):
+            e = int(pc[ip, 0])
+            P_e, Pbm, P_em, P_brake, ok = power_split(mp, e, pc[ip, 1], P_trac[k])
+            P_bat = Pbm + mp.P_aux
+            if P_bat < mp.P_bat_min or P_bat > mp.P_bat_max:
+                ok = False
+            out[k, ip, _T_OK] = 1.0 if ok else 0.0
+            out[k, ip, _T_PE] = P_e
+            if e == OFF:
+                wf = 0.0
+            elif e == IDLE:
+                wf = mp.W_idle
+            else:
+                wf = fuel_map(mp, P_e)
+            out[k, ip, _T_WF] = wf
+            out[k, ip, _T_PBAT] = P_bat
+            for i in range(nsoc):
+                sn = np.nan
+                if ok:
+                    # calib.model.equations.battery's current, with U_oc and R_int of the node precomputed
+                    disc = Us[i] * Us[i] - 4.0 * Rs[i] * P_bat
+                    if disc >= 0.0:
+                        I = 2.0 * P_bat / (Us[i] + math.sqrt(disc))
+                        sn = socg[i] - I * Ts / mp.C_bat_As
+                out[k, ip, _T_SOC0 + i] = sn
+    return out
+
+
+
+@njit(cache=True)
+def hev_precompute(k, w_k, p, tab):  # pragma: no cover - compiled
+    """Per step: copy step k's slice of the per-step per-control table."""
+    o = int(p[_A_BIG])
+    n0 = tab.shape[0]
+    n1 = tab.shape[1]
+    o += k * n0 * n1
+    for i in range(n0):
+        for j in range(n1):
+            tab[i, j] = p[o + i * n1 + j]
+
+
+@njit(inline="always", cache=True)
+def _soc_next(p, soc, P_bat, Ts):
+    """Off-grid SOC step (forward pass): calib.model.equations.battery with the tables of p; NaN if no real root."""
+    U = np.interp(soc, _arr(p, _A_SOCBP), _arr(p, _A_UOC))
+    R = np.interp(soc, _arr(p, _A_SOCBPR), _arr(p, _A_RINT)) * math.exp(-p[_MS0 + _R_TC] * (p[_C_TBAT] - p[_MS0 + _TBREF]))
+    disc = U * U - 4.0 * R * P_bat
+    if disc < 0.0:
+        return np.nan
+    I = 2.0 * P_bat / (U + math.sqrt(disc))
+    return soc - I * Ts / p[_MS0 + _CBAT]
+
+
+@njit(cache=True)
+def hev_transition(k, x, u, w_k, p, tab, iu, ix, x_next):  # pragma: no cover - compiled
+    """x = (soc[, T_cl[, T_cab]]), u = (e_mode, P_bat_mg, Q_heat_cmd); w_k = (P_trac, T_cab_ref_k, T_cab_LB_k+1).
+
+    Returns the fuel (g) of the step, inf if infeasible. Same equations as :func:`calib.model.equations.step`."""
+    nq = int(p[_C_NQ])
+    ip = iu // nq
+    if tab[ip, _T_OK] == 0.0:
+        return np.inf
+    Ts = p[_C_TS]
+    soc = x[0]
+    if ix[0] >= 0:
+        sn = tab[ip, _T_SOC0 + ix[0]]
+    else:
+        sn = _soc_next(p, soc, tab[ip, _T_PBAT], Ts)
+    if not (sn == sn):
+        return np.inf
+    x_next[0] = sn
+    pen = 0.0
+    if sn < p[_C_SLO]:
+        pen += (p[_C_SLO] - sn) / p[_C_SH]
+    elif sn > p[_C_SHI]:
+        pen += (sn - p[_C_SHI]) / p[_C_SH]
+    nx = int(p[_C_NX])
+    wf = tab[ip, _T_WF]
+    if nx == 1:
+        return wf * Ts + p[_C_PEN] * pen
+    T_cl = x[1]
+    T_amb = p[_C_TAMB]
+    if ix[1] >= 0:
+        fcl = p[int(p[_A_FCLG]) + ix[1]]
+        loss = p[int(p[_A_LOSSG]) + ix[1]]
+    else:
+        fcl = np.interp(T_cl, _arr(p, _A_TFCL), _arr(p, _A_FCL))
+        T_com = T_amb + p[_MS0 + _KAPPA] * (T_cl - T_amb)
+        q_rad = 0.0
+        if T_cl > p[_MS0 + _TOPEN]:
+            q_rad = p[_MS0 + _KRAD] * (T_cl - p[_MS0 + _TOPEN])
+            if q_rad > p[_MS0 + _QRADMAX]:
+                q_rad = p[_MS0 + _QRADMAX]
+        loss = p[_MS0 + _HA] * (T_cl - T_com) + q_rad
+    W_f = wf * fcl
+    if nx == 3:
+        T_cab = x[2]
+    else:
+        T_cab = w_k[1]
+    T_in = p[_MS0 + _RECIRC] * T_cab + (1.0 - p[_MS0 + _RECIRC]) * T_amb
+    q_lim = p[_MS0 + _EPS] * p[_C_WBL] * p[_MS0 + _CP] * (T_cl - T_in)
+    q = u[2]
+    if q > q_lim:
+        q = q_lim
+    if q < 0.0:
+        q = 0.0
+    Q_fuel = p[_MS0 + _LHV] * W_f
+    P_e = tab[ip, _T_PE]
+    Q_exh = p[_MS0 + _GAMMA] * (Q_fuel - P_e)
+    tn = T_cl + Ts * (Q_fuel - P_e - Q_exh - loss - q) / p[_MS0 + _CENG]
+    x_next[1] = tn
+    if tn < p[_C_TLO]:
+        pen += (p[_C_TLO] - tn) / p[_C_TH]
+    elif tn > p[_C_THI]:
+        pen += (tn - p[_C_THI]) / p[_C_TH]
+    if nx == 3:
+        tc = T_cab + Ts * (q + p[_MS0 + _UACAB] * (T_amb - T_cab) + p[_MS0 + _QSUN]) / p[_MS0 + _CCAB]
+        x_next[2] = tc
+        if tc < w_k[2]:
+            pen += (w_k[2] - tc) / p[_C_CH]
+        elif tc > p[_C_CHI]:
+            pen += (tc - p[_C_CHI]) / p[_C_CH]
+    return W_f * Ts + p[_C_PEN] * pen
+
+
+# ---------------------------------------------------------------------------------------------------
+# outcome
+# ---------------------------------------------------------------------------------------------------
