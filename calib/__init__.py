@@ -13,21 +13,16 @@ Sub-packages: :mod:`calib.model` (equations, parameters, cycles, simulation, sto
 toolkit, subsystem fitters, driver, validation), :mod:`calib.synth` (SYNTHETIC logs with a known truth).
 ``calib`` never imports ``optimize`` or ``iptm``.
 """
-from importlib.metadata import PackageNotFoundError, version as _version
+from ._version import __version__
 
-try:
-    __version__ = _version("iptm")
-except PackageNotFoundError:  # running from a source tree that was never installed
-    __version__ = "0+unknown"
-
-from .errors import (IptmError, LogFormatError, MissingChannelsError, ParameterError,  # noqa: E402
+from .errors import (IptmError, LogFormatError, MissingChannelsError, ParameterError,
                      ScenarioError)
-from .drivelog import DriveLog, LogMeta  # noqa: E402
-from .model import (Cycle, ParameterSet, RuleBasedController, RuleParams, SimResult,  # noqa: E402
+from .drivelog import DriveLog, LogMeta
+from .model import (Cycle, ParameterSet, RuleBasedController, RuleParams, SimResult,
                     available_cycles, default_parameters, load_cycle, simulate)
-from .ingest import channel_report, read_canonical, read_log, write_canonical  # noqa: E402
-from .fit import CalibrationResult, calibrate, replay, validate  # noqa: E402
-from .synth import synthesise  # noqa: E402
+from .ingest import channel_report, read_canonical, read_log, write_canonical
+from .fit import CalibrationResult, calibrate, replay, validate
+from .synth import synthesise
 
 __all__ = [
     "__version__",

@@ -64,6 +64,7 @@ class LogMeta:
     notes: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
+        """The metadata as a JSON-able dict."""
         return asdict(self)
 
     @classmethod
@@ -89,26 +90,32 @@ class DriveLog:
 
     @property
     def name(self) -> str:
+        """The source file name (or the label given when the log was built)."""
         return Path(self.meta.source).name
 
     @property
     def dt(self) -> float:
+        """The sample spacing of the canonical table, in s."""
         t = self.data.index.to_numpy()
         return float(np.median(np.diff(t))) if len(t) > 1 else 1.0
 
     @property
     def duration_s(self) -> float:
+        """Time from the first to the last sample, in s."""
         t = self.data.index.to_numpy()
         return float(t[-1] - t[0]) if len(t) else 0.0
 
     def channels(self) -> list[str]:
+        """Canonical channels that have at least one valid sample."""
         return [c for c in self.data.columns if c in CHANNELS and self.data[c].notna().any()]
 
     def has(self, *channels: str) -> bool:
+        """Whether every named channel has at least one valid sample."""
         present = set(self.channels())
         return all(c in present for c in channels)
 
     def missing(self, channels) -> list[str]:
+        """Which of the named channels have no valid sample."""
         present = set(self.channels())
         return [c for c in channels if c not in present]
 
@@ -119,4 +126,5 @@ class DriveLog:
             raise MissingChannelsError(miss, purpose, self.meta.source)
 
     def label(self) -> str:
+        """The name, with ``[SYNTHETIC]`` appended for synthetic logs."""
         return f"{self.name} [SYNTHETIC]" if self.meta.synthetic else self.name

@@ -48,7 +48,7 @@ def code_version(*packages: str) -> str:
     """
     import importlib
 
-    from calib import __version__
+    from calib._version import __version__
 
     packages = packages or ("calib",)
     key = tuple(sorted(packages))

@@ -1,4 +1,4 @@
-"""Synthetic drive logs from a known "truth" parameter set (spec/logs.md: no real Prius winter log is public).
+"""Synthetic drive logs from a known "truth" parameter set (docs/logs.md: no real Prius winter log is public).
 
 :func:`synthesise` drives the model over a cycle with the rule-based controller and a cabin thermostat,
 then turns the true trajectories into sensor streams with realistic effects: per-signal rates, noise,
@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from calib.drivelog import CHANNELS, DriveLog, LogMeta
+from calib.drivelog import CHANNELS, LogMeta
 from calib.model.params import ParameterSet, default_parameters
 from calib.model.rulebased import RuleBasedController, RuleParams
 
@@ -238,16 +238,3 @@ def synthesise(sc: Scenario, truth: ParameterSet, seed: int = 0):
                    notes=[f"SYNTHETIC log: {sc.description or sc.name}; truth parameters "
                           f"{truth.meta.get('name', '')}; seed {seed}"])
     return sim, streams, meta
-
-
-def truth_drivelog(sim, sc: Scenario | None = None) -> DriveLog:
-    """The noise-free 1 Hz log of the true signals (for tests of the fitters' equations)."""
-    sig = true_signals(sim)
-    n1 = len(sim.t)
-    data = {ch: (vals if kind == "state" else np.append(vals, vals[-1])) for ch, (kind, vals) in sig.items()}
-    df = pd.DataFrame(data, index=pd.Index(sim.t.astype(float), name="time_s"))
-    if sc is not None and sc.T_bat is not None:
-        df["bat_temp_degC"] = float(sc.T_bat)
-    assert len(df) == n1
-    return DriveLog(df, LogMeta(source=f"{sc.name if sc else 'truth'}.truth", format="synthetic", synthetic=True,
-                                notes=["SYNTHETIC noise-free truth"]))

@@ -197,8 +197,3 @@ def convert(values, from_unit: str, to_unit: str, *, density: float | None = Non
     except pint.errors.DimensionalityError as exc:
         raise UnitError(f"cannot convert {from_unit!r} to {to_unit!r}: different dimensions") from exc
     return float(out) if scalar else out
-
-
-def check_convertible(from_unit: str, to_unit: str) -> None:
-    """Raise :class:`UnitError` unless ``from_unit`` converts to ``to_unit`` (fuel density allowed)."""
-    convert(1.0, from_unit, to_unit)

@@ -41,8 +41,6 @@ SCENARIO = "iptm_scenario"
 DEFAULT_MAX_UPLOAD_MB = 200.0
 #: Extensions the readers understand (calib.ingest); anything else is refused up front with a message.
 LOG_EXTENSIONS = (".csv", ".txt", ".mcap", ".log", ".candump", ".asc", ".blf", ".trc", ".mf4", ".mdf")
-REPO_ROOT = Path(__file__).resolve().parent.parent
-BUNDLED_DIR = REPO_ROOT / "logs"
 
 
 @dataclass
@@ -78,8 +76,9 @@ def max_upload_bytes() -> int:
 
 
 def cache_dir() -> Path:
-    """The shared content-keyed cache (``IPTM_CACHE_DIR``, default ``<repo>/.iptm-cache``)."""
-    return Path(os.environ.get("IPTM_CACHE_DIR") or (REPO_ROOT / ".iptm-cache"))
+    """The shared content-keyed cache (``IPTM_CACHE_DIR``, default ``.iptm-cache`` in the working folder,
+    the same as ``iptm run``)."""
+    return Path(os.environ.get("IPTM_CACHE_DIR") or ".iptm-cache")
 
 
 def _human(n: float) -> str:
@@ -219,7 +218,9 @@ def set_dbc(state, name: str, data: bytes, *, max_bytes: int | None = None) -> P
 
 def bundled_logs(include_other_formats: bool = False, root: Path | None = None) -> list[Path]:
     """The bundled sample logs (all SYNTHETIC): the ``.blf`` drives, optionally the same drive as CSV/MCAP/candump."""
-    root = Path(root or BUNDLED_DIR)
+    from iptm.bundled import bundled_logs_dir
+
+    root = Path(root or bundled_logs_dir())
     files = sorted(root.glob("*.blf"))
     if include_other_formats:
         files += sorted(p for p in root.iterdir() if p.suffix.lower() in (".csv", ".mcap", ".log"))

@@ -94,7 +94,12 @@ def load_scenario(path=None):
     return scen, grids, strategies, cycle_log
 
 
-def default_logs(root=Path("logs")) -> list[Path]:
+def default_logs(root=None) -> list[Path]:
+    """The bundled logs the main job runs on when none are named (:func:`iptm.bundled.bundled_logs_dir`)."""
+    if root is None:
+        from iptm.bundled import bundled_logs_dir
+
+        root = bundled_logs_dir()
     files = sorted(Path(root).glob(DEFAULT_LOG_GLOB))
     if not files:
         raise IptmError(f"no logs given and none bundled in {root}/ (expected {DEFAULT_LOG_GLOB}); "

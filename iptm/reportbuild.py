@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from calib import __version__
+from calib._version import __version__
 from calib.fileio import write_json, write_text
 
 from .report import Section, render

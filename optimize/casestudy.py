@@ -1,4 +1,4 @@
-"""The case study of spec/optimization.md s.4: rule-based vs the three DP formulations.
+"""The case study of docs/optimization.md s.4: rule-based vs the three DP formulations.
 
 ``run_case_study(params, scenario)`` tunes the rule-based controller for the scenario
 (:func:`optimize.tuning.tune_rule_based`), solves Baseline-DP (and re-simulates its controls on the
@@ -42,6 +42,7 @@ class CaseStudy:
     timings: dict = field(default_factory=dict)
 
     def table(self) -> pd.DataFrame:
+        """The comparison table (one row per strategy) as a DataFrame."""
         rows = []
         ref_rule = self.sims["rule"].fuel_g if "rule" in self.sims else np.nan
         ref_base = self.sims["baseline"].fuel_g if "baseline" in self.sims else np.nan
@@ -76,6 +77,7 @@ class CaseStudy:
         return all(a >= b - tol_g for a, b in zip(f, f[1:]))
 
     def to_dict(self) -> dict:
+        """The table, DP figures and tuned thresholds as a JSON-able dict."""
         df = self.table().reset_index()
         rows = [{k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in r.items()}
                 for r in df.to_dict(orient="records")]
@@ -85,6 +87,7 @@ class CaseStudy:
                 "ordering_ok": self.ordering_ok(), "paper_savings": PAPER_SAVINGS}
 
     def format_table(self) -> str:
+        """The comparison table as text, as ``iptm optimize`` prints it."""
         df = self.table()
         cols = ["fuel_g", "fuel_corrected_g", "soc_final", "T_cl_final_degC", "T_cl_mean_degC",
                 "T_cab_final_degC", "T_cab_mean_degC", "engine_starts", "idle_s", "saving_vs_rule_pct",

@@ -32,6 +32,7 @@ def convergence_study(params, scenario: DPScenario | None = None, formulations=(
 
 
 def format_convergence(rows) -> str:
+    """The convergence study as text: fuel per grid and the change when every step is halved."""
     lines = [f"{'formulation':<14s} {'fuel (grid) g':>14s} {'fuel (halved) g':>16s} {'change %':>9s}  < 0.5 %?"]
     for r in rows:
         lines.append(f"{r['formulation']:<14s} {r['fuel_g']:14.3f} {r['fuel_g_half']:16.3f} "

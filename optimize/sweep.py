@@ -1,4 +1,4 @@
-"""Parameter sweeps: many independent DP / rule-based runs on dask.distributed (GitHub issue 8).
+"""Parameter sweeps: many independent DP / rule-based runs on dask.distributed.
 
 A *study* is a TOML file::
 

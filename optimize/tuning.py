@@ -1,4 +1,4 @@
-"""Per-scenario tuning of the rule-based controller (spec/optimization.md s.3).
+"""Per-scenario tuning of the rule-based controller (docs/optimization.md s.3).
 
 The rule-based baseline must be fair: its thresholds are tuned for each scenario by an exhaustive search
 over a documented grid (:data:`SEARCH_GRID`), minimising fuel subject to charge sustaining

@@ -42,7 +42,7 @@ def _run_sweep(key, _study, _bar):
 
 
 def _sweep_section(params, scenario, grids, strategies):
-    """A sweep over the ambient temperature with the scenario above (optimize.sweep, issue 8)."""
+    """A sweep over the ambient temperature with the scenario above (optimize.sweep)."""
     with st.expander("Sweep over the ambient temperature (optimize.sweep on a local dask cluster)"):
         txt = st.text_input("Ambient temperatures [degC], comma separated", "-20, -10, 0", key="sweep_Tamb")
         if not st.button("Run sweep", key="sweep_run"):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from numba import njit
 
-from optimize.dp.engine import DPProblem, backward_pass, cartesian, forward_pass, interpolate, solve
+from optimize.dp.engine import DPProblem, backward_pass, cartesian, interpolate, solve
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -1,10 +1,10 @@
-"""Unit tests per equation of spec/model.md: balances, steady states, limits."""
+"""Unit tests per equation of docs/model.md: balances, steady states, limits."""
 import math
 
 import numpy as np
 import pytest
 
-from calib import model as M
+from calib.model import equations as M
 
 
 def test_traction_power_road_load_at_constant_speed(mp):

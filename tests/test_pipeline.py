@@ -109,3 +109,20 @@ def test_scenario_file(tmp_path):
     f.write_text('[scenario]\nambient = 3\n')
     with pytest.raises(IptmError, match="unknown scenario field"):
         pipeline.load_scenario(f)
+
+
+def test_source_edit_recomputes_what_depends_on_it(first_run, monkeypatch):
+    """The cache keys carry the source digest: a different calib source recomputes calibration and DP."""
+    cfg, out = first_run
+    cache = Path(cfg.cache_dir)
+    before = {p.name for p in (cache / "calib").iterdir()}
+    real = pipeline.code_version
+    monkeypatch.setattr(pipeline, "code_version", lambda *pk: real(*pk) + "-edited" if "calib" in pk else real(*pk))
+    calls = []
+    import calib.fit.driver as driver
+
+    orig = driver.calibrate
+    monkeypatch.setattr(driver, "calibrate", lambda *a, **k: calls.append(1) or orig(*a, **k))
+    pipeline.run(cfg)
+    assert calls, "calibration was served from the cache after a source change"
+    assert {p.name for p in (cache / "calib").iterdir()} - before

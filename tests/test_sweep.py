@@ -1,4 +1,4 @@
-"""Parameter sweeps on dask.distributed (optimize/sweep.py, iptm sweep): GitHub issue 8.
+"""Parameter sweeps on dask.distributed (optimize/sweep.py, iptm sweep).
 
 One LocalCluster (2 worker processes, 1 thread each) is shared by the module. The small study: 2 ambients x
 2 cycles, the first 60 s of each cycle, coarse grids, rule-based + Thermal-DP.

@@ -1,4 +1,4 @@
-"""Battery fit (spec/model.md s.3 and s.8): U_oc(SOC), R_int(SOC) tables, capacity, R_int(T).
+"""Battery fit (docs/model.md s.3 and s.8): U_oc(SOC), R_int(SOC) tables, capacity, R_int(T).
 
 - Tables: the terminal voltage ``V = U_oc(SOC) - R_int(SOC) exp(-tc (T_bat - T_ref)) I`` is linear in the
   table values given SOC, current and temperature. With the piecewise-linear (hat-function) basis
@@ -10,13 +10,14 @@
   sample of the whole log (the quantisation averages out over long windows; the standard error is
   inflated for the autocorrelated quantisation error).
 - ``R_int_tc_per_K``: only when the logged battery temperatures span >= 10 K; profile of the table fit's
-  residual sum of squares over the coefficient (golden section), standard error from its curvature.
+  residual sum of squares over the coefficient (scipy's bounded scalar minimiser), standard error from its curvature.
 """
 from __future__ import annotations
 
 import math
 
 import numpy as np
+from scipy.optimize import minimize_scalar
 
 from calib.fit.toolkit import U_OC_SE_MAX_V, ParamEstimate, SubsystemFit, inflation, judge, not_fitted, usable_logs
 
@@ -227,7 +228,7 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
         if not any(r["T_logged"] for r in rows):
             fit.estimates["R_int_tc_per_K"] = ParamEstimate(
                 "R_int_tc_per_K", tc, None, "undetermined", "no battery temperature logged: tables fitted at "
-                f"T_ref assumed; coefficient left at prior", prior=tc)
+                "T_ref assumed; coefficient left at prior", prior=tc)
         elif T_span < MIN_T_SPAN:
             fit.estimates["R_int_tc_per_K"] = ParamEstimate(
                 "R_int_tc_per_K", tc, None, "undetermined",
@@ -235,20 +236,8 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
         else:
             lo, hi = base.param("R_int_tc_per_K").bounds
             sse = lambda c: _table_fit(rows, bpU, bpR, U0, R0, c, T_ref, varyU, varyR)[4]  # noqa: E731
-            gr = (math.sqrt(5) - 1) / 2
-            a, b = lo, min(hi, 0.08)
-            c1, c2 = b - gr * (b - a), a + gr * (b - a)
-            f1, f2 = sse(c1), sse(c2)
-            for _ in range(40):
-                if f1 < f2:
-                    b, c2, f2 = c2, c1, f1
-                    c1 = b - gr * (b - a)
-                    f1 = sse(c1)
-                else:
-                    a, c1, f1 = c1, c2, f2
-                    c2 = a + gr * (b - a)
-                    f2 = sse(c2)
-            c = 0.5 * (a + b)
+            c = float(minimize_scalar(sse, bounds=(lo, min(hi, 0.08)), method="bounded",
+                                      options={"xatol": 1e-10}).x)
             h = max(1e-4, 0.02 * abs(c))
             U_, R_, cov_, segs_, s0, n0 = _table_fit(rows, bpU, bpR, U0, R0, c, T_ref, varyU, varyR)
             curv = (sse(c + h) - 2 * s0 + sse(c - h)) / h ** 2

@@ -1,4 +1,4 @@
-"""Cabin and heater-core fit (spec/model.md s.6 and s.8).
+"""Cabin and heater-core fit (docs/model.md s.6 and s.8).
 
 - ``C_cab``, ``UA_cab``, ``Q_sun``: output error. The cabin temperature is simulated from the logged heater
   heat and ambient temperature by eq. 10 in a compiled loop (:func:`calib.fit.validate.cabin_replay`, which

@@ -1,4 +1,4 @@
-"""Calibration: identify the model of spec/model.md from drive logs, with uncertainty and validation.
+"""Calibration: identify the model of docs/model.md from drive logs, with uncertainty and validation.
 
 :func:`calibrate` runs one fitter per subsystem over all logs that carry the channels it declares in
 ``NEEDS`` (one residual vector across logs), merges the estimates into a
@@ -108,6 +108,7 @@ class CalibrationResult:
     version: str
 
     def calibration_section(self) -> dict:
+        """The ``[calibration]`` section of the artifact: logs, date, software, per-subsystem metrics."""
         sec = {"software": f"iptm/calib {self.version}", "date_utc": self.date, "wall_s": round(self.wall_s, 3),
                "criteria": {"rel_se_max": REL_SE_MAX, "corr_max": CORR_MAX, "u_oc_se_max_V": U_OC_SE_MAX_V},
                "logs": self.logs, "subsystems": {}}
@@ -127,6 +128,7 @@ class CalibrationResult:
         return sec
 
     def to_dict(self) -> dict:
+        """Everything in JSON-able form (estimates, fits, validation metrics)."""
         d = self.params.to_dict()
         d["calibration"] = self.calibration_section()
         d["validation"] = {"logs": self.validation_logs, "metrics": _clean(self.validation)}
@@ -259,7 +261,7 @@ def calibrate(logs, *, base=None, fit=None, fix=None, validate=None, progress=Tr
 
     from tqdm.auto import tqdm
 
-    from calib import __version__
+    from calib._version import __version__
     from calib.errors import IptmError, ParameterError
     from calib.fit.battery import fit_battery
     from calib.fit.cabin import fit_cabin

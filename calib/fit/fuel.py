@@ -1,4 +1,4 @@
-"""Fuel fit (spec/model.md s.4 and s.8): warm map scale, idle fuel, cold factor table.
+"""Fuel fit (docs/model.md s.4 and s.8): warm map scale, idle fuel, cold factor table.
 
 The model is ``W_f = max(fuel_scale * P_e / (eta_ool(P_e) LHV), W_idle) f_cl(T_cl)`` with the engine on and
 ``W_idle f_cl(T_cl)`` idling (:func:`calib.model.equations.fuel_rate`). One lmfit least-squares fit over the

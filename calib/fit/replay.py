@@ -221,12 +221,6 @@ def log_arrays(log, mp) -> LogArrays:
     return la
 
 
-def first_valid(a, default=np.nan):
-    a = np.asarray(a, float)
-    i = np.flatnonzero(np.isfinite(a))
-    return float(a[i[0]]) if i.size else default
-
-
 def first_valid_mean(a, n=5, default=np.nan):
     """Mean of the first ``n`` valid samples (less sensitive to noise than one sample)."""
     a = np.asarray(a, float)

@@ -1,4 +1,4 @@
-"""Engine thermal fit (spec/model.md s.5 and s.8) by output error.
+"""Engine thermal fit (docs/model.md s.5 and s.8) by output error.
 
 - ``kappa``: when a log carries the engine-bay (compartment) temperature, directly from eq. 8,
   ``T_com - T_amb = kappa (T_cl - T_amb)`` (linear least squares through the origin over samples with the

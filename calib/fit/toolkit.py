@@ -60,6 +60,7 @@ class SubsystemFit:
 
     @property
     def fitted(self) -> bool:
+        """Whether any parameter of this subsystem was fitted (not all held at prior or fixed)."""
         return any(e.status == "estimated" for e in self.estimates.values())
 
 

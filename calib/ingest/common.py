@@ -169,17 +169,3 @@ def make_series(t, v, channel: str) -> pd.Series:
         s = pd.Series(v, index=t).groupby(level=0).mean()
         t, v = s.index.to_numpy(float), s.to_numpy(float)
     return pd.Series(v, index=pd.Index(t, name="time_s"), name=channel)
-
-
-def merge_streams(parts: dict[str, list[tuple[np.ndarray, np.ndarray]]]) -> dict:
-    """Concatenate per-channel chunks ``[(t, v), ...]`` into streams."""
-    out = {}
-    for ch, chunks in parts.items():
-        if not chunks:
-            continue
-        t = np.concatenate([c[0] for c in chunks])
-        v = np.concatenate([c[1] for c in chunks])
-        s = make_series(t, v, ch)
-        if len(s):
-            out[ch] = s
-    return out

@@ -30,17 +30,21 @@ class Cycle:
 
     @property
     def Ts(self) -> float:
+        """Time step in s (the cycle's sample spacing)."""
         return float(self.t[1] - self.t[0])
 
     @property
     def n_steps(self) -> int:
+        """Number of model steps (samples minus one)."""
         return len(self.v) - 1
 
     @property
     def distance_m(self) -> float:
+        """Distance driven over the cycle, in m."""
         return float(np.sum(0.5 * (self.v[1:] + self.v[:-1])) * self.Ts)
 
     def describe(self) -> dict:
+        """One line: name, duration, distance and mean speed."""
         return {"name": self.name, "duration_s": float(self.t[-1] - self.t[0]),
                 "distance_km": self.distance_m / 1e3,
                 "mean_speed_kph": self.distance_m / max(self.t[-1] - self.t[0], 1e-9) * 3.6,
@@ -48,6 +52,7 @@ class Cycle:
 
 
 def available_cycles() -> list[str]:
+    """Names of the bundled drive cycles (``calib/data/cycles``)."""
     return sorted(p.name[:-4] for p in CYCLE_DIR.iterdir() if p.name.endswith(".csv"))
 
 

@@ -1,4 +1,4 @@
-"""The vehicle model of spec/model.md: one implementation for simulation, fitting and DP.
+"""The vehicle model of docs/model.md: one implementation for simulation, fitting and DP.
 
 Every equation is a small ``numba`` function on scalars taking the compiled parameter tuple
 (:meth:`calib.model.params.ParameterSet.model_params`). Compiled kernels (the simulator's step, the fitters'
@@ -10,7 +10,7 @@ controls ``e_mode`` (1 off, 2 idle, 3 on), ``P_bat_mg`` (W, + = discharge; only 
 ``Q_heat_cmd`` (W, heat requested from the heater core); exogenous ``v, v_next`` (m/s at steps k, k+1),
 ``grade`` (rad), ``T_amb``, ``T_bat`` (degC), ``W_bl`` (kg/s blower flow).
 
-Refinements of the spec's choices (allowed by spec/model.md, stated here):
+Refinements of the spec's choices (allowed by docs/model.md, stated here):
 
 - Traction power uses the step's mean speed ``(v_k + v_{k+1})/2`` with ``a_k = (v_{k+1} - v_k)/Ts``, so
   the kinetic-energy change over a step is exact and pulling away from standstill costs power.

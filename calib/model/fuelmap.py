@@ -1,6 +1,6 @@
 """Measured engine fuel maps: read a speed x torque map and derive the optimal operating line (OOL).
 
-The model runs the engine on its OOL (spec/model.md s.2): for each engine power the speed that burns the
+The model runs the engine on its OOL (docs/model.md s.2): for each engine power the speed that burns the
 least fuel. A measured map is therefore reduced, once, to the tables the model uses: engine efficiency
 ``eta_ool`` and speed ``n_ool_rpm`` at power breakpoints ``P_e``. The map is a CSV in long form, one
 operating point per row, with units in the header (converted with pint)::
@@ -46,6 +46,7 @@ class FuelMap:
 
     @property
     def power_W(self) -> np.ndarray:
+        """Engine power of every map point, in W."""
         return self.speed_rpm * RPM * self.torque_Nm
 
 

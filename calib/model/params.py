@@ -15,7 +15,7 @@ The file format is TOML (or JSON with the same structure)::
     value = 80000.0
     unit = "J/K"
     bounds = [20000.0, 400000.0]
-    source = "spec/model.md section 5 (prior)"
+    source = "docs/model.md section 5 (prior)"
 
 A value given in another but compatible unit (``unit = "kJ/K"``) is converted on load; an incompatible
 unit, an unknown name, a value outside its bounds or a non-monotonic table breakpoint is an error.
@@ -83,9 +83,11 @@ class Parameter:
 
     @property
     def is_table(self) -> bool:
+        """Whether the value is a table over breakpoints ``x``."""
         return self.x is not None
 
     def to_dict(self) -> dict:
+        """The parameter as a TOML/JSON-able dict."""
         d = {"value": self.value, "unit": self.unit, "bounds": list(self.bounds), "source": self.source}
         if self.description:
             d["description"] = self.description
@@ -118,7 +120,7 @@ def _battery_tables(T_C: int = 26, n_modules: int = 28):
     return soc, ocv, res
 
 
-# FASTSim 2016 Prius engine efficiency vs fraction of 71 kW (spec/model.md section 4), extended to
+# FASTSim 2016 Prius engine efficiency vs fraction of 71 kW (docs/model.md section 4), extended to
 # 72 kW. The optimal-operating-line speed is our choice: it passes through 142 N m at 3600 rpm and
 # 72 kW at 5200 rpm (2ZR-FXE data) and through 1000 rpm (idle) at zero power.
 _ENG_FRAC = [0.0, 0.005, 0.015, 0.04, 0.06, 0.10, 0.14, 0.20, 0.40, 0.60, 0.80, 1.00]
@@ -140,20 +142,20 @@ def default_parameters() -> "ParameterSet":
     plist = [
         # road load and vehicle
         _p("m_kg", 1531.0, "kg", 1000, 2500, f"{epa}: equivalent test weight 3375 lb", "test mass"),
-        _p("m_eq_factor", 1.03, "dimensionless", 1.0, 1.15, "spec/model.md s.1", "rotating-inertia factor"),
+        _p("m_eq_factor", 1.03, "dimensionless", 1.0, 1.15, "docs/model.md s.1", "rotating-inertia factor"),
         _p("A_N", 81.28, "N", 0, 400, f"{epa}: A = 18.272 lbf", "road-load constant term"),
         _p("B_N_per_mps", 2.940, "N*s/m", 0, 30, f"{epa}: B = 0.29545 lbf/mph", "road-load linear term"),
         _p("C_N_per_mps2", 0.3070, "N*s^2/m^2", 0.05, 1.5, f"{epa}: C = 0.013793 lbf/mph^2",
            "road-load quadratic term"),
         # power split
-        _p("eta_em", 0.88, "dimensionless", 0.6, 1.0, "spec/model.md s.2", "motor+inverter+gearing, lumped"),
-        _p("eta_mech", 0.96, "dimensionless", 0.8, 1.0, "spec/model.md s.2", "engine-path mechanical"),
+        _p("eta_em", 0.88, "dimensionless", 0.6, 1.0, "docs/model.md s.2", "motor+inverter+gearing, lumped"),
+        _p("eta_mech", 0.96, "dimensionless", 0.8, 1.0, "docs/model.md s.2", "engine-path mechanical"),
         _p("P_e_max_W", 72e3, "W", 30e3, 120e3, "Toyota: 2ZR-FXE 72 kW at 5200 rpm", "engine maximum"),
-        _p("P_regen_max_W", 25e3, "W", 0, 80e3, "spec/model.md s.2", "regenerative braking limit at wheels"),
-        _p("n_idle_rpm", 1000.0, "rpm", 600, 1500, "spec/model.md s.2", "idle speed"),
-        _p("P_aux_W", 400.0, "W", 0, 5000, "spec/model.md s.2", "12 V loads and blower from the HV bus"),
-        _p("P_bat_min_W", -25e3, "W", -60e3, 0, "spec/model.md s.2", "battery charge power limit"),
-        _p("P_bat_max_W", 25e3, "W", 0, 60e3, "spec/model.md s.2", "battery discharge power limit"),
+        _p("P_regen_max_W", 25e3, "W", 0, 80e3, "docs/model.md s.2", "regenerative braking limit at wheels"),
+        _p("n_idle_rpm", 1000.0, "rpm", 600, 1500, "docs/model.md s.2", "idle speed"),
+        _p("P_aux_W", 400.0, "W", 0, 5000, "docs/model.md s.2", "12 V loads and blower from the HV bus"),
+        _p("P_bat_min_W", -25e3, "W", -60e3, 0, "docs/model.md s.2", "battery charge power limit"),
+        _p("P_bat_max_W", 25e3, "W", 0, 60e3, "docs/model.md s.2", "battery discharge power limit"),
         # battery
         _p("U_oc_V", ocv, "V", 150, 300, bat + " at 26 degC", "pack open-circuit voltage",
            x=soc, x_name="soc", x_unit="dimensionless"),
@@ -172,29 +174,29 @@ def default_parameters() -> "ParameterSet":
         _p("fuel_scale", 1.07, "dimensionless", 0.5, 2.0,
            "tuned to EPA warm UDDS/HWFET/US06 with the rule-based controller (calib.model.epa.tune_fuel_scale)",
            "warm fuel-map scale"),
-        _p("W_idle_g_per_s", 0.10, "g/s", 0.02, 0.5, "spec/model.md s.4", "idle fuel rate, warm"),
-        _p("f_cl", [1.5, 1.2, 1.05, 1.0], "dimensionless", 1.0, 3.0, "spec/model.md s.4 (prior shape)",
+        _p("W_idle_g_per_s", 0.10, "g/s", 0.02, 0.5, "docs/model.md s.4", "idle fuel rate, warm"),
+        _p("f_cl", [1.5, 1.2, 1.05, 1.0], "dimensionless", 1.0, 3.0, "docs/model.md s.4 (prior shape)",
            "cold-coolant fuel factor", x=[-10.0, 20.0, 60.0, 80.0], x_name="T_cl", x_unit="degC"),
         _p("LHV_J_per_g", 42.6e3, "J/g", 40e3, 45e3, "gasoline, 42.6 MJ/kg", "lower heating value", vary=False),
         # engine coolant
-        _p("C_eng_J_per_K", 80e3, "J/K", 20e3, 400e3, "spec/model.md s.5 (prior)", "engine+coolant heat capacity"),
-        _p("gamma_exh", 0.5, "dimensionless", 0.2, 0.8, "spec/model.md s.5 (prior)",
+        _p("C_eng_J_per_K", 80e3, "J/K", 20e3, 400e3, "docs/model.md s.5 (prior)", "engine+coolant heat capacity"),
+        _p("gamma_exh", 0.5, "dimensionless", 0.2, 0.8, "docs/model.md s.5 (prior)",
            "fraction of fuel heat (not work) leaving with the exhaust"),
-        _p("hA_eng_W_per_K", 25.0, "W/K", 1.0, 300.0, "spec/model.md s.5 (prior)", "engine-to-compartment"),
-        _p("kappa", 0.3, "dimensionless", 0.0, 0.9, "spec/model.md s.5 (prior)",
+        _p("hA_eng_W_per_K", 25.0, "W/K", 1.0, 300.0, "docs/model.md s.5 (prior)", "engine-to-compartment"),
+        _p("kappa", 0.3, "dimensionless", 0.0, 0.9, "docs/model.md s.5 (prior)",
            "compartment temperature: T_com = T_amb + kappa (T_cl - T_amb)"),
-        _p("T_open_degC", 88.0, "degC", 70.0, 105.0, "spec/model.md s.5 (prior)", "thermostat opening"),
-        _p("k_rad_W_per_K", 1500.0, "W/K", 100.0, 20000.0, "spec/model.md s.5 (prior)", "radiator gain"),
-        _p("Q_rad_max_W", 30e3, "W", 1e3, 100e3, "spec/model.md s.5 (prior)", "radiator capacity"),
+        _p("T_open_degC", 88.0, "degC", 70.0, 105.0, "docs/model.md s.5 (prior)", "thermostat opening"),
+        _p("k_rad_W_per_K", 1500.0, "W/K", 100.0, 20000.0, "docs/model.md s.5 (prior)", "radiator gain"),
+        _p("Q_rad_max_W", 30e3, "W", 1e3, 100e3, "docs/model.md s.5 (prior)", "radiator capacity"),
         # heater core and cabin
         _p("eps_hc", 0.7, "dimensionless", 0.2, 1.0, "NREL ADVISOR heater effectiveness", "heater-core effectiveness"),
         _p("W_bl_kg_per_s", 0.06, "kg/s", 0.01, 0.3, "iptm prior (mid blower)", "blower air mass flow"),
         _p("recirc_frac", 0.0, "dimensionless", 0.0, 1.0, "iptm prior: fresh air in winter (anti-fog)",
            "heater inlet air = recirc T_cab + (1 - recirc) T_amb"),
         _p("cp_air_J_per_kgK", 1005.0, "J/(kg*K)", 1000, 1010, "air", "air heat capacity", vary=False),
-        _p("C_cab_J_per_K", 60e3, "J/K", 10e3, 400e3, "spec/model.md s.6 (prior)", "cabin heat capacity"),
-        _p("UA_cab_W_per_K", 50.0, "W/K", 5.0, 300.0, "spec/model.md s.6 (prior)", "cabin loss conductance"),
-        _p("Q_sun_W", 0.0, "W", -500.0, 2000.0, "spec/model.md s.6 (prior)", "solar and occupant gains"),
+        _p("C_cab_J_per_K", 60e3, "J/K", 10e3, 400e3, "docs/model.md s.6 (prior)", "cabin heat capacity"),
+        _p("UA_cab_W_per_K", 50.0, "W/K", 5.0, 300.0, "docs/model.md s.6 (prior)", "cabin loss conductance"),
+        _p("Q_sun_W", 0.0, "W", -500.0, 2000.0, "docs/model.md s.6 (prior)", "solar and occupant gains"),
     ]
     return ParameterSet({p.name: p for p in plist}, meta={"name": "2017 Toyota Prius, default",
                                                          "origin": "calib.model.params.default_parameters"})
@@ -236,15 +238,18 @@ class ParameterSet:
         return iter(self._p)
 
     def names(self) -> list[str]:
+        """Parameter names in definition order."""
         return list(self._p)
 
     def param(self, name) -> Parameter:
+        """The :class:`Parameter` called ``name`` (ParameterError naming the known ones if absent)."""
         try:
             return self._p[name]
         except KeyError:
             raise ParameterError(f"unknown parameter {name!r}; known: {', '.join(self._p)}") from None
 
     def copy(self) -> "ParameterSet":
+        """A deep copy (parameters are mutable)."""
         return ParameterSet(copy.deepcopy(self._p), copy.deepcopy(self.meta))
 
     def with_values(self, **values) -> "ParameterSet":
@@ -258,6 +263,7 @@ class ParameterSet:
 
     # --- validation -------------------------------------------------------------------------------
     def validate(self) -> None:
+        """Check every value against its bounds and table shapes; raise ParameterError saying which."""
         for p in self._p.values():
             lo, hi = p.bounds
             vals = p.value if p.is_table else [p.value]
@@ -303,6 +309,7 @@ class ParameterSet:
 
     # --- I/O --------------------------------------------------------------------------------------
     def to_dict(self) -> dict:
+        """The set as a TOML/JSON-able dict (what :meth:`save` writes)."""
         return {"meta": dict(self.meta), "parameters": {k: p.to_dict() for k, p in self._p.items()}}
 
     def save(self, path) -> None:

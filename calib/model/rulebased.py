@@ -1,4 +1,4 @@
-"""The stock-like rule-based energy management (spec/optimization.md s.3).
+"""The stock-like rule-based energy management (docs/optimization.md s.3).
 
 A load-levelling controller in the style of Liu & Peng (2005): the engine turns on above a wheel-power
 threshold, below a SOC threshold, or when the battery alone cannot meet the demand; when on it runs at
@@ -31,6 +31,7 @@ class RuleParams:
     Q_heat_W: float = 1500.0  # heater demand
 
     def to_dict(self) -> dict:
+        """The thresholds as a JSON-able dict."""
         return asdict(self)
 
 
@@ -50,10 +51,12 @@ class RuleBasedController:
         self.reset()
 
     def reset(self) -> None:
+        """Forget the engine state and timers (call before a new drive)."""
         self.on = False
         self.on_time = 0.0
 
     def describe(self) -> str:
+        """The controller's name and thresholds, one line."""
         return "rule-based " + ", ".join(f"{k}={v:g}" for k, v in self.rp.to_dict().items())
 
     def __call__(self, k, soc, T_cl, T_cab, P_trac, Ts=1.0):

@@ -52,14 +52,17 @@ class SimResult:
 
     @property
     def Ts(self) -> float:
+        """Time step of the simulation, in s."""
         return float(self.t[1] - self.t[0])
 
     @property
     def fuel_g(self) -> float:
+        """Total fuel burnt, in g."""
         return float(np.sum(self.flows["W_f"]) * self.Ts)
 
     @property
     def distance_km(self) -> float:
+        """Distance driven, in km."""
         return float(np.sum(0.5 * (self.v[1:] + self.v[:-1])) * self.Ts / 1e3)
 
     def to_pandas(self) -> pd.DataFrame:

@@ -1,4 +1,4 @@
-"""``iptm optimize``: the DP formulations and the case study (spec/optimization.md)."""
+"""``iptm optimize``: the DP formulations and the case study (docs/optimization.md)."""
 from __future__ import annotations
 
 

@@ -187,18 +187,22 @@ class DPProblem:
     # ---- derived grid data -------------------------------------------------------------------
     @property
     def n_x(self) -> int:
+        """Number of state variables."""
         return len(self.grids)
 
     @property
     def grid_shape(self) -> tuple:
+        """Nodes per state variable."""
         return tuple(g.size for g in self.grids)
 
     @property
     def n_states(self) -> int:
+        """Number of grid nodes (product of the grid sizes)."""
         return int(np.prod(self.grid_shape))
 
     @property
     def n_controls(self) -> int:
+        """Number of candidate controls."""
         return self.controls.shape[0]
 
     def grid_points(self) -> np.ndarray:
@@ -293,10 +297,12 @@ class DPResult:
 
     @property
     def solve_time(self) -> float:
+        """Backward plus forward pass time, in s."""
         return self.t_backward + self.t_forward
 
     @property
     def evals_per_second(self) -> float:
+        """State-control evaluations per second of the backward pass."""
         return self.n_evaluations / self.t_backward if self.t_backward > 0 else float("nan")
 
     def to_pandas(self):

@@ -1,4 +1,4 @@
-"""The three DP formulations of the paper (spec/optimization.md s.1-2) on the generic engine.
+"""The three DP formulations of the paper (docs/optimization.md s.1-2) on the generic engine.
 
 ``solve_baseline``, ``solve_thermal`` and ``solve_thermal_cabin`` take any parameter set (the default
 2017 Prius, or a calibration artifact loaded with :meth:`calib.model.params.ParameterSet.load`), a

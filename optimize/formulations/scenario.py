@@ -17,7 +17,7 @@ FORMULATIONS = ("baseline", "thermal", "thermal_cabin")
 # ---------------------------------------------------------------------------------------------------
 @dataclass
 class DPScenario:
-    """A DP scenario (spec/optimization.md s.4 defaults). Plain fields: read/written as TOML/JSON.
+    """A DP scenario (docs/optimization.md s.4 defaults). Plain fields: read/written as TOML/JSON.
 
     cycle: bundled cycle name or CSV path; ``duration_s`` truncates it (None: whole cycle).
     cab_lb_offset: the cabin lower bound is the 1500-W reference trajectory minus this (degC).
@@ -51,9 +51,11 @@ class DPScenario:
         return cls(**d)
 
     def to_dict(self) -> dict:
+        """The scenario as a TOML/JSON-able dict."""
         return {k: v for k, v in asdict(self).items() if v is not None}
 
     def load_cycle(self, cycle=None) -> Cycle:
+        """The drive cycle of the scenario (bundled name or CSV), cut to ``duration_s``."""
         cyc = load_cycle(self.cycle if cycle is None else cycle)
         if self.duration_s is not None:
             n = int(round(self.duration_s / cyc.Ts))
@@ -76,9 +78,11 @@ class DPGrids:
     qheat: float = 50.0
 
     def halved(self) -> "DPGrids":
+        """The same grids with every step halved (for convergence checks)."""
         return DPGrids(*(v / 2 for v in asdict(self).values()))
 
     def to_dict(self) -> dict:
+        """The grid steps as a JSON-able dict."""
         return asdict(self)
 
 

@@ -53,13 +53,16 @@ class DPOutcome:
 
     @property
     def evals_per_second(self) -> float:
+        """State-control evaluations per second of the backward pass."""
         return self.n_evaluations / self.t_backward if self.t_backward > 0 else float("nan")
 
     @property
     def fuel_g(self) -> float:
+        """Fuel of the re-simulated optimum, in g."""
         return self.sim.fuel_g
 
     def charge_sustaining(self, soc_tol: float | None = None) -> bool:
+        """Whether the final SOC is at least the initial one minus ``soc_tol``."""
         tol = self.scenario.get("soc_tol", 1e-3) if soc_tol is None else soc_tol
         ok = self.sim.soc[-1] >= self.sim.soc[0] - tol
         if self.on_thermal is not None:
@@ -67,6 +70,7 @@ class DPOutcome:
         return bool(ok)
 
     def describe(self) -> dict:
+        """The DP figures (fuel, costs, timings, sizes, grids) as a JSON-able dict."""
         return {"formulation": self.formulation, "fuel_g": self.sim.fuel_g, "dp_cost_g": self.dp_cost,
                 "predicted_cost_g": self.predicted_cost, "feasible": bool(self.dp.feasible),
                 "t_backward_s": self.t_backward, "t_forward_s": self.t_forward, "t_total_s": self.t_total,
@@ -309,6 +313,7 @@ def solve_thermal_cabin(params, scenario: DPScenario | None = None, grids: DPGri
 
 
 def solve_formulation(name: str, params, scenario=None, grids=None, **kw) -> DPOutcome:
+    """Solve the formulation called ``name`` (``baseline``, ``thermal`` or ``thermal_cabin``)."""
     fn = {"baseline": solve_baseline, "thermal": solve_thermal, "thermal_cabin": solve_thermal_cabin}
     if name not in fn:
         raise ScenarioError(f"unknown formulation {name!r}; choose from {', '.join(fn)}")
