@@ -10,6 +10,7 @@ see ``calib/data/prius_facts.md``). Pass ``density=`` (kg/L) to override it.
 """
 from __future__ import annotations
 
+import math
 import re
 
 import numpy as np
@@ -22,6 +23,9 @@ ureg = pint.UnitRegistry(autoconvert_offset_to_baseunit=True)
 
 #: Density used to turn a volume flow of fuel into a mass flow, kg/L (gasoline at 15 degC).
 GASOLINE_DENSITY_KG_PER_L = 0.74
+
+#: Engine speed: rad/s per rpm (the one definition; numba kernels read it as a constant).
+RPM = 2.0 * math.pi / 60.0
 
 # Spellings found in logger headers and DBCs -> pint spellings. Keys are compared case-sensitively
 # first, then lower-cased (so "KPH" and "Kph" work, but "mA" vs "MA" stay distinct).

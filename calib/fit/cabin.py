@@ -18,13 +18,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from calib.fit.toolkit import output_error_params, usable_logs, INPUT_REL_SD, KEY_PARAMETERS, MIN_SAMPLES, ParamEstimate, SubsystemFit, inflation, judge, lmfit_identify, not_fitted
+from calib.fit.toolkit import T_SENSOR_SD, output_error_params, usable_logs, INPUT_REL_SD, KEY_PARAMETERS, MIN_SAMPLES, ParamEstimate, SubsystemFit, inflation, judge, lmfit_identify, not_fitted
 from calib.fit.replay import _fill, cabin_replay, first_valid_mean, log_arrays
 
 NEEDS = ("cabin_temp_degC", "ambient_temp_degC")  # + heater_power_W or vent_temp_degC + blower_flow_kg_per_s
 NEEDS_EPS = ("vent_temp_degC", "coolant_temp_degC", "blower_flow_kg_per_s", "ambient_temp_degC")
 PARAMS = ("C_cab_J_per_K", "UA_cab_W_per_K", "Q_sun_W", "eps_hc")
-T_SENSOR_SD = 0.5  # degC, calibration uncertainty (offset) of a temperature sensor
 
 
 def _eps(use, base, fit, dT_cl=0.0, dT_vent=0.0, _propagate=True):

@@ -73,14 +73,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from calib.fit import battery as _battery, cabin as _cabin, fuel as _fuel, thermal as _thermal
 from calib.fit.toolkit import CORR_MAX, REL_SE_MAX, U_OC_SE_MAX_V, SubsystemFit
 
-SUBSYSTEM_PARAMS = {
-    "battery": ["U_oc_V", "R_int_ohm", "C_bat_Ah", "R_int_tc_per_K"],
-    "fuel": ["fuel_scale", "W_idle_g_per_s", "f_cl"],
-    "thermal": ["kappa", "C_eng_J_per_K", "gamma_exh", "hA_eng_W_per_K", "T_open_degC", "k_rad_W_per_K"],
-    "cabin": ["C_cab_J_per_K", "UA_cab_W_per_K", "Q_sun_W", "eps_hc"],
-}
+#: The parameters each subsystem fitter estimates (each fitter's own ``PARAMS``).
+SUBSYSTEM_PARAMS = {name: list(mod.PARAMS) for name, mod in (("battery", _battery), ("fuel", _fuel),
+                                                              ("thermal", _thermal), ("cabin", _cabin))}
 
 
 @dataclass

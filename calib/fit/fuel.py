@@ -24,18 +24,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from calib.fit.toolkit import INPUT_REL_SD, MIN_SAMPLES, ParamEstimate, SubsystemFit, lmfit_identify, not_fitted, usable_logs
+from calib.fit.toolkit import T_SENSOR_SD, INPUT_REL_SD, MIN_SAMPLES, ParamEstimate, SubsystemFit, lmfit_identify, not_fitted, usable_logs
 from calib.fit.battery import hat_basis
 from calib.model.equations import IDLE, ON
 from calib.fit.replay import fuel_replay, log_arrays
+from calib.units import RPM
 
 NEEDS = ("engine_speed_rpm", "engine_torque_Nm", "fuel_rate_g_per_s", "coolant_temp_degC")
 PARAMS = ("fuel_scale", "W_idle_g_per_s", "f_cl")
 WARM_DEGC = 80.0
 MIN_COVER = 30.0
 OOL_TOL = 0.005
-T_SD = 0.5  # degC, calibration uncertainty of the coolant temperature sensor
-RPM = 2.0 * np.pi / 60.0
 
 
 def smooth(x, n=21):
@@ -169,7 +168,7 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
         return model_of(ps) - W
 
     # input calibration uncertainty: engine power (1 %), coolant temperature (0.5 K)
-    perturbed = [lambda ps: model_of(ps, sP=1.0 + INPUT_REL_SD) - W, lambda ps: model_of(ps, dT=T_SD) - W]
+    perturbed = [lambda ps: model_of(ps, sP=1.0 + INPUT_REL_SD) - W, lambda ps: model_of(ps, dT=T_SENSOR_SD) - W]
 
     def segments(ps):
         return np.split(residual(ps), bounds_idx)

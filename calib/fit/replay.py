@@ -2,15 +2,14 @@
 fuel, full) that drive the model's equations with logged inputs. See :mod:`calib.fit.validate`."""
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
 
 from calib.model.equations import IDLE, OFF, ON, battery, coolant_flows, cabin_rate, fuel_rate, power_split, traction_power
+from calib.units import RPM
 
-RPM = 2.0 * math.pi / 60.0
 
 #: Validated channels: name -> (log column, unit).
 CHANNEL_METRICS = {

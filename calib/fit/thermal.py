@@ -16,14 +16,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from calib.fit.toolkit import output_error_params, usable_logs, INPUT_REL_SD, KEY_PARAMETERS, ParamEstimate, SubsystemFit, judge, lmfit_identify, not_fitted
+from calib.fit.toolkit import T_SENSOR_SD, output_error_params, usable_logs, INPUT_REL_SD, KEY_PARAMETERS, ParamEstimate, SubsystemFit, judge, lmfit_identify, not_fitted
 from calib.fit.replay import _fill, coolant_replay, first_valid_mean, log_arrays
 
 NEEDS = ("coolant_temp_degC", "fuel_rate_g_per_s", "engine_speed_rpm", "engine_torque_Nm", "ambient_temp_degC")
 HEATER = ("heater_power_W",)  # or vent_temp_degC + blower_flow_kg_per_s
 PARAMS = ("kappa", "C_eng_J_per_K", "gamma_exh", "hA_eng_W_per_K", "T_open_degC", "k_rad_W_per_K")
 MIN_ABOVE_S = 120.0
-T_SENSOR_SD = 0.5  # degC, calibration uncertainty (offset) of the coolant temperature sensor
 
 
 def fuel_input(la):

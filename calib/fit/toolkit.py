@@ -15,6 +15,8 @@ PRIOR_REL_SD = 0.25
 #: fuel rate, engine power (speed x torque, resampled to 1 s bins). Propagated into the standard errors.
 INPUT_REL_SD = 0.01
 PRIOR_ABS_SD = {"T_open_degC": 4.0, "kappa": 0.1, "Q_sun_W": 100.0}
+#: Calibration uncertainty (1 sd, an offset) of a temperature sensor, degC; propagated like INPUT_REL_SD.
+T_SENSOR_SD = 0.5
 U_OC_SE_MAX_V = 0.5
 MIN_SAMPLES = 60
 

@@ -18,7 +18,6 @@ eligible for the OOL).
 from __future__ import annotations
 
 import hashlib
-import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,12 +25,12 @@ from pathlib import Path
 import numpy as np
 
 from calib.errors import IptmError
+from calib.units import RPM
 
 _ALIASES = {"speed": ("speed", "engine_speed", "n", "n_e", "rpm"),
             "torque": ("torque", "engine_torque", "tau", "trq"),
             "fuel": ("fuel", "fuel_rate", "w_f", "fuel_flow", "mdot_fuel")}
 _CANON = {"speed": "rpm", "torque": "N*m", "fuel": "g/s"}
-RPM = 2.0 * math.pi / 60.0
 
 
 @dataclass

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from calib.errors import ParameterError
+from calib.units import RPM
 
 DATA = resources.files("calib") / "data"
 
@@ -214,7 +215,6 @@ ModelParams = namedtuple(
     ],
 )
 
-RPM = 2.0 * math.pi / 60.0
 
 
 class ParameterSet:
