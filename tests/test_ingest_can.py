@@ -92,7 +92,7 @@ def test_jitter_sorted_and_noted(tmp_path):
     assert any("out of time order" in n for n in m.notes)
     p.write_text("(10.000) can0 0B4#00000000000A6600\n(5.000) can0 0B4#00000000000A6600\n")
     with pytest.raises(LogFormatError, match=r"line 2.*goes back"):
-        read_streams(p)
+        read_streams(p, strict=True)
 
 
 def test_user_signal_map(tmp_path):
