@@ -227,8 +227,9 @@ def _parse_candump(path, col: FrameCollector, ids_cache: dict):
     def bad(problem, lineno, hint=None):
         dmg.bad(LogFormatError(path, problem, f"line {lineno}", hint), col.t_prev)
 
-    errors = "strict" if dmg.strict else "surrogateescape"
-    with open(path, "r", encoding="utf-8", errors=errors) as fh:
+    # Bytes that are not UTF-8 become lone surrogates, which fail the timestamp/ID/data parse of their
+    # own line: the line is named (and skipped unless strict).
+    with open(path, "r", encoding="utf-8", errors="surrogateescape") as fh:
         lineno = 0
         try:
             for lineno, line in enumerate(fh, 1):
@@ -237,6 +238,9 @@ def _parse_candump(path, col: FrameCollector, ids_cache: dict):
                 if line[0] == "#":
                     if "SYNTHETIC" in line.upper():
                         col.synthetic_comment = True
+                    continue
+                if line[-1] != "\n":
+                    bad("line cut short (no line end)", lineno)
                     continue
                 parts = line.split()
                 if len(parts) < 3 or parts[0][0] != "(" or parts[0][-1] != ")":
@@ -311,7 +315,7 @@ def _parse_python_can(path, fmt: str, col: FrameCollector):
                 for item in reader:
                     if type(item) is Bad:
                         if item.truncated:
-                            dmg.truncated(item.byte_range[0], actual, col.t_prev, item.err.problem)
+                            dmg.truncated(item.byte_range[0], max(actual, header_size), col.t_prev, item.err.problem)
                         else:
                             dmg.bad(item.err, col.t_prev, byte_range=item.byte_range)
                         continue

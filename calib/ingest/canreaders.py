@@ -46,6 +46,7 @@ class _Lines:
     def __init__(self, fh):
         self.fh = fh
         self.n = 0
+        self.cut = False  # the last line read has no line end: the file was cut inside it
 
     def __iter__(self):
         return self
@@ -53,6 +54,7 @@ class _Lines:
     def __next__(self):
         line = next(self.fh)
         self.n += 1
+        self.cut = not line.endswith("\n")
         return line
 
     def close(self):
@@ -84,6 +86,9 @@ class RecoveringASCReader(can.ASCReader):
             if _ASC_END.match(line) or _ASC_START_MEAS.match(line):
                 continue
             where = f"line {self._lines.n}"
+            if self._lines.cut:
+                yield Bad(LogFormatError(self._path, "line cut short (no line end)", where))
+                continue
             if not can.io.asc.ASC_MESSAGE_REGEX.match(line):
                 # Vector ASC files hold other events (statistics, J1939, chip state) that are not frames
                 # and python-can skips; a line that does not start with a time or looks like a frame
@@ -126,6 +131,8 @@ class RecoveringTRCReader(can.TRCReader):
 
     def _one(self, line):
         where = f"line {self._lines.n}"
+        if self._lines.cut:
+            return Bad(LogFormatError(self._path, "line cut short (no line end)", where))
         try:
             cols = tuple(line.split(maxsplit=self._num_columns))
             msg = self._parse_cols(cols)

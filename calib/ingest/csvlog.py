@@ -202,8 +202,8 @@ def _read_csv(path, column_map, fast: bool):
         msg = str(exc).strip().splitlines()[-1]
         line = _line_from_pandas(msg, n_skip)
         raise _RowDamage(path, f"malformed CSV: {msg}", line) from None
-    except UnicodeDecodeError as exc:
-        raise _RowDamage(path, f"binary data in a CSV text file (byte {exc.start} is not UTF-8)") from None
+    except UnicodeDecodeError:
+        raise _RowDamage(path, "bytes that are not UTF-8 text in a CSV file", _first_bad_utf8_line(path)) from None
     if df.shape[1] < 2:
         raise LogFormatError(path, "fewer than two columns: need a time column and at least one channel",
                              f"line {header_line}", "is the delimiter a comma?")
@@ -268,6 +268,16 @@ def _read_csv(path, column_map, fast: bool):
     if ignored:
         meta.notes.append(f"ignored columns: {', '.join(ignored)}")
     return streams, meta
+
+
+def _first_bad_utf8_line(path) -> str | None:
+    with open(path, "rb") as fh:
+        for lineno, raw in enumerate(fh, 1):
+            try:
+                raw.decode("utf-8")
+            except UnicodeDecodeError:
+                return f"line {lineno}"
+    return None
 
 
 def _ends_with_newline(path) -> bool:

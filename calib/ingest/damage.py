@@ -134,7 +134,7 @@ class Damage:
 def _span_text(spans) -> str:
     parts = []
     for a, b in spans[:MAX_LISTED]:
-        parts.append(f"{a:.1f} s to the end" if b is None else f"{a:.1f}-{b:.1f} s")
+        parts.append(f"everything after {a:.1f} s" if b is None else f"{a:.1f}-{b:.1f} s")
     more = f" and {len(spans) - MAX_LISTED} more" if len(spans) > MAX_LISTED else ""
     return ", ".join(parts) + more
 
@@ -158,7 +158,7 @@ def summarize(d: dict) -> str:
         bits.append("problems: " + "; ".join(f"{k} x{v}" for k, v in list(probs.items())[:4]))
     spans = d.get("spans_s", [])
     if spans:
-        bits.append("no data kept for " + _span_text(spans))
+        bits.append("time without data: " + _span_text(spans))
     if d.get("last_time_s") is not None:
         bits.append(f"data kept up to {d['last_time_s']:.1f} s")
     return "recovered a damaged log: " + "; ".join(bits)
