@@ -201,6 +201,18 @@ class FrameCollector:
             self.damage.good(t)
         return True
 
+    def finish(self, path):
+        """End of the log: a last frame whose time jumped far forward has no later frame to expose it."""
+        jump = self.t_prev - self._t_before_last
+        if self.damage.strict or self.n_frames < 3 or not jump > MAX_BACKSTEP_S or not self.damage:
+            return
+        # Only in a log already known to be damaged: a clean log may well end after a pause.
+        self._unstore_last()
+        self.n_frames -= 1
+        self.damage.bad(LogFormatError(path, f"timestamp jumps forward by {jump:.3f} s", self._last_where),
+                        self._t_before_last)
+        self.t_prev = self._t_before_last
+
     def frame(self, t: float, can_id: int, data: bytes, pos: int):
         if can_id not in self.wanted:
             return
@@ -463,6 +475,7 @@ def decode_can_signals(path, *, fmt: str, dbc=None, signals=None, signal_map=Non
         _parse_python_can(path, fmt, col)
     else:
         raise LogFormatError(path, f"not a CAN log format: {fmt}")
+    col.finish(path)
     if col.n_frames == 0:
         extra = f" ({dmg.n} damaged {dmg.unit}(s) skipped, first at {dmg.where[0]})" if dmg.n else ""
         raise LogFormatError(path, "no CAN frames in the file" + extra)

@@ -164,8 +164,17 @@ class RecoveringBLFReader(can.BLFReader):
 
     def __init__(self, path):
         self._path = str(path)
+        size = os.path.getsize(path)
+        with open(path, "rb") as fh:
+            head = fh.read(8)
+        # python-can reads the header's own size field blindly; a garbled one would ask for gigabytes.
+        if len(head) < 8 or head[:4] != b"LOGG":
+            raise LogFormatError(path, "not a BLF file (no LOGG signature)")
+        hsize = struct.unpack_from("<L", head, 4)[0]
+        if not _blf.FILE_HEADER_STRUCT.size <= hsize <= min(size, 1 << 16):
+            raise LogFormatError(path, f"corrupt BLF file header (header size {hsize})")
         super().__init__(str(path))
-        self._actual_size = os.fstat(self.file.fileno()).st_size
+        self._actual_size = size
         self.hit_truncation = False
 
     def _find_lobj(self, start: int) -> int | None:
@@ -208,7 +217,7 @@ class RecoveringBLFReader(can.BLFReader):
                     break
                 pos = nxt
                 continue
-            body = f.read(obj_size - hsize)
+            body = f.read(min(obj_size - hsize, self._actual_size - pos - hsize))
             cut = len(body) < obj_size - hsize
             if cut and self.file_size and self._actual_size >= self.file_size:
                 # The file is as long as its header says: the object's size field is what is wrong.

@@ -196,8 +196,8 @@ def quiet_libraries(loggers=("can", "asammdf", "mcap", "canmatrix", "cantools"))
     saved = []
     for name in loggers:
         lg = logging.getLogger(name)
-        saved.append((lg, lg.propagate))
-        lg.addHandler(handler)
+        saved.append((lg, lg.propagate, lg.handlers[:]))
+        lg.handlers = [handler]  # asammdf installs its own console handler: replace, not add
         lg.propagate = False
     ours = []
     try:
@@ -210,8 +210,8 @@ def quiet_libraries(loggers=("can", "asammdf", "mcap", "canmatrix", "cantools"))
             else:
                 captured.append(f"{w.category.__name__}: {w.message}")
     finally:
-        for lg, prop in saved:
-            lg.removeHandler(handler)
+        for lg, prop, handlers in saved:
+            lg.handlers = handlers
             lg.propagate = prop
         captured.extend(handler.records)
     for w in ours:  # the project's own warnings pass through

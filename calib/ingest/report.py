@@ -78,11 +78,11 @@ def format_report(report: pd.DataFrame, title: str = "") -> str:
         rate = f"{r['rate_hz']:8.2f}" if np.isfinite(r["rate_hz"]) else f"{'-':>8s}"
         lines.append(f"{ch:22s} {int(r['n']):8d} {rate} {int(r['gaps']):5d} {r['longest_gap_s']:8.1f} "
                      f"{r['min']:10.4g} {r['max']:10.4g}  {r['unit']}")
-    lines.append("missing: " + (", ".join(missing) if missing else "none"))
     src = report.attrs.get("speed_source")
     if src:
         lines.append(f"speed from: {src}")
     dmg = report.attrs.get("damage")
     if dmg:
         lines.append(f"RECOVERED: {dmg.get('summary', 'damaged log')}")
+    lines.append("missing: " + (", ".join(missing) if missing else "none"))
     return "\n".join(lines)
