@@ -25,7 +25,16 @@ import numpy as np
 from ..drivelog import LogMeta, file_sha256
 from ..errors import LogFormatError
 from .canreaders import READERS, Bad
-from .common import check_nonempty, make_series, parse_target, sniff_text, sniff_text_lenient, to_channel_unit
+from .common import (
+    check_nonempty,
+    check_unit,
+    make_series,
+    parse_target,
+    sniff_text,
+    sniff_text_lenient,
+    split_spec,
+    to_channel_unit,
+)
 from .damage import Damage, quiet_libraries
 
 #: Our Prius DBC, shipped with the package.
@@ -53,6 +62,18 @@ DEFAULT_SIGNAL_MAP: dict[str, str] = {
     "IPTM_HEATER.HEATER_POWER": "heater_power_W",
     "IPTM_HEATER.BLOWER_FLOW": "blower_flow_kg_per_s",
     "IPTM_HEATER.ROAD_GRADE": "grade_rad",
+}
+
+#: The four wheel speeds (opendbc toyota_2017 WHEEL_SPEEDS, 0xAA). When a log carries all four, vehicle
+#: speed is their mean and the dashboard signal mapped to ``speed_mps`` is only the fallback: Toyota's
+#: dashboard SPEED reads about 2 % high, as speedometers are allowed to. Other DBCs: map signals to
+#: ``wheel_speed_fl``/``_fr``/``_rl``/``_rr`` (optionally with a unit) in the signal map.
+WHEEL_TARGETS = ("wheel_speed_fl", "wheel_speed_fr", "wheel_speed_rl", "wheel_speed_rr")
+DEFAULT_WHEEL_MAP: dict[str, str] = {
+    "WHEEL_SPEEDS.WHEEL_SPEED_FL": "wheel_speed_fl",
+    "WHEEL_SPEEDS.WHEEL_SPEED_FR": "wheel_speed_fr",
+    "WHEEL_SPEEDS.WHEEL_SPEED_RL": "wheel_speed_rl",
+    "WHEEL_SPEEDS.WHEEL_SPEED_RR": "wheel_speed_rr",
 }
 
 CAN_FORMATS = ("candump", "asc", "blf", "trc")
@@ -86,10 +107,10 @@ def resolve_signal_map(db, dbc_path, signal_map: dict | None) -> dict[tuple[str,
     for m, s in names:
         by_signal.setdefault(s, []).append((m, s))
     out = {}
-    for key, target in DEFAULT_SIGNAL_MAP.items():
+    for key, target in {**DEFAULT_SIGNAL_MAP, **DEFAULT_WHEEL_MAP}.items():
         m, _, s = key.partition(".")
         if (m, s) in names:
-            out[(m, s)] = parse_target(target, dbc_path, f"default map {key}")
+            out[(m, s)] = _parse_can_target(target, dbc_path, f"default map {key}")
     for key, target in (signal_map or {}).items():
         if "." in key:
             m, _, s = key.partition(".")
@@ -102,8 +123,18 @@ def resolve_signal_map(db, dbc_path, signal_map: dict | None) -> dict[tuple[str,
                 raise LogFormatError(dbc_path, f"signal map key {key!r} is {'ambiguous' if cands else 'not in the DBC'}",
                                      hint="write MESSAGE.SIGNAL")
             pair = cands[0]
-        out[pair] = parse_target(target, dbc_path, f"signal map {key}")
+        out[pair] = _parse_can_target(target, dbc_path, f"signal map {key}")
     return out
+
+
+def _parse_can_target(target, path, where):
+    """``parse_target`` plus the wheel-speed pseudo-channels (checked as speeds)."""
+    name, unit = split_spec(str(target)) if not isinstance(target, (dict, list, tuple)) else (None, None)
+    if name is not None and name.strip().lower() in WHEEL_TARGETS:
+        if unit is not None:
+            check_unit(unit, "speed_mps", path, where)
+        return name.strip().lower(), unit
+    return parse_target(target, path, where)
 
 
 class _Acc:
@@ -551,6 +582,51 @@ def _decode_slow_one(path, fmt, msg, sname, t, payload, pos, dmg=None):
     return np.array([t]), np.array([float(v)])
 
 
+def wheel_mean_speed(wheels: dict) -> tuple[np.ndarray, np.ndarray] | None:
+    """Mean of the four wheel speeds ``{target: (t, v m/s, ...)}``: (t, v), or None unless all four are there.
+
+    The wheels' own times when they share them (one message carries all four, as on Toyota); otherwise
+    the other three are interpolated onto the first one's times. A time with any wheel missing is dropped.
+    """
+    if set(wheels) != set(WHEEL_TARGETS) or any(len(wheels[w][0]) == 0 for w in WHEEL_TARGETS):
+        return None
+    t = np.asarray(wheels[WHEEL_TARGETS[0]][0], dtype=float)
+    vals = []
+    for w in WHEEL_TARGETS:
+        tw, vw = np.asarray(wheels[w][0], dtype=float), np.asarray(wheels[w][1], dtype=float)
+        if len(tw) == len(t) and np.array_equal(tw, t):
+            vals.append(vw)
+        else:
+            ok = np.isfinite(vw)
+            if ok.sum() < 2:
+                return None
+            o = np.argsort(tw[ok], kind="stable")
+            vi = np.interp(t, tw[ok][o], vw[ok][o], left=np.nan, right=np.nan)
+            vals.append(vi)
+    v = np.mean(vals, axis=0)
+    ok = np.isfinite(v)
+    if not ok.any():
+        return None
+    return t[ok], v[ok]
+
+
+def _speed_from_wheels(wheels: dict, parts: dict, meta) -> None:
+    """Vehicle speed from the four wheel speeds when the log has them, else the dashboard signal."""
+    mean = wheel_mean_speed(wheels)
+    if mean is None:
+        if wheels:
+            meta.notes.append(f"speed: only {len(wheels)} of 4 wheel speeds in the log; dashboard signal used")
+        if "speed_mps" in meta.channel_sources:
+            meta.notes.append(f"speed from the dashboard signal {meta.channel_sources['speed_mps']}")
+        return
+    dash = meta.channel_sources.get("speed_mps")
+    parts["speed_mps"] = [mean]
+    meta.channel_sources["speed_mps"] = "mean of " + ", ".join(wheels[w][2] for w in WHEEL_TARGETS)
+    meta.original_units["speed_mps"] = wheels[WHEEL_TARGETS[0]][3]
+    meta.notes.append("speed from the mean of the four wheel speeds"
+                      + (f" (dashboard {dash} is the fallback, not used)" if dash else ""))
+
+
 def read_can_streams(path, *, fmt: str, dbc=None, signal_map=None, strict: bool = False):
     """Read a CAN log into canonical streams (see :func:`decode_can_signals`).
 
@@ -576,6 +652,7 @@ def read_can_streams(path, *, fmt: str, dbc=None, signal_map=None, strict: bool 
     if res["synthetic_comment"] or (info is not None and np.any(info[1] == 1)):
         meta.synthetic = True
     parts: dict[str, list] = {}
+    wheels: dict[str, tuple] = {}
     for (m, s), (ch, unit) in res["map"].items():
         if (m, s) not in res["signals"]:
             continue
@@ -584,10 +661,14 @@ def read_can_streams(path, *, fmt: str, dbc=None, signal_map=None, strict: bool 
         src_unit = unit or sig.unit
         if not src_unit:
             raise LogFormatError(dbc_path, f"signal {m}.{s} has no unit", hint="give one in the signal map: 'channel [unit]'")
+        if ch in WHEEL_TARGETS:
+            wheels[ch] = (t, to_channel_unit(v, src_unit, "speed_mps", dbc_path, f"signal {m}.{s}"), f"{m}.{s}", src_unit)
+            continue
         v = to_channel_unit(v, src_unit, ch, dbc_path, f"signal {m}.{s}")
         parts.setdefault(ch, []).append((t, v))
         meta.channel_sources.setdefault(ch, f"{m}.{s}")
         meta.original_units.setdefault(ch, src_unit)
+    _speed_from_wheels(wheels, parts, meta)
     streams = {}
     for ch, chunks in parts.items():
         s = make_series(np.concatenate([c[0] for c in chunks]), np.concatenate([c[1] for c in chunks]), ch)
