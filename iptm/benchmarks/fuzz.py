@@ -15,7 +15,7 @@ replayed (``mutate(data, seed, r, i)``). Each read ends in one of:
 talking past the project's own reporting); ``unclear`` counts IptmErrors whose message is not one line
 naming the file.
 
-The truncation check cuts a larger valid log of each format at a uniformly random byte between 10 % and
+The truncation check (``n / 20`` cuts per format, 50 to 500) cuts a larger valid log of each format at a uniformly random byte between 10 % and
 100 % of its length and requires it to be read or recovered, with every sample up to the recovered
 end time equal to the intact file's ("nothing before the cut lost").
 
@@ -238,10 +238,26 @@ def classify(fn, path) -> tuple[str, str, bool]:
     return outcome, detail, printed
 
 
+def _in_folder(fn):
+    """Run ``fn(folder=...)`` in a temporary folder removed afterwards unless the caller gave one."""
+    import functools
+    import shutil
+
+    @functools.wraps(fn)
+    def wrapper(*args, folder=None, **kw):
+        if folder is not None:
+            return fn(*args, folder=Path(folder), **kw)
+        tmp = Path(tempfile.mkdtemp(prefix=f"iptm-{fn.__name__}-"))
+        try:
+            return fn(*args, folder=tmp, **kw)
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+    return wrapper
+
+
+@_in_folder
 def fuzz(n: int = 10_000, seed: int = 0, readers=READERS, folder=None, log=print) -> dict:
     """Mutated-input counts per reader (see the module docstring)."""
-    own = folder is None
-    folder = Path(folder or tempfile.mkdtemp(prefix="iptm-fuzz-"))
     seeds = make_seed_files(folder / "seeds")
     results = {}
     for r, name in enumerate(READERS):
@@ -271,20 +287,15 @@ def fuzz(n: int = 10_000, seed: int = 0, readers=READERS, folder=None, log=print
             f"printed {counts['printed']:4d}  {wall:7.1f} s")
         for ex in examples:
             log(f"    case {ex['case']}: {ex['outcome']}{' (printed)' if ex['printed'] else ''}: {ex['detail']}")
-    if own:
-        import shutil
-
-        shutil.rmtree(folder, ignore_errors=True)
     return results
 
 
+@_in_folder
 def truncation_check(n: int = 200, seed: int = 0, readers=LOG_READERS, folder=None, log=print) -> dict:
     """Random cuts of a valid 120-s log per format: read or recovered, nothing before the cut lost."""
     from calib.errors import IptmError
     from calib.ingest import read_streams
 
-    own = folder is None
-    folder = Path(folder or tempfile.mkdtemp(prefix="iptm-trunc-"))
     seeds = make_seed_files(folder / "seeds", duration_s=120.0, rate=10.0)
     results = {}
     for r, name in enumerate(LOG_READERS):
@@ -331,10 +342,6 @@ def truncation_check(n: int = 200, seed: int = 0, readers=LOG_READERS, folder=No
             f"lost data before the cut {lost:4d}  error {failed:4d}  {wall:6.1f} s")
         if first_fail:
             log(f"    {first_fail}")
-    if own:
-        import shutil
-
-        shutil.rmtree(folder, ignore_errors=True)
     return results
 
 
@@ -344,7 +351,7 @@ def run(quick: bool = False, n: int | None = None, seed: int = 0, readers=READER
     print(f"fuzz: {n} mutated inputs per reader, seed {seed} (cpu count {os.cpu_count()}, "
           f"load {os.getloadavg()[0]:.1f})")
     res = {"mutations": fuzz(n=n, seed=seed, readers=readers)}
-    n_cut = 50 if quick else 500
+    n_cut = min(500, max(50, n // 20))
     print(f"truncation check: {n_cut} random cuts per log format")
     res["truncation"] = truncation_check(n=n_cut, seed=seed, readers=readers)
     return res
