@@ -24,7 +24,6 @@ import numpy as np
 
 from ..drivelog import LogMeta, file_sha256
 from ..errors import LogFormatError
-from .canreaders import READERS, Bad
 from .common import (
     check_nonempty,
     check_unit,
@@ -331,7 +330,7 @@ def _show(text: str) -> str:
 
 def _parse_python_can(path, fmt: str, col: FrameCollector):
     """Stream .asc/.blf/.trc through python-can's record parsing; damaged records go to ``col.damage``."""
-    import can
+    from .canreaders import READERS, Bad  # python-can is imported only for these formats
 
     dmg = col.damage
     if fmt in ("asc", "trc"):

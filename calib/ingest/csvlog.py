@@ -215,7 +215,7 @@ def _read_csv(path, column_map, fast: bool):
             raise _RowDamage(path, "last line cut short (no line end)", "last line")
         if df.isna().to_numpy().any():  # a row with fewer fields than the header (keep_default_na=False)
             i = int(np.flatnonzero(df.isna().to_numpy().any(axis=1))[0])
-            raise _RowDamage(path, f"row has fewer fields than the header's {df.shape[1]}", f"data row {i + 1}")
+            raise _RowDamage(path, f"row has fewer fields than the header's {df.shape[1]}", f"line {header_line + 1 + i}")
         first_data_line = header_line + 1
         t_raw = _numeric(df[time_col], path, time_col, first_data_line, allow_empty=False)
         values = {col: _numeric(df[col], path, col, first_data_line, allow_empty=True) for col, _, _ in channel_cols}
