@@ -162,3 +162,28 @@ def test_cli_ingest_reports_and_strict_refuses(tmp_path, capsys):
     assert main(["ingest", str(p), "--strict", "--out", str(tmp_path / "o2.parquet")]) == 2
     assert "truncated" in capsys.readouterr().err
     assert not (tmp_path / "o2.parquet").exists()
+
+
+def test_library_chatter_is_reported_not_printed(tmp_path, capfd):
+    """python-can logs "Unknown object header version" for a garbled BLF object: it becomes damage."""
+    import struct
+
+    import can
+
+    p = tmp_path / "u.blf"
+    with can.BLFWriter(str(p), compression_level=0) as w:  # uncompressed, so one object can be garbled
+        for i in range(200):
+            w.on_message_received(can.Message(timestamp=1000 + i * 0.01, arbitration_id=0xB4, is_extended_id=False,
+                                              data=bytes.fromhex("00000000000A6600")))
+    d = bytearray(p.read_bytes())
+    k = d.find(b"LOBJ", d.find(b"LOBJ") + 4)  # the first frame inside the container
+    k = d.find(b"LOBJ", k + 400)
+    struct.pack_into("<H", d, k + 6, 2048)  # its header version
+    p.write_bytes(bytes(d))
+    streams, meta = _read_damaged(p)
+    assert len(streams["speed_mps"]) == 199
+    assert "Unknown object header version (2048)" in meta.damage["summary"]
+    out = capfd.readouterr()
+    assert "Unknown object" not in out.out + out.err
+    with pytest.raises(LogFormatError, match="Unknown object header version"):
+        read_streams(p, strict=True)

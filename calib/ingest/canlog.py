@@ -374,7 +374,7 @@ def _parse_python_can(path, fmt: str, col: FrameCollector):
             if fmt == "blf" and header_size and actual < header_size and not reader.hit_truncation:
                 dmg.truncated(actual, header_size, col.t_prev, f"file is {actual} of the {header_size} bytes its header gives")
         for text in chatter:
-            dmg.bad(LogFormatError(path, f"reader reported: {text[:120]}", "python-can"))
+            dmg.bad(LogFormatError(path, f"{text[:80].replace(':', ' -')} (reported by python-can)", "python-can"))
     except LogFormatError:
         raise
     except Exception as exc:  # noqa: BLE001 - python-can readers raise struct/zlib/ValueError/... on corrupt files

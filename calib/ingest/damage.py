@@ -64,14 +64,14 @@ class Damage:
         self.n += count
         if len(self.where) < MAX_LISTED:
             self.where.append(err.where or "?")
-        key = err.problem.split(":")[0][:60]
+        key = err.problem.split(":")[0][:100]
         self.problems[key] = self.problems.get(key, 0) + count
         if byte_range is not None:
             self.bytes_lost.append((int(byte_range[0]), int(byte_range[1])))
         if t_span is not None:
             self.spans.append([float(t_span[0]), float(t_span[1])])
-        elif self._open_span is None:
-            self._open_span = t_last_good if t_last_good is not None else -math.inf
+        elif self._open_span is None and t_last_good is not None:
+            self._open_span = t_last_good
 
     def good(self, t: float) -> None:
         """A trusted record at time ``t``: closes an open span of lost data."""

@@ -380,7 +380,7 @@ def read_mcap_streams(path, topic_map: dict | None = None, strict: bool = False)
         except Exception as exc:  # noqa: BLE001 - last resort: an mmap/OS error is still a clean message
             raise LogFormatError(path, f"corrupt or truncated MCAP file: {_why(exc)}") from None
     for text in chatter:
-        dmg.bad(LogFormatError(path, f"reader reported: {text[:120]}", "mcap"))
+        dmg.bad(LogFormatError(path, f"{text[:80].replace(':', ' -')} (reported by the mcap library)", "mcap"))
     for name in ("iptm", "drive_log"):
         if name in metadata:
             d = metadata[name]

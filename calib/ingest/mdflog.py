@@ -121,7 +121,7 @@ def read_mdf_streams(path, column_map: dict | None = None, strict: bool = False)
         mdf.close()
         chatter_ctx.__exit__(None, None, None)
     for text in list(chatter) + list(chatter2):
-        dmg.bad(LogFormatError(path, f"reader reported: {text[:120]}", "asammdf"))
+        dmg.bad(LogFormatError(path, f"{text[:80].replace(':', ' -')} (reported by asammdf)", "asammdf"))
     if not parts:
         raise LogFormatError(path, "no MDF channel is a known channel", hint="pass a column map")
     meta.damage = dmg.finish(0.0)
