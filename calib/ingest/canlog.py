@@ -357,7 +357,9 @@ def _parse_python_can(path, fmt: str, col: FrameCollector):
                 for item in reader:
                     if type(item) is Bad:
                         if item.truncated:
-                            dmg.truncated(item.byte_range[0], max(actual, header_size), col.t_prev, item.err.problem)
+                            a = item.byte_range[0]
+                            dmg.truncated(a, max(actual, header_size) if a < actual else None, col.t_prev,
+                                          item.err.problem)
                         else:
                             dmg.bad(item.err, col.t_prev, byte_range=item.byte_range)
                         continue

@@ -248,7 +248,8 @@ class RecoveringBLFReader(can.BLFReader):
                     self._tail = b""
             if cut:
                 self.hit_truncation = True
-                yield self._bad("file ends inside an object", pos + hsize + len(body), self._actual_size, True)
+                yield self._bad(f"file ends inside the object at byte {pos} (read up to the cut)",
+                                self._actual_size, self._actual_size, True)
                 break
             pos = pos + obj_size + obj_size % 4
         self.stop()

@@ -87,7 +87,7 @@ class Damage:
             raise err
         self.truncated_at = int(at_byte)
         self.file_size = size
-        key = problem.split(":")[0][:60]
+        key = problem.split(":")[0][:100]
         self.problems[key] = self.problems.get(key, 0) + 1
         if len(self.where) < MAX_LISTED:
             self.where.append(f"from byte {at_byte}")

@@ -135,6 +135,8 @@ class _McapScan:
         self.channels = {}
         self.metadata = {}
         self.footer = False
+        self.data_end = False  # the data section ended whole: a cut after it loses only the index
+        self.cut_in_summary = False
         self.i = 0  # messages seen
         self.t_last = -math.inf  # last good message time, s (file clock)
 
@@ -150,7 +152,10 @@ class _McapScan:
         ends_whole = bytes(buf[-8:]) == _MAGIC and n > 16
         while pos < n and not self.footer:
             if pos + 9 > n:
-                self.dmg.truncated(pos, n, self.t_last, "file ends inside a record header")
+                if self.data_end and not self.dmg.strict:
+                    self.cut_in_summary = True
+                else:
+                    self.dmg.truncated(pos, n, self.t_last, "file ends inside a record header")
                 break
             op = buf[pos]
             length = _U64.unpack_from(buf, pos + 1)[0]
@@ -158,10 +163,13 @@ class _McapScan:
             if op not in _KNOWN_OPS and op < 0x80 or length > n - body:
                 if length > n - body and op == _OP_CHUNK and not ends_whole:
                     self._chunk(body, n, cut=True)
-                    self.dmg.truncated(pos, n, self.t_last, "file ends inside a chunk")
+                    self.dmg.truncated(n, None, self.t_last, f"file ends inside the chunk at byte {pos} (read up to the cut)")
                     break
                 if not ends_whole and length > n - body and op in _KNOWN_OPS:
-                    self.dmg.truncated(pos, n, self.t_last, "file ends inside a record")
+                    if self.data_end and not self.dmg.strict:
+                        self.cut_in_summary = True
+                    else:
+                        self.dmg.truncated(pos, n, self.t_last, "file ends inside a record")
                     break
                 nxt = self._resync(pos + 1)
                 self.bad(f"garbled record header (opcode 0x{op:02X}, length {length})", f"byte {pos}",
@@ -214,6 +222,8 @@ class _McapScan:
             self.metadata[md.name] = dict(md.metadata)
         elif op == _OP_FOOTER:
             self.footer = True
+        elif op == _OP_DATA_END:
+            self.data_end = True
 
     def _channel(self, a, b):
         from mcap.records import Channel
@@ -375,6 +385,9 @@ def read_mcap_streams(path, topic_map: dict | None = None, strict: bool = False)
             with open(path, "rb") as fh, mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mm:
                 scan = _McapScan(path, mm, dmg, on_message).run()
                 metadata = scan.metadata
+                if scan.cut_in_summary:
+                    meta.notes.append("the file is cut in its summary (index) section, after all the data: "
+                                      "no message lost")
         except LogFormatError:
             raise
         except Exception as exc:  # noqa: BLE001 - last resort: an mmap/OS error is still a clean message
