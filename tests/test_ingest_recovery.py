@@ -187,3 +187,17 @@ def test_library_chatter_is_reported_not_printed(tmp_path, capfd):
     assert "Unknown object" not in out.out + out.err
     with pytest.raises(LogFormatError, match="Unknown object header version"):
         read_streams(p, strict=True)
+
+
+def test_strict_on_calibrate_and_run_refuses_a_damaged_log(tmp_path, capsys):
+    from iptm.cli import main
+
+    p = tmp_path / "cut.log"
+    data = (LOGS / f"{DRIVE}.log").read_bytes()
+    p.write_bytes(data[: len(data) // 2])
+    assert main(["calibrate", str(p), "--strict", "--quiet", "--out", str(tmp_path / "c.toml")]) == 2
+    assert "line cut short" in capsys.readouterr().err
+    assert main(["run", str(p), "--strict", "--quiet", "--reports", str(tmp_path / "r"),
+                 "--cache", str(tmp_path / "cache")]) == 2
+    assert "line cut short" in capsys.readouterr().err
+    assert not (tmp_path / "c.toml").exists()
