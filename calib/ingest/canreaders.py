@@ -254,6 +254,37 @@ class RecoveringBLFReader(can.BLFReader):
             pos = pos + obj_size + obj_size % 4
         self.stop()
 
+    def _parse_data(self, data: bytes):
+        """Frame the objects of a container here and let python-can parse each one alone.
+
+        python-can's own loop trusts each object's size field: a garbled size of 0 makes it log
+        "Unknown object header version" forever without moving on.
+        """
+        parse_one = super()._parse_data
+        hsize = _blf.OBJ_HEADER_BASE_STRUCT.size
+        n = len(data)
+        pos = 0
+        while True:
+            self._pos = pos
+            k = data.find(b"LOBJ", pos, pos + 8)
+            if k < 0:
+                if pos + 8 > n:
+                    return  # the rest continues in the next container
+                raise _blf.BLFParseError("Could not find next object")
+            if k + hsize > n:
+                return
+            obj_size = _blf.OBJ_HEADER_BASE_STRUCT.unpack_from(data, k)[3]
+            if obj_size < hsize:
+                raise _blf.BLFParseError(f"object size {obj_size} is smaller than its header")
+            if k + obj_size > n:
+                return
+            try:
+                yield from parse_one(data[k:k + obj_size])
+            except struct.error:
+                self._pos = k
+                raise _blf.BLFParseError("object too short for its type") from None
+            pos = k + obj_size
+
     def _parse_container_recovering(self, data: bytes, obj_pos: int):
         if self._tail:
             data = b"".join((self._tail, data))

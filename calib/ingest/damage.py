@@ -109,7 +109,7 @@ class Damage:
         spans = []
         for a, b in self.spans:
             a = max(a - t0, 0.0) if math.isfinite(a) else 0.0
-            b = (b - t0) if math.isfinite(b) else None
+            b = max(b - t0, a) if math.isfinite(b) else None  # a jittered next sample may sort earlier
             if spans and b is not None and spans[-1][1] is not None and a <= spans[-1][1]:
                 spans[-1][1] = max(spans[-1][1], b)
             else:
