@@ -201,3 +201,24 @@ def test_strict_on_calibrate_and_run_refuses_a_damaged_log(tmp_path, capsys):
                  "--cache", str(tmp_path / "cache")]) == 2
     assert "line cut short" in capsys.readouterr().err
     assert not (tmp_path / "c.toml").exists()
+
+
+@pytest.mark.timeout(60)
+def test_blf_object_with_size_zero_does_not_hang(tmp_path):
+    """python-can's own loop never moves past an object whose size field reads 0."""
+    import struct
+
+    import can
+
+    p = tmp_path / "z.blf"
+    with can.BLFWriter(str(p), compression_level=0) as w:
+        for i in range(100):
+            w.on_message_received(can.Message(timestamp=1000 + i * 0.01, arbitration_id=0xB4, is_extended_id=False,
+                                              data=bytes.fromhex("00000000000A6600")))
+    d = bytearray(p.read_bytes())
+    k = d.find(b"LOBJ", d.find(b"LOBJ") + 4)
+    k = d.find(b"LOBJ", k + 400)
+    struct.pack_into("<HHL", d, k + 4, 32, 7, 0)  # unknown header version and size 0
+    p.write_bytes(bytes(d))
+    streams, meta = _read_damaged(p)
+    assert len(streams["speed_mps"]) == 99
