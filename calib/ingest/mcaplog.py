@@ -401,7 +401,9 @@ def read_mcap_streams(path, topic_map: dict | None = None, strict: bool = False)
             meta.vehicle_id = d.get("vehicle_id", "")
             meta.start_time = d.get("start_time") or None
     if state["n_msgs"] == 0:
-        extra = f" ({dmg.n} damaged message(s) or record(s) skipped)" if dmg else ""
+        extra = f" ({'; '.join(dmg.problems)})" if dmg else ""
+        if dmg.truncated_at is not None:
+            extra += " - a compressed chunk decodes in whole blocks (up to 128 kB of messages for zstd)"
         raise LogFormatError(path, "MCAP file holds no readable messages" + extra)
     mapped = [tp for tp in topics_seen if tp in tmap]
     if not mapped:
