@@ -193,6 +193,17 @@ class FrameCollector:
 
         Returns False when the frame is damaged (recorded in ``damage``) and must be skipped.
         """
+        if self.t_prev <= t < math.inf:  # the usual case, kept short: it runs once per frame
+            self.n_frames += 1
+            if t < self.t_first:
+                self.t_first = t
+            self._last_stored = None
+            self._last_where = where
+            self._t_before_last = self.t_prev
+            self.t_prev = t
+            if self.damage._open_span is not None:
+                self.damage.good(t)
+            return True
         if not math.isfinite(t):
             self.damage.bad(LogFormatError(path, "timestamp is not a finite number", where), self.t_prev)
             return False
