@@ -62,6 +62,14 @@ class LogMeta:
     channel_sources: dict = field(default_factory=dict)  # channel -> original column/topic/signal
     original_units: dict = field(default_factory=dict)  # channel -> unit as found in the file
     notes: list = field(default_factory=list)
+    # Empty for an intact file; for a damaged one read as far as possible: what was lost (see
+    # calib.ingest.damage.Damage.to_dict), so every report built on the log can say it was recovered.
+    damage: dict = field(default_factory=dict)
+
+    @property
+    def recovered(self) -> bool:
+        """True when the log was damaged and read only in part."""
+        return bool(self.damage)
 
     def to_dict(self) -> dict:
         """The metadata as a JSON-able dict."""
@@ -126,5 +134,6 @@ class DriveLog:
             raise MissingChannelsError(miss, purpose, self.meta.source)
 
     def label(self) -> str:
-        """The name, with ``[SYNTHETIC]`` appended for synthetic logs."""
-        return f"{self.name} [SYNTHETIC]" if self.meta.synthetic else self.name
+        """The name, with ``[SYNTHETIC]`` for synthetic logs and ``[RECOVERED]`` for damaged ones."""
+        label = f"{self.name} [SYNTHETIC]" if self.meta.synthetic else self.name
+        return f"{label} [RECOVERED]" if self.meta.damage else label

@@ -59,3 +59,11 @@ class ParameterError(IptmError):
 
 class ScenarioError(IptmError):
     """A scenario is invalid or infeasible."""
+
+
+class IptmWarning(UserWarning):
+    """Base class: something the user should know that does not stop the work."""
+
+
+class LogDamageWarning(IptmWarning):
+    """A damaged log was read as far as it could be; the message says what was lost."""

@@ -41,6 +41,7 @@ class RunConfig:
     validate: list = field(default_factory=list)  # held-out logs (default: the last of several logs)
     base_params: str | None = None
     dbc: str | None = None
+    strict: bool = False  # refuse damaged logs instead of reading what they still hold
     reports_dir: Path = Path("reports")
     cache_dir: Path | None = None
     progress: bool = True
@@ -115,12 +116,16 @@ def _say(msg: str, progress: bool) -> None:
 # ---------------------------------------------------------------------------------------------------
 # stages
 # ---------------------------------------------------------------------------------------------------
-def ingest_all(paths, store: Store | None, dbc=None, progress=True):
-    """Read every log (cached); any bad log stops the run here, before heavy work, naming the file."""
+def ingest_all(paths, store: Store | None, dbc=None, progress=True, strict=False):
+    """Read every log (cached); any bad log stops the run here, before heavy work, naming the file.
+
+    A damaged log is read as far as it can be trusted (its label says [RECOVERED]) unless ``strict``.
+    """
     from tqdm import tqdm
 
     from calib.drivelog import file_sha256
     from calib.ingest import channel_report, read_canonical, read_log, write_canonical
+    from calib.ingest.damage import warn_damage
 
     logs = []
     for p in tqdm(list(paths), desc="ingest", unit="log", disable=not progress, file=sys.stderr):
@@ -135,8 +140,13 @@ def ingest_all(paths, store: Store | None, dbc=None, progress=True):
                 log = read_canonical(cached)
             except IptmError:
                 log = None
+            if log is not None and log.meta.damage:
+                if strict:
+                    log = None  # read again so that strict raises the damage as an error
+                else:
+                    warn_damage(p, log.meta.damage)
         if log is None:
-            log = read_log(p, dbc=dbc)
+            log = read_log(p, dbc=dbc, strict=strict)
             if store is not None:
                 write_canonical(log, cached)
         logs.append((p, log, channel_report(log)))
@@ -287,14 +297,14 @@ def run(cfg: RunConfig) -> RunOutcome:
 
     # 1. every log is read before any heavy work: a bad one stops the run here, naming the file
     _say(f"[1/4] ingesting {len(paths) + len([p for p in val_paths if p not in paths])} log(s)", cfg.progress)
-    ingested = ingest_all(list(dict.fromkeys(paths + val_paths)), store, cfg.dbc, cfg.progress)
+    ingested = ingest_all(list(dict.fromkeys(paths + val_paths)), store, cfg.dbc, cfg.progress, cfg.strict)
     by_path = {p: lg for p, lg, _ in ingested}
     fit_logs = [by_path[p] for p in fit_paths]
     val_logs = [by_path[p] for p in val_paths]
     cycle_log = cfg.cycle_from_log
     if cycle_log is not None:
         cyc_path = Path(cycle_log) if cycle_log else paths[0]
-        cyc_log = by_path.get(cyc_path) or ingest_all([cyc_path], store, cfg.dbc, False)[0][1]
+        cyc_log = by_path.get(cyc_path) or ingest_all([cyc_path], store, cfg.dbc, False, cfg.strict)[0][1]
     else:
         cyc_log = None
 

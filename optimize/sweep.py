@@ -246,7 +246,12 @@ def load_study(path) -> Study:
         d = tomllib.loads(path.read_text())
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ScenarioError(f"{path}: not valid TOML ({exc})") from None
-    return study_from_dict(d, base_dir=path.parent, source=str(path), default_name=path.stem)
+    try:
+        return study_from_dict(d, base_dir=path.parent, source=str(path), default_name=path.stem)
+    except ScenarioError as exc:
+        if str(path) in str(exc):
+            raise
+        raise ScenarioError(f"{path}: {exc}") from None
 
 
 def study_from_dict(d: dict, base_dir=".", source: str = "<dict>", default_name: str = "study") -> Study:

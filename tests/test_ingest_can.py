@@ -3,10 +3,11 @@ from pathlib import Path
 
 import cantools
 import numpy as np
+import pandas as pd
 import pytest
 
 from calib.errors import LogFormatError
-from calib.ingest import PRIUS_DBC, decode_can_signals, read_log, read_streams
+from calib.ingest import PRIUS_DBC, channel_report, decode_can_signals, format_report, read_log, read_streams
 from calib.ingest.fabricate import fabricate_streams
 from calib.ingest.writers import can_frames, write_streams
 
@@ -92,7 +93,7 @@ def test_jitter_sorted_and_noted(tmp_path):
     assert any("out of time order" in n for n in m.notes)
     p.write_text("(10.000) can0 0B4#00000000000A6600\n(5.000) can0 0B4#00000000000A6600\n")
     with pytest.raises(LogFormatError, match=r"line 2.*goes back"):
-        read_streams(p)
+        read_streams(p, strict=True)
 
 
 def test_user_signal_map(tmp_path):
@@ -102,3 +103,43 @@ def test_user_signal_map(tmp_path):
     assert s["speed_mps"].iloc[0] == pytest.approx((0x1A6F * 0.01 - 67.67) / 3.6)
     with pytest.raises(LogFormatError, match="not in the DBC"):
         read_streams(p, dbc=TOYOTA_DBC, signal_map={"NOPE.X": "speed_mps"})
+
+
+def test_rav4_speed_is_the_four_wheel_mean_not_the_dashboard():
+    """Speed comes from the wheels when all four are logged; checked against cantools' own decode."""
+    s, m = read_streams(RAV4, dbc=TOYOTA_DBC)
+    assert m.channel_sources["speed_mps"].startswith("mean of WHEEL_SPEEDS.")
+    assert any("four wheel speeds" in n for n in m.notes)
+    db = cantools.database.load_file(str(TOYOTA_DBC), strict=False)
+    msg = db.get_message_by_name("WHEEL_SPEEDS")
+    t0, ts, mean = None, [], []
+    with open(RAV4) as fh:
+        for line in fh:
+            stamp, _, frame = line.split()
+            t = float(stamp[1:-1])
+            t0 = t if t0 is None else t0
+            idstr, _, data = frame.partition("#")
+            if int(idstr, 16) == msg.frame_id:
+                d = msg.decode(bytes.fromhex(data))
+                ts.append(round(t - t0, 6))
+                mean.append(np.mean([d[f"WHEEL_SPEED_{w}"] for w in ("FL", "FR", "RL", "RR")]) / 3.6)
+    ref = pd.Series(mean, index=ts)
+    got = s["speed_mps"]
+    assert len(got) == len(ref) > 2000
+    np.testing.assert_allclose(got.index.to_numpy(), ref.index.to_numpy(), atol=1e-6)
+    rel = np.abs(got.to_numpy() - ref.to_numpy()) / np.maximum(ref.to_numpy(), 1.0)
+    assert rel.max() < 1e-3  # 0.1 %
+    # The dashboard signal (the fallback) reads about 2 % above the wheels on this car.
+    res = decode_can_signals(RAV4, fmt="candump", dbc=TOYOTA_DBC, signals=["SPEED.SPEED"])
+    dash = res["signals"][("SPEED", "SPEED")][1].mean() / 3.6
+    assert 1.01 < dash / ref.mean() < 1.03
+
+
+def test_dashboard_speed_is_the_fallback_without_wheels(tmp_path):
+    p = tmp_path / "no_wheels.log"
+    with open(RAV4) as fh, open(p, "w") as out:
+        out.writelines(line for line in fh if " 0AA#" not in line)
+    s, m = read_streams(p, dbc=TOYOTA_DBC)
+    assert m.channel_sources["speed_mps"] == "SPEED.SPEED"
+    log = read_log(p, dbc=TOYOTA_DBC)
+    assert "speed from: SPEED.SPEED" in format_report(channel_report(log, s))

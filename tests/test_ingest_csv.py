@@ -75,4 +75,4 @@ def test_time_offset_is_removed_and_noted(tmp_path):
 def test_non_numeric_cell_names_line_and_column(tmp_path):
     p = _write(tmp_path, "# comment\ntime [s],speed [m/s]\n0,1\n1,abc\n")
     with pytest.raises(LogFormatError, match=r"line 4, column 'speed \[m/s\]'.*not a number"):
-        read_streams(p)
+        read_streams(p, strict=True)

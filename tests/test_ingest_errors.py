@@ -30,7 +30,7 @@ def test_truncated_binary_logs(good, tmp_path, fmt):
     for frac in (0.5, 0.9):
         p = tmp_path / f"trunc{int(frac * 100)}.{fmt}"
         p.write_bytes(data[: int(len(data) * frac)])
-        msg = _err(p)
+        msg = _err(p, strict=True)
         assert "corrupt or truncated" in msg or "truncated" in msg
 
 
@@ -41,7 +41,7 @@ def test_corrupt_binary_logs(good, tmp_path, fmt):
         data[i] ^= 0x5A
     p = tmp_path / f"corrupt.{fmt}"
     p.write_bytes(bytes(data))
-    _err(p)
+    _err(p, strict=True)
 
 
 def test_csv_unknown_unit(tmp_path):
@@ -60,10 +60,10 @@ def test_csv_unit_of_wrong_dimension(tmp_path):
 def test_csv_non_monotonic_and_duplicate_time(tmp_path):
     p = tmp_path / "nm.csv"
     p.write_text("# x\ntime [s],speed [m/s]\n0,1\n1,1\n0.5,1\n")
-    assert "line 5" in _err(p) and "backwards" in _err(p)
+    assert "line 5" in _err(p, strict=True) and "backwards" in _err(p, strict=True)
     p = tmp_path / "dup.csv"
     p.write_text("time [s],speed [m/s]\n0,1\n1,1\n1,2\n")
-    msg = _err(p)
+    msg = _err(p, strict=True)
     assert "line 4" in msg and "duplicate time" in msg
 
 
@@ -74,7 +74,7 @@ def test_dbc_that_does_not_match_the_frames(tmp_path):
     assert "no frame matches the DBC prius_iptm.dbc" in msg
     p = tmp_path / "short.log"
     p.write_text("(0.00) can0 0B4#00000000000A6600\n(0.01) can0 0B4#0000\n")
-    msg = _err(p)
+    msg = _err(p, strict=True)
     assert "line 2" in msg and "SPEED" in msg
 
 
@@ -104,7 +104,7 @@ def test_binary_file_passed_as_csv(tmp_path, good):
 def test_malformed_candump_line(tmp_path):
     p = tmp_path / "m.log"
     p.write_text("(0.00) can0 0B4#00000000000A6600\ngarbage here\n")
-    assert "line 2" in _err(p)
+    assert "line 2" in _err(p, strict=True)
 
 
 def test_unknown_format(tmp_path):

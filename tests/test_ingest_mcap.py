@@ -58,11 +58,11 @@ def test_small_disorder_sorted_and_noted_large_is_error(tmp_path):
     assert any("out of log-time order" in n for n in m.notes)
     msgs = [("/vehicle/speed", t, {"speed": 1.0}) for t in (0.0, 10.0, 2.0)]
     with pytest.raises(LogFormatError, match=r"message 3 on /vehicle/speed.*goes back"):
-        read_streams(_mcap(tmp_path / "b.mcap", msgs))
+        read_streams(_mcap(tmp_path / "b.mcap", msgs), strict=True)
 
 
 def test_unmapped_topics_and_bad_fields(tmp_path):
     with pytest.raises(LogFormatError, match="no topic matches"):
         read_streams(_mcap(tmp_path / "c.mcap", [("/foo", 0.0, {"a": 1})]))
     with pytest.raises(LogFormatError, match=r"message 1 on /vehicle/speed.*not a number"):
-        read_streams(_mcap(tmp_path / "d.mcap", [("/vehicle/speed", 0.0, {"speed": "fast"})]))
+        read_streams(_mcap(tmp_path / "d.mcap", [("/vehicle/speed", 0.0, {"speed": "fast"})]), strict=True)

@@ -21,6 +21,8 @@ from calib.errors import LogFormatError
 from calib.fileio import atomic_path, write_json
 from calib.ingest.canlog import CAN_FORMATS, DEFAULT_SIGNAL_MAP, PRIUS_DBC, TOYOTA_2017_DBC, decode_can_signals, read_can_streams
 from calib.ingest.csvlog import read_csv_streams, sniff_is_csv
+from calib.ingest.damage import summarize as damage_summary
+from calib.ingest.damage import warn_damage
 from calib.ingest.mcaplog import DEFAULT_TOPIC_MAP, read_mcap_streams
 from calib.ingest.mdflog import read_mdf_streams
 from calib.ingest.channels import channel_report, format_report
@@ -34,7 +36,7 @@ _MAGIC = {b"\x89MCAP": "mcap", b"LOGG": "blf", b"MDF ": "mf4"}
 __all__ = [
     "FORMATS", "DEFAULT_SIGNAL_MAP", "DEFAULT_TOPIC_MAP", "PRIUS_DBC", "TOYOTA_2017_DBC",
     "detect_format", "read_streams", "to_drivelog", "read_log", "channel_report", "format_report",
-    "write_canonical", "read_canonical", "load_map", "decode_can_signals",
+    "write_canonical", "read_canonical", "load_map", "decode_can_signals", "damage_summary",
 ]
 
 
@@ -70,7 +72,7 @@ def detect_format(path) -> str:
 
 
 def read_streams(path, *, fmt: str | None = None, dbc=None, column_map: dict | None = None,
-                 topic_map: dict | None = None, signal_map: dict | None = None):
+                 topic_map: dict | None = None, signal_map: dict | None = None, strict: bool = False):
     """Read a log file into raw canonical streams.
 
     Parameters
@@ -87,6 +89,10 @@ def read_streams(path, *, fmt: str | None = None, dbc=None, column_map: dict | N
         MCAP: ``{topic: {field: "channel [unit]"}}``.
     signal_map : dict, optional
         CAN: ``{"MESSAGE.SIGNAL": "channel"}`` added over the default map.
+    strict : bool
+        Refuse a damaged log (the first garbled line/record, or a truncation, is a LogFormatError).
+        By default a damaged log is read as far as it can be trusted, ``meta.damage`` says what was
+        lost and one :class:`~calib.errors.LogDamageWarning` is issued.
 
     Returns
     -------
@@ -96,28 +102,39 @@ def read_streams(path, *, fmt: str | None = None, dbc=None, column_map: dict | N
     Raises
     ------
     LogFormatError
-        Any unreadable input; the message names the file and, where it applies, the line/message/channel.
+        Any unreadable input (a file with nothing readable, or any damage under ``strict``); the message
+        names the file and, where it applies, the line/message/channel.
     """
+    streams, meta = _read_streams(path, fmt=fmt, dbc=dbc, column_map=column_map, topic_map=topic_map,
+                                  signal_map=signal_map, strict=strict)
+    if meta.damage:
+        if not streams:
+            raise LogFormatError(path, "nothing readable: " + meta.damage["summary"])
+        warn_damage(path, meta.damage)
+    return streams, meta
+
+
+def _read_streams(path, *, fmt, dbc, column_map, topic_map, signal_map, strict):
     fmt = (fmt or detect_format(path)).lower().lstrip(".")
     if fmt == "log":
         fmt = "candump"
     if fmt == "csv":
-        return read_csv_streams(path, column_map=column_map)
+        return read_csv_streams(path, column_map=column_map, strict=strict)
     if fmt == "mcap":
-        return read_mcap_streams(path, topic_map=topic_map)
+        return read_mcap_streams(path, topic_map=topic_map, strict=strict)
     if fmt in CAN_FORMATS:
-        return read_can_streams(path, fmt=fmt, dbc=dbc, signal_map=signal_map)
+        return read_can_streams(path, fmt=fmt, dbc=dbc, signal_map=signal_map, strict=strict)
     if fmt in ("mf4", "mdf"):
-        return read_mdf_streams(path, column_map=column_map)
+        return read_mdf_streams(path, column_map=column_map, strict=strict)
     raise LogFormatError(path, f"unknown log format {fmt!r}", hint=f"one of {', '.join(FORMATS)}")
 
 
 def read_log(path, *, fmt: str | None = None, dbc=None, column_map: dict | None = None,
              topic_map: dict | None = None, signal_map: dict | None = None,
-             rate_hz: float = 1.0, max_gap_s: float = 5.0) -> DriveLog:
-    """:func:`read_streams` then :func:`to_drivelog`."""
+             rate_hz: float = 1.0, max_gap_s: float = 5.0, strict: bool = False) -> DriveLog:
+    """:func:`read_streams` then :func:`to_drivelog` (``strict``: refuse a damaged log)."""
     streams, meta = read_streams(path, fmt=fmt, dbc=dbc, column_map=column_map, topic_map=topic_map,
-                                 signal_map=signal_map)
+                                 signal_map=signal_map, strict=strict)
     if not streams:
         raise LogFormatError(path, "no samples of any canonical channel in the log")
     return to_drivelog(streams, meta, rate_hz=rate_hz, max_gap_s=max_gap_s)

@@ -24,7 +24,17 @@ import numpy as np
 
 from calib.drivelog import LogMeta, file_sha256
 from calib.errors import LogFormatError
-from calib.ingest.common import check_nonempty, make_series, parse_target, sniff_text, to_channel_unit
+from calib.ingest.common import (
+    check_nonempty,
+    check_unit,
+    make_series,
+    parse_target,
+    sniff_text,
+    sniff_text_lenient,
+    split_spec,
+    to_channel_unit,
+)
+from calib.ingest.damage import Damage, quiet_libraries
 
 #: Our Prius DBC, shipped with the package.
 PRIUS_DBC = Path(str(resources.files("calib") / "data" / "can" / "prius_iptm.dbc"))
@@ -51,6 +61,18 @@ DEFAULT_SIGNAL_MAP: dict[str, str] = {
     "IPTM_HEATER.HEATER_POWER": "heater_power_W",
     "IPTM_HEATER.BLOWER_FLOW": "blower_flow_kg_per_s",
     "IPTM_HEATER.ROAD_GRADE": "grade_rad",
+}
+
+#: The four wheel speeds (opendbc toyota_2017 WHEEL_SPEEDS, 0xAA). When a log carries all four, vehicle
+#: speed is their mean and the dashboard signal mapped to ``speed_mps`` is only the fallback: Toyota's
+#: dashboard SPEED reads about 2 % high, as speedometers are allowed to. Other DBCs: map signals to
+#: ``wheel_speed_fl``/``_fr``/``_rl``/``_rr`` (optionally with a unit) in the signal map.
+WHEEL_TARGETS = ("wheel_speed_fl", "wheel_speed_fr", "wheel_speed_rl", "wheel_speed_rr")
+DEFAULT_WHEEL_MAP: dict[str, str] = {
+    "WHEEL_SPEEDS.WHEEL_SPEED_FL": "wheel_speed_fl",
+    "WHEEL_SPEEDS.WHEEL_SPEED_FR": "wheel_speed_fr",
+    "WHEEL_SPEEDS.WHEEL_SPEED_RL": "wheel_speed_rl",
+    "WHEEL_SPEEDS.WHEEL_SPEED_RR": "wheel_speed_rr",
 }
 
 CAN_FORMATS = ("candump", "asc", "blf", "trc")
@@ -84,10 +106,10 @@ def resolve_signal_map(db, dbc_path, signal_map: dict | None) -> dict[tuple[str,
     for m, s in names:
         by_signal.setdefault(s, []).append((m, s))
     out = {}
-    for key, target in DEFAULT_SIGNAL_MAP.items():
+    for key, target in {**DEFAULT_SIGNAL_MAP, **DEFAULT_WHEEL_MAP}.items():
         m, _, s = key.partition(".")
         if (m, s) in names:
-            out[(m, s)] = parse_target(target, dbc_path, f"default map {key}")
+            out[(m, s)] = _parse_can_target(target, dbc_path, f"default map {key}")
     for key, target in (signal_map or {}).items():
         if "." in key:
             m, _, s = key.partition(".")
@@ -100,8 +122,18 @@ def resolve_signal_map(db, dbc_path, signal_map: dict | None) -> dict[tuple[str,
                 raise LogFormatError(dbc_path, f"signal map key {key!r} is {'ambiguous' if cands else 'not in the DBC'}",
                                      hint="write MESSAGE.SIGNAL")
             pair = cands[0]
-        out[pair] = parse_target(target, dbc_path, f"signal map {key}")
+        out[pair] = _parse_can_target(target, dbc_path, f"signal map {key}")
     return out
+
+
+def _parse_can_target(target, path, where):
+    """``parse_target`` plus the wheel-speed pseudo-channels (checked as speeds)."""
+    name, unit = split_spec(str(target)) if not isinstance(target, (dict, list, tuple)) else (None, None)
+    if name is not None and name.strip().lower() in WHEEL_TARGETS:
+        if unit is not None:
+            check_unit(unit, "speed_mps", path, where)
+        return name.strip().lower(), unit
+    return parse_target(target, path, where)
 
 
 class _Acc:
@@ -124,9 +156,9 @@ class _Acc:
 
 
 class FrameCollector:
-    """Keep the frames whose ID the DBC decodes into a wanted signal."""
+    """Keep the frames whose ID the DBC decodes into a wanted signal; hand damaged ones to ``damage``."""
 
-    def __init__(self, wanted_ids):
+    def __init__(self, wanted_ids, damage: Damage | None = None):
         self.wanted = set(wanted_ids)
         self.acc: dict[int, _Acc] = {}
         self.long: dict[int, list] = {}  # frames longer than 8 bytes (CAN FD), kept whole
@@ -136,41 +168,121 @@ class FrameCollector:
         self.n_backsteps = 0
         self.max_backstep = 0.0
         self.synthetic_comment = False
+        self.damage = damage if damage is not None else Damage("", strict=True)
+        # The last accepted frame, so that a garbled timestamp that jumped forward can be taken back.
+        self._t_before_last = -math.inf
+        self._last_stored = None
+        self._last_where = ""
 
-    def time(self, t: float, path, where: str):
-        """Account a frame time (every frame, wanted or not): start of log and ordering checks."""
+    def _unstore_last(self):
+        cid = self._last_stored
+        if cid is None:
+            return
+        if cid in self.long and self.long[cid] and self._last_stored_long:
+            self.long[cid].pop()
+        else:
+            acc = self.acc[cid]
+            acc.t.pop()
+            del acc.data[-8:]
+            acc.dlc.pop()
+            acc.pos.pop()
+        self._last_stored = None
+
+    def time(self, t: float, path, where: str) -> bool:
+        """Account a frame time (every frame, wanted or not): start of log and ordering checks.
+
+        Returns False when the frame is damaged (recorded in ``damage``) and must be skipped.
+        """
+        if self.t_prev <= t < math.inf:  # the usual case, kept short: it runs once per frame
+            self.n_frames += 1
+            if t < self.t_first:
+                self.t_first = t
+            self._last_stored = None
+            self._last_where = where
+            self._t_before_last = self.t_prev
+            self.t_prev = t
+            if self.damage._open_span is not None:
+                self.damage.good(t)
+            return True
         if not math.isfinite(t):
-            raise LogFormatError(path, "timestamp is not a finite number", where)
-        self.n_frames += 1
-        if t < self.t_first:
-            self.t_first = t
+            self.damage.bad(LogFormatError(path, "timestamp is not a finite number", where), self.t_prev)
+            return False
         if t < self.t_prev:
             back = self.t_prev - t
             if back > MAX_BACKSTEP_S:
-                raise LogFormatError(path, f"timestamp goes back by {back:.3f} s", where,
+                err = LogFormatError(path, f"timestamp goes back by {back:.3f} s", where,
                                      "frames must be in time order (small jitter is sorted)")
-            self.n_backsteps += 1
-            self.max_backstep = max(self.max_backstep, back)
-        else:
+                if self.damage.strict:
+                    raise err
+                prev_jump = self.t_prev - self._t_before_last
+                if (self.n_frames > 1 and prev_jump > MAX_BACKSTEP_S
+                        and t >= self._t_before_last - MAX_BACKSTEP_S):
+                    # The previous frame's time jumped forward and this one fits the time before it:
+                    # the previous timestamp was the garbled one.
+                    self._unstore_last()
+                    self.n_frames -= 1
+                    self.damage.bad(LogFormatError(path, f"timestamp jumps forward by {prev_jump:.3f} s",
+                                                   self._last_where), self._t_before_last)
+                    self.t_prev = self._t_before_last
+                else:
+                    self.damage.bad(err, self.t_prev)
+                    return False
+            else:
+                self.n_backsteps += 1
+                self.max_backstep = max(self.max_backstep, back)
+        self.n_frames += 1
+        if t < self.t_first:
+            self.t_first = t
+        self._last_stored = None
+        self._last_where = where
+        if t >= self.t_prev:
+            self._t_before_last = self.t_prev
             self.t_prev = t
+        if self.damage._open_span is not None:
+            self.damage.good(t)
+        return True
+
+    def finish(self, path):
+        """End of the log: a last frame whose time jumped far forward has no later frame to expose it."""
+        jump = self.t_prev - self._t_before_last
+        if self.damage.strict or self.n_frames < 3 or not jump > MAX_BACKSTEP_S or not self.damage:
+            return
+        # Only in a log already known to be damaged: a clean log may well end after a pause.
+        self._unstore_last()
+        self.n_frames -= 1
+        self.damage.bad(LogFormatError(path, f"timestamp jumps forward by {jump:.3f} s", self._last_where),
+                        self._t_before_last)
+        self.t_prev = self._t_before_last
 
     def frame(self, t: float, can_id: int, data: bytes, pos: int):
         if can_id not in self.wanted:
             return
         if len(data) > 8:
             self.long.setdefault(can_id, []).append((t, bytes(data), pos))
+            self._last_stored, self._last_stored_long = can_id, True
             return
         acc = self.acc.get(can_id)
         if acc is None:
             acc = self.acc[can_id] = _Acc()
         acc.add(t, data, pos)
+        self._last_stored, self._last_stored_long = can_id, False
 
 
 def _parse_candump(path, col: FrameCollector, ids_cache: dict):
-    """Stream a ``candump -L`` log: ``(timestamp) iface ID#DATA`` per line."""
-    sniff_text(path, "candump")
+    """Stream a ``candump -L`` log: ``(timestamp) iface ID#DATA`` per line; bad lines go to ``col.damage``."""
+    dmg = col.damage
+    if dmg.strict:
+        sniff_text(path, "candump")
+    else:
+        sniff_text_lenient(path, "candump")
     wanted = col.wanted
-    with open(path, "r", encoding="utf-8", errors="strict") as fh:
+
+    def bad(problem, lineno, hint=None):
+        dmg.bad(LogFormatError(path, problem, f"line {lineno}", hint), col.t_prev)
+
+    # Bytes that are not UTF-8 become lone surrogates, which fail the timestamp/ID/data parse of their
+    # own line: the line is named (and skipped unless strict).
+    with open(path, "r", encoding="utf-8", errors="surrogateescape") as fh:
         lineno = 0
         try:
             for lineno, line in enumerate(fh, 1):
@@ -180,67 +292,110 @@ def _parse_candump(path, col: FrameCollector, ids_cache: dict):
                     if "SYNTHETIC" in line.upper():
                         col.synthetic_comment = True
                     continue
+                if line[-1] != "\n":
+                    bad("line cut short (no line end)", lineno)
+                    continue
                 parts = line.split()
                 if len(parts) < 3 or parts[0][0] != "(" or parts[0][-1] != ")":
-                    raise LogFormatError(path, f"not a candump -L line: {line.strip()[:60]!r}", f"line {lineno}",
-                                         "expected '(timestamp) iface ID#DATA'")
+                    bad(f"not a candump -L line: {_show(line.strip())}", lineno, "expected '(timestamp) iface ID#DATA'")
+                    continue
                 try:
                     t = float(parts[0][1:-1])
                 except ValueError:
-                    raise LogFormatError(path, f"bad timestamp {parts[0][:40]!r}", f"line {lineno}") from None
-                col.time(t, path, f"line {lineno}")
+                    bad(f"bad timestamp {_show(parts[0])}", lineno)
+                    continue
                 idstr, sep, payload = parts[2].partition("#")
                 can_id = ids_cache.get(idstr)
                 if can_id is None:
                     if not sep or not idstr or len(idstr) > 8:
-                        raise LogFormatError(path, f"bad frame {parts[2][:40]!r}", f"line {lineno}")
+                        bad(f"bad frame {_show(parts[2])}", lineno)
+                        continue
                     try:
                         can_id = int(idstr, 16)
                     except ValueError:
-                        raise LogFormatError(path, f"bad CAN ID {idstr[:20]!r}", f"line {lineno}") from None
+                        bad(f"bad CAN ID {_show(idstr)}", lineno)
+                        continue
                     ids_cache[idstr] = can_id
                 if can_id not in wanted:
+                    col.time(t, path, f"line {lineno}")
                     continue
                 if payload[:1] == "R":
+                    col.time(t, path, f"line {lineno}")
                     continue  # remote frame: no data
                 if payload[:1] == "#":
                     payload = payload[2:]  # CAN FD: '##<flags><data>'
                 try:
                     data = bytes.fromhex(payload)
                 except ValueError:
-                    raise LogFormatError(path, f"bad frame data {payload[:40]!r}", f"line {lineno}") from None
-                col.frame(t, can_id, data, lineno)
+                    bad(f"bad frame data {_show(payload)}", lineno)
+                    continue
+                if col.time(t, path, f"line {lineno}"):
+                    col.frame(t, can_id, data, lineno)
         except UnicodeDecodeError:
             raise LogFormatError(path, "binary data in a candump text log", f"after line {lineno}") from None
 
 
-def _parse_python_can(path, fmt: str, col: FrameCollector):
-    """Stream .asc/.blf/.trc through python-can's readers; any reader failure is a format error."""
-    import can
+def _show(text: str) -> str:
+    return repr(text[:60].encode("utf-8", "replace").decode("utf-8", "replace"))
 
-    reader_cls = {"asc": can.ASCReader, "blf": can.BLFReader, "trc": can.TRCReader}[fmt]
+
+def _parse_python_can(path, fmt: str, col: FrameCollector):
+    """Stream .asc/.blf/.trc through python-can's record parsing; damaged records go to ``col.damage``."""
+    from calib.ingest.canreaders import READERS, Bad  # python-can is imported only for these formats
+
+    dmg = col.damage
     if fmt in ("asc", "trc"):
-        sniff_text(path, fmt.upper())
+        if dmg.strict:
+            sniff_text(path, fmt.upper())
+        else:
+            sniff_text_lenient(path, fmt.upper())
     i = 0
+    reader = None
     try:
-        with reader_cls(str(path)) as reader:
-            if fmt == "blf":
-                # python-can stops quietly at a truncated container: check the header's own size.
-                actual = Path(path).stat().st_size
-                if reader.file_size and actual < reader.file_size:
-                    raise LogFormatError(path, f"truncated BLF file: {actual} of {reader.file_size} bytes")
-            for i, msg in enumerate(reader, 1):
-                if msg.is_error_frame:
-                    continue
-                col.time(float(msg.timestamp), path, f"message {i}")
-                if msg.is_remote_frame:
-                    continue
-                col.frame(float(msg.timestamp), int(msg.arbitration_id), bytes(msg.data), i)
+        with quiet_libraries() as chatter:
+            try:
+                reader = READERS[fmt](path)
+            except LogFormatError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - python-can raises struct/ValueError/... on a bad header
+                text = str(exc).splitlines()[0][:160] if str(exc) else type(exc).__name__
+                raise LogFormatError(path, f"corrupt {fmt.upper()} file header: {text}") from None
+            header_size = getattr(reader, "file_size", 0) if fmt == "blf" else 0
+            actual = Path(path).stat().st_size
+            if fmt == "blf" and dmg.strict and header_size and actual < header_size:
+                raise LogFormatError(path, f"truncated BLF file: {actual} of {header_size} bytes")
+            with reader:
+                for item in reader:
+                    if type(item) is Bad:
+                        if item.truncated:
+                            a = item.byte_range[0]
+                            dmg.truncated(a, max(actual, header_size) if a < actual else None, col.t_prev,
+                                          item.err.problem)
+                        else:
+                            dmg.bad(item.err, col.t_prev, byte_range=item.byte_range)
+                        continue
+                    i += 1
+                    if item.is_error_frame:
+                        continue
+                    pos = reader._lines.n if fmt != "blf" else i
+                    where = f"line {pos}" if fmt != "blf" else f"message {i}"
+                    if not col.time(float(item.timestamp), path, where):
+                        continue
+                    if item.is_remote_frame:
+                        continue
+                    col.frame(float(item.timestamp), int(item.arbitration_id), bytes(item.data), pos)
+            if fmt == "blf" and header_size and actual < header_size and not reader.hit_truncation:
+                dmg.truncated(actual, header_size, col.t_prev, f"file is {actual} of the {header_size} bytes its header gives")
+        for text in chatter:
+            dmg.bad(LogFormatError(path, f"{text[:80].replace(':', ' -')} (reported by python-can)", "python-can"))
     except LogFormatError:
         raise
     except Exception as exc:  # noqa: BLE001 - python-can readers raise struct/zlib/ValueError/... on corrupt files
         text = str(exc).splitlines()[0][:160] if str(exc) else type(exc).__name__
-        raise LogFormatError(path, f"corrupt or truncated {fmt.upper()} file: {text}", f"after message {i}") from None
+        err = LogFormatError(path, f"corrupt or truncated {fmt.upper()} file: {text}", f"after message {i}")
+        if dmg.strict or col.n_frames == 0:
+            raise err from None
+        dmg.bad(err, col.t_prev)  # the reader cannot go on: the rest of the file is lost
 
 
 def _signal_is_vectorisable(msg, sig) -> bool:
@@ -297,7 +452,7 @@ def extract_signal(data: np.ndarray, sig) -> np.ndarray:
     return np.where(sna, np.nan, phys)
 
 
-def decode_can_signals(path, *, fmt: str, dbc=None, signals=None, signal_map=None):
+def decode_can_signals(path, *, fmt: str, dbc=None, signals=None, signal_map=None, strict: bool = False):
     """Decode DBC signals from a CAN log into arrays.
 
     Parameters
@@ -312,12 +467,15 @@ def decode_can_signals(path, *, fmt: str, dbc=None, signals=None, signal_map=Non
         channel map.
     signal_map : dict, optional
         Extra/overriding ``MESSAGE.SIGNAL -> channel`` entries (used when ``signals`` is None).
+    strict : bool
+        Raise at the first damaged line/record instead of skipping it (see :mod:`calib.ingest.damage`).
 
     Returns
     -------
     result : dict
         ``{"signals": {(message, signal): (t, values)}, "t0": first frame time, "n_frames": int,
-        "n_backsteps": int, "max_backstep": float, "map": resolved map, "db": cantools db}``;
+        "n_backsteps": int, "max_backstep": float, "map": resolved map, "db": cantools db,
+        "damage": dict (empty for an intact log)}``;
         ``t`` is seconds from the first frame of the log.
 
     Raises
@@ -352,15 +510,18 @@ def decode_can_signals(path, *, fmt: str, dbc=None, signals=None, signal_map=Non
         msg = db.get_message_by_name(m)
         msgs[msg.frame_id] = msg
 
-    col = FrameCollector(msgs)
+    dmg = Damage(path, strict=strict, unit="line" if fmt in ("candump", "asc", "trc") else "record")
+    col = FrameCollector(msgs, dmg)
     if fmt == "candump":
         _parse_candump(path, col, {})
     elif fmt in ("asc", "blf", "trc"):
         _parse_python_can(path, fmt, col)
     else:
         raise LogFormatError(path, f"not a CAN log format: {fmt}")
+    col.finish(path)
     if col.n_frames == 0:
-        raise LogFormatError(path, "no CAN frames in the file")
+        extra = f" ({dmg.n} damaged {dmg.unit}(s) skipped, first at {dmg.where[0]})" if dmg.n else ""
+        raise LogFormatError(path, "no CAN frames in the file" + extra)
     if not (set(col.acc) | set(col.long)) - {LOG_INFO_ID}:
         ids = ", ".join(f"0x{i:X}" for i in sorted(msgs))
         raise LogFormatError(path, f"no frame matches the DBC {dbc_path.name}: none of its decoded messages "
@@ -386,53 +547,110 @@ def decode_can_signals(path, *, fmt: str, dbc=None, signals=None, signal_map=Non
                     short = np.flatnonzero(dlc < need)
                     if len(short):
                         k = int(short[0])
-                        where = (f"line {pos[k]}" if fmt == "candump" else f"message {pos[k]}")
-                        raise LogFormatError(path, f"frame 0x{can_id:X} has {int(dlc[k])} data bytes but DBC message "
+                        where = (f"line {pos[k]}" if fmt in ("candump", "asc", "trc") else f"message {pos[k]}")
+                        err = LogFormatError(path, f"frame 0x{can_id:X} has {int(dlc[k])} data bytes but DBC message "
                                                    f"{msg.name} needs {need} for {sname}", where,
                                              "is this the right DBC for the log?")
+                        if 2 * len(short) > len(dlc):
+                            raise err  # most frames too short: the DBC does not fit, not damage
+                        if sname == pairs[0][1]:
+                            dmg.bad(err, None, count=len(short))
+                        ok = dlc >= need
+                        t, data, dlc, pos = t[ok], data[ok], dlc[ok], pos[ok]
                     ts.append(t)
                     vs.append(extract_signal(data, sig))
                 else:
-                    tt, vv = _decode_slow(path, fmt, msg, sname, t, data, dlc, pos)
+                    tt, vv = _decode_slow(path, fmt, msg, sname, t, data, dlc, pos, dmg)
                     ts.append(tt)
                     vs.append(vv)
             for t, data, pos in col.long.get(can_id, []):
-                tt, vv = _decode_slow_one(path, fmt, msg, sname, t - col.t_first, data, pos)
+                tt, vv = _decode_slow_one(path, fmt, msg, sname, t - col.t_first, data, pos, dmg)
                 ts.append(tt)
                 vs.append(vv)
             if ts:
                 out[(msg.name, sname)] = (np.concatenate(ts), np.concatenate(vs))
     return {"signals": out, "t0": col.t_first, "synthetic_comment": col.synthetic_comment, "n_frames": col.n_frames, "n_backsteps": col.n_backsteps,
-            "max_backstep": col.max_backstep, "map": smap, "db": db, "dbc_path": dbc_path}
+            "max_backstep": col.max_backstep, "map": smap, "db": db, "dbc_path": dbc_path,
+            "damage": dmg.finish(col.t_first, col.t_prev)}
 
 
-def _decode_slow(path, fmt, msg, sname, t, data, dlc, pos):
+def _decode_slow(path, fmt, msg, sname, t, data, dlc, pos, dmg=None):
     vals = np.empty(len(t))
     for k in range(len(t)):
-        vals[k] = _decode_slow_one(path, fmt, msg, sname, 0.0, bytes(data[k, : int(dlc[k])]), int(pos[k]))[1][0]
+        vals[k] = _decode_slow_one(path, fmt, msg, sname, 0.0, bytes(data[k, : int(dlc[k])]), int(pos[k]), dmg)[1][0]
     return t, vals
 
 
-def _decode_slow_one(path, fmt, msg, sname, t, payload, pos):
+def _decode_slow_one(path, fmt, msg, sname, t, payload, pos, dmg=None):
     try:
         v = msg.decode(payload, decode_choices=False, scaling=True).get(sname, np.nan)
     except Exception as exc:  # noqa: BLE001 - cantools raises DecodeError/ValueError/IndexError on mismatch
-        where = f"line {pos}" if fmt == "candump" else f"message {pos}"
-        raise LogFormatError(path, f"frame 0x{msg.frame_id:X} does not decode as DBC message {msg.name}: {exc}",
-                             where) from None
+        where = f"line {pos}" if fmt in ("candump", "asc", "trc") else f"message {pos}"
+        err = LogFormatError(path, f"frame 0x{msg.frame_id:X} does not decode as DBC message {msg.name}: {exc}", where)
+        if dmg is None:
+            raise err from None
+        dmg.bad(err, None)
+        return np.array([t]), np.array([np.nan])
     return np.array([t]), np.array([float(v)])
 
 
-def read_can_streams(path, *, fmt: str, dbc=None, signal_map=None):
+def wheel_mean_speed(wheels: dict) -> tuple[np.ndarray, np.ndarray] | None:
+    """Mean of the four wheel speeds ``{target: (t, v m/s, ...)}``: (t, v), or None unless all four are there.
+
+    The wheels' own times when they share them (one message carries all four, as on Toyota); otherwise
+    the other three are interpolated onto the first one's times. A time with any wheel missing is dropped.
+    """
+    if set(wheels) != set(WHEEL_TARGETS) or any(len(wheels[w][0]) == 0 for w in WHEEL_TARGETS):
+        return None
+    t = np.asarray(wheels[WHEEL_TARGETS[0]][0], dtype=float)
+    vals = []
+    for w in WHEEL_TARGETS:
+        tw, vw = np.asarray(wheels[w][0], dtype=float), np.asarray(wheels[w][1], dtype=float)
+        if len(tw) == len(t) and np.array_equal(tw, t):
+            vals.append(vw)
+        else:
+            ok = np.isfinite(vw)
+            if ok.sum() < 2:
+                return None
+            o = np.argsort(tw[ok], kind="stable")
+            vi = np.interp(t, tw[ok][o], vw[ok][o], left=np.nan, right=np.nan)
+            vals.append(vi)
+    v = np.mean(vals, axis=0)
+    ok = np.isfinite(v)
+    if not ok.any():
+        return None
+    return t[ok], v[ok]
+
+
+def _speed_from_wheels(wheels: dict, parts: dict, meta) -> None:
+    """Vehicle speed from the four wheel speeds when the log has them, else the dashboard signal."""
+    mean = wheel_mean_speed(wheels)
+    if mean is None:
+        if wheels:
+            meta.notes.append(f"speed: only {len(wheels)} of 4 wheel speeds in the log; dashboard signal used")
+        if "speed_mps" in meta.channel_sources:
+            meta.notes.append(f"speed from the dashboard signal {meta.channel_sources['speed_mps']}")
+        return
+    dash = meta.channel_sources.get("speed_mps")
+    parts["speed_mps"] = [mean]
+    meta.channel_sources["speed_mps"] = "mean of " + ", ".join(wheels[w][2] for w in WHEEL_TARGETS)
+    meta.original_units["speed_mps"] = wheels[WHEEL_TARGETS[0]][3]
+    meta.notes.append("speed from the mean of the four wheel speeds"
+                      + (f" (dashboard {dash} is the fallback, not used)" if dash else ""))
+
+
+def read_can_streams(path, *, fmt: str, dbc=None, signal_map=None, strict: bool = False):
     """Read a CAN log into canonical streams (see :func:`decode_can_signals`).
 
     Returns
     -------
     (Streams, LogMeta)
+        ``meta.damage`` says what a damaged log lost (empty when intact).
     """
-    res = decode_can_signals(path, fmt=fmt, dbc=dbc, signal_map=signal_map)
+    res = decode_can_signals(path, fmt=fmt, dbc=dbc, signal_map=signal_map, strict=strict)
     dbc_path = res["dbc_path"]
     meta = LogMeta(source=str(path), sha256=file_sha256(path), format=fmt)
+    meta.damage = res["damage"]
     meta.notes.append(f"decoded with DBC {dbc_path.name}")
     if res["n_backsteps"]:
         meta.notes.append(f"{res['n_backsteps']} frame(s) out of time order by up to "
@@ -446,6 +664,7 @@ def read_can_streams(path, *, fmt: str, dbc=None, signal_map=None):
     if res["synthetic_comment"] or (info is not None and np.any(info[1] == 1)):
         meta.synthetic = True
     parts: dict[str, list] = {}
+    wheels: dict[str, tuple] = {}
     for (m, s), (ch, unit) in res["map"].items():
         if (m, s) not in res["signals"]:
             continue
@@ -454,10 +673,14 @@ def read_can_streams(path, *, fmt: str, dbc=None, signal_map=None):
         src_unit = unit or sig.unit
         if not src_unit:
             raise LogFormatError(dbc_path, f"signal {m}.{s} has no unit", hint="give one in the signal map: 'channel [unit]'")
+        if ch in WHEEL_TARGETS:
+            wheels[ch] = (t, to_channel_unit(v, src_unit, "speed_mps", dbc_path, f"signal {m}.{s}"), f"{m}.{s}", src_unit)
+            continue
         v = to_channel_unit(v, src_unit, ch, dbc_path, f"signal {m}.{s}")
         parts.setdefault(ch, []).append((t, v))
         meta.channel_sources.setdefault(ch, f"{m}.{s}")
         meta.original_units.setdefault(ch, src_unit)
+    _speed_from_wheels(wheels, parts, meta)
     streams = {}
     for ch, chunks in parts.items():
         s = make_series(np.concatenate([c[0] for c in chunks]), np.concatenate([c[1] for c in chunks]), ch)

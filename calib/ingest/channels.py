@@ -32,7 +32,8 @@ def channel_report(log: DriveLog, streams: dict | None = None, max_gap_s: float 
     -------
     pandas.DataFrame
         Index ``channel``; columns ``present`` (bool), ``n`` (samples), ``rate_hz`` (median native rate),
-        ``gaps`` (count), ``longest_gap_s``, ``min``, ``max``, ``unit``.
+        ``gaps`` (count), ``longest_gap_s``, ``min``, ``max``, ``unit``. ``attrs["damage"]`` is the log's
+        damage summary (empty for an intact file), ``attrs["speed_source"]`` where speed came from.
     """
     rows = []
     for ch, (unit, _desc) in CHANNELS.items():
@@ -59,7 +60,10 @@ def channel_report(log: DriveLog, streams: dict | None = None, max_gap_s: float 
             row["gaps"], row["longest_gap_s"] = _gaps(t[ok], log.dt * 1.5)
             row["min"], row["max"] = float(col.min()), float(col.max())
         rows.append(row)
-    return pd.DataFrame(rows).set_index("channel")
+    out = pd.DataFrame(rows).set_index("channel")
+    out.attrs["damage"] = dict(log.meta.damage or {})
+    out.attrs["speed_source"] = log.meta.channel_sources.get("speed_mps", "")
+    return out
 
 
 def format_report(report: pd.DataFrame, title: str = "") -> str:
@@ -74,5 +78,11 @@ def format_report(report: pd.DataFrame, title: str = "") -> str:
         rate = f"{r['rate_hz']:8.2f}" if np.isfinite(r["rate_hz"]) else f"{'-':>8s}"
         lines.append(f"{ch:22s} {int(r['n']):8d} {rate} {int(r['gaps']):5d} {r['longest_gap_s']:8.1f} "
                      f"{r['min']:10.4g} {r['max']:10.4g}  {r['unit']}")
+    src = report.attrs.get("speed_source")
+    if src:
+        lines.append(f"speed from: {src}")
+    dmg = report.attrs.get("damage")
+    if dmg:
+        lines.append(f"RECOVERED: {dmg.get('summary', 'damaged log')}")
     lines.append("missing: " + (", ".join(missing) if missing else "none"))
     return "\n".join(lines)

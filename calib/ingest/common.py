@@ -141,6 +141,33 @@ def sniff_text(path, kind: str, n: int = 65536) -> str:
         raise LogFormatError(path, f"binary file, not a {kind} text file (byte {exc.start} is not UTF-8)") from None
 
 
+#: A text log whose head has more than this fraction of NUL or non-UTF-8 bytes is binary, not damaged text.
+BINARY_FRACTION = 0.05
+
+
+def sniff_text_lenient(path, kind: str, n: int = 65536) -> str:
+    """Like :func:`sniff_text`, but a few bad bytes (a damaged text log) are allowed.
+
+    Raises
+    ------
+    LogFormatError
+        Empty file, or a head that is mostly not text (a binary file).
+    """
+    p = Path(path)
+    try:
+        with open(p, "rb") as fh:
+            head = fh.read(n)
+    except OSError as exc:
+        raise LogFormatError(path, f"cannot open: {exc.strerror or exc}") from None
+    if not head.strip():
+        raise LogFormatError(path, "empty file")
+    text = head.decode("utf-8", errors="replace")
+    bad = text.count("\ufffd") + text.count("\x00")
+    if bad > BINARY_FRACTION * max(len(text), 1):
+        raise LogFormatError(path, f"binary file, not a {kind} text file")
+    return text
+
+
 def check_nonempty(path) -> None:
     """Raise :class:`LogFormatError` if ``path`` is missing or empty."""
     p = Path(path)

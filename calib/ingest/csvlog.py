@@ -29,7 +29,17 @@ import pandas as pd
 from calib.drivelog import CHANNELS, LogMeta, file_sha256
 from calib.errors import LogFormatError
 from calib.units import UnitError, convert, parse_unit
-from calib.ingest.common import canonical_name, implied_unit, make_series, parse_target, sniff_text, split_spec, to_channel_unit
+from calib.ingest.common import (
+    canonical_name,
+    implied_unit,
+    make_series,
+    parse_target,
+    sniff_text,
+    sniff_text_lenient,
+    split_spec,
+    to_channel_unit,
+)
+from calib.ingest.damage import Damage
 
 TIME_NAMES = {"time", "t", "timestamp", "time_s", "times", "time_sec", "elapsed"}
 
@@ -66,7 +76,11 @@ def _meta_from_comments(comments: list[str], meta: LogMeta) -> None:
             meta.notes.append(val)
 
 
-def read_csv_streams(path, column_map: dict | None = None) -> tuple[dict, LogMeta]:
+class _RowDamage(LogFormatError):
+    """A data row that cannot be trusted (raised as is under ``strict``; otherwise the slow reader skips it)."""
+
+
+def read_csv_streams(path, column_map: dict | None = None, strict: bool = False) -> tuple[dict, LogMeta]:
     """Read a CSV log into streams.
 
     Parameters
@@ -76,6 +90,10 @@ def read_csv_streams(path, column_map: dict | None = None) -> tuple[dict, LogMet
     column_map : dict, optional
         ``{column header: "channel [unit]"}`` (or ``"channel"`` when the header carries the unit, or
         ``"time [unit]"`` for the time column). Overrides header recognition for the columns it names.
+    strict : bool
+        Refuse the file at its first damaged data row. By default damaged rows (wrong number of fields,
+        a cell that is not a number, a time out of order, bytes that are not text) are skipped line by
+        line and listed in ``meta.damage``; the header must be intact.
 
     Returns
     -------
@@ -84,37 +102,23 @@ def read_csv_streams(path, column_map: dict | None = None) -> tuple[dict, LogMet
     Raises
     ------
     LogFormatError
-        Empty or binary file, no time column, unknown unit, non-numeric cell, non-monotonic or duplicate
-        time (naming the line).
+        Empty or binary file, no time column, unknown unit, no readable row; under ``strict`` also a
+        non-numeric cell or a non-monotonic or duplicate time (naming the line).
     """
-    head = sniff_text(path, "CSV")
-    comments, n_skip = _read_comments(head)
-    meta = LogMeta(source=str(path), sha256=file_sha256(path), format="csv")
-    _meta_from_comments(comments, meta)
-    column_map = dict(column_map or {})
-
     try:
-        df = pd.read_csv(path, skiprows=n_skip, dtype=str, keep_default_na=False, skipinitialspace=True,
-                         encoding="utf-8", on_bad_lines="error", engine="c", comment=None)
-    except pd.errors.EmptyDataError:
-        raise LogFormatError(path, "no header line (file holds only comments)") from None
-    except pd.errors.ParserError as exc:
-        msg = str(exc).strip().splitlines()[-1]
-        line = _line_from_pandas(msg, n_skip)
-        raise LogFormatError(path, f"malformed CSV: {msg}", line) from None
-    except UnicodeDecodeError as exc:
-        raise LogFormatError(path, f"binary file, not a CSV text file (byte {exc.start} is not UTF-8)") from None
-    if df.shape[1] < 2:
-        raise LogFormatError(path, "fewer than two columns: need a time column and at least one channel",
-                             f"line {n_skip + 1}", "is the delimiter a comma?")
+        return _read_csv(path, column_map, fast=True)
+    except _RowDamage:
+        if strict:
+            raise
+    return _read_csv(path, column_map, fast=False)
 
-    header_line = n_skip + 1
-    first_data_line = header_line + 1
 
+def _columns(columns, column_map, path, header_line):
+    """Time column, its unit, channel columns ``[(column, channel, unit)]`` and ignored columns."""
     time_col, time_unit = None, None
     channel_cols: list[tuple[str, str, str]] = []  # (column, channel, unit)
     ignored = []
-    for col in df.columns:
+    for col in columns:
         where = f"line {header_line}, column {col!r}"
         name, unit = split_spec(col)
         if col in column_map:
@@ -148,7 +152,7 @@ def read_csv_streams(path, column_map: dict | None = None) -> tuple[dict, LogMet
                                      "write 'name [unit]' in the header or give the unit in a column map")
         channel_cols.append((col, ch, unit))
 
-    missing_map = [c for c in column_map if c not in df.columns]
+    missing_map = [c for c in column_map if c not in columns]
     if missing_map:
         raise LogFormatError(path, f"column map names column(s) not in the file: {', '.join(map(repr, missing_map))}",
                              f"line {header_line}")
@@ -169,32 +173,93 @@ def read_csv_streams(path, column_map: dict | None = None) -> tuple[dict, LogMet
     if not channel_cols:
         raise LogFormatError(path, "no column is a known channel", f"line {header_line}",
                              "name columns like 'speed [km/h]' or pass a column map")
-    if len(df) == 0:
-        raise LogFormatError(path, "header but no data rows", f"line {header_line}")
+    seen = {}
+    for col, ch, _unit in channel_cols:
+        if ch in seen:
+            raise LogFormatError(path, f"columns {seen[ch]!r} and {col!r} both map to channel {ch}",
+                                 f"line {header_line}", "drop one or map it elsewhere")
+        seen[ch] = col
+    return time_col, time_unit, channel_cols, ignored
 
-    t_raw = _numeric(df[time_col], path, time_col, first_data_line, allow_empty=False)
+
+def _read_csv(path, column_map, fast: bool):
+    """``fast``: pandas, any damaged row raises :class:`_RowDamage`; else line by line, skipping damage."""
+    head = sniff_text(path, "CSV") if fast else sniff_text_lenient(path, "CSV")
+    comments, n_skip = _read_comments(head)
+    meta = LogMeta(source=str(path), sha256=file_sha256(path), format="csv")
+    _meta_from_comments(comments, meta)
+    column_map = dict(column_map or {})
+    header_line = n_skip + 1
+    dmg = Damage(path, strict=False, unit="line")
+
+    try:
+        df = pd.read_csv(path, skiprows=n_skip, dtype=str, keep_default_na=False, skipinitialspace=True,
+                         encoding="utf-8", encoding_errors="strict" if fast else "replace",
+                         on_bad_lines="error", engine="c", comment=None, nrows=None if fast else 0)
+    except pd.errors.EmptyDataError:
+        raise LogFormatError(path, "no header line (file holds only comments)") from None
+    except pd.errors.ParserError as exc:
+        msg = str(exc).strip().splitlines()[-1]
+        line = _line_from_pandas(msg, n_skip)
+        raise _RowDamage(path, f"malformed CSV: {msg}", line) from None
+    except UnicodeDecodeError:
+        raise _RowDamage(path, "bytes that are not UTF-8 text in a CSV file", _first_bad_utf8_line(path)) from None
+    if df.shape[1] < 2:
+        raise LogFormatError(path, "fewer than two columns: need a time column and at least one channel",
+                             f"line {header_line}", "is the delimiter a comma?")
+    time_col, time_unit, channel_cols, ignored = _columns(list(df.columns), column_map, path, header_line)
+    if fast:
+        if len(df) == 0:
+            raise LogFormatError(path, "header but no data rows", f"line {header_line}")
+        if not _ends_with_newline(path):
+            raise _RowDamage(path, "last line cut short (no line end)", "last line")
+        if df.isna().to_numpy().any():  # a row with fewer fields than the header (keep_default_na=False)
+            i = int(np.flatnonzero(df.isna().to_numpy().any(axis=1))[0])
+            raise _RowDamage(path, f"row has fewer fields than the header's {df.shape[1]}", f"line {header_line + 1 + i}")
+        first_data_line = header_line + 1
+        t_raw = _numeric(df[time_col], path, time_col, first_data_line, allow_empty=False)
+        values = {col: _numeric(df[col], path, col, first_data_line, allow_empty=True) for col, _, _ in channel_cols}
+        line_of = None
+    else:
+        t_raw, values, line_of = _rows_recovering(path, list(df.columns), header_line, time_col,
+                                                  [c for c, _, _ in channel_cols], dmg)
+        if len(t_raw) == 0:
+            raise LogFormatError(path, "no readable data row", f"after line {header_line}",
+                                 dmg.where[0] if dmg.where else None)
     t = np.asarray(convert(t_raw, time_unit, "s"), dtype=float)
     d = np.diff(t)
     bad = np.flatnonzero(~(d > 0))
     if len(bad):
         i = int(bad[0]) + 1
         kind = "duplicate time" if d[bad[0]] == 0 else "time goes backwards"
-        raise LogFormatError(path, f"{kind}: {t_raw[i]!r} after {t_raw[i - 1]!r}",
-                             f"line {first_data_line + i}", "times must be strictly increasing")
+        if fast:
+            raise _RowDamage(path, f"{kind}: {t_raw[i]!r} after {t_raw[i - 1]!r}",
+                             f"line {header_line + 1 + i}", "times must be strictly increasing")
+        # Keep the longest run of rows whose times increase: one garbled time costs one row.
+        keep = _longest_increasing(t)
+        for j in np.flatnonzero(~keep):
+            prev = t[:j][keep[:j]]
+            dmg.bad(LogFormatError(path, "time out of order", f"line {line_of[j]}"),
+                    float(prev[-1]) if len(prev) else -np.inf)
+        t, t_raw = t[keep], t_raw[keep]
+        values = {k: v[keep] for k, v in values.items()}
+        line_of = line_of[keep]
+    if not fast and dmg:
+        for tt in t:  # close the spans of lost rows at the next kept row
+            if dmg._open_span is None:
+                break
+            if tt > dmg._open_span:
+                dmg.good(tt)
     t0 = float(t[0])
+    if not fast:
+        meta.damage = dmg.finish(t0, float(t[-1]))
     t = t - t0
     if t0 != 0.0:
         meta.notes.append(f"time shifted by {-t0:g} s so the log starts at 0")
 
     streams = {}
-    seen = {}
     for col, ch, unit in channel_cols:
-        if ch in seen:
-            raise LogFormatError(path, f"columns {seen[ch]!r} and {col!r} both map to channel {ch}",
-                                 f"line {header_line}", "drop one or map it elsewhere")
-        seen[ch] = col
-        v = _numeric(df[col], path, col, first_data_line, allow_empty=True)
-        v = to_channel_unit(v, unit, ch, path, f"column {col!r}")
+        v = to_channel_unit(values[col], unit, ch, path, f"column {col!r}")
         s = make_series(t, v, ch)
         if len(s):
             streams[ch] = s
@@ -205,6 +270,101 @@ def read_csv_streams(path, column_map: dict | None = None) -> tuple[dict, LogMet
     return streams, meta
 
 
+def _first_bad_utf8_line(path) -> str | None:
+    with open(path, "rb") as fh:
+        for lineno, raw in enumerate(fh, 1):
+            try:
+                raw.decode("utf-8")
+            except UnicodeDecodeError:
+                return f"line {lineno}"
+    return None
+
+
+def _ends_with_newline(path) -> bool:
+    with open(path, "rb") as fh:
+        fh.seek(0, 2)
+        if fh.tell() == 0:
+            return True
+        fh.seek(-1, 2)
+        return fh.read(1) in (b"\n", b"\r")
+
+
+_EMPTY = {"", "nan", "NaN", "NA", "null", "None"}
+
+
+def _rows_recovering(path, columns, header_line, time_col, value_cols, dmg: Damage):
+    """Parse the data rows one line at a time; a row with a wrong field count or a bad cell is skipped."""
+    ncol = len(columns)
+    it = columns.index(time_col)
+    iv = [columns.index(c) for c in value_cols]
+    times, lines = [], []
+    vals = [[] for _ in iv]
+    t_last = -np.inf
+    with open(path, "r", encoding="utf-8", errors="replace", newline="") as fh:
+        for lineno, line in enumerate(fh, 1):
+            if lineno <= header_line:
+                continue
+            if not line.strip():
+                continue
+            where = f"line {lineno}"
+            if not line.endswith(("\n", "\r")):
+                dmg.bad(LogFormatError(path, "line cut short (no line end)", where), t_last)
+                continue
+            try:
+                row = next(csv.reader([line], skipinitialspace=True))
+            except (csv.Error, StopIteration):
+                dmg.bad(LogFormatError(path, "malformed CSV row", where), t_last)
+                continue
+            if len(row) != ncol:
+                dmg.bad(LogFormatError(path, f"expected {ncol} fields, saw {len(row)}", where), t_last)
+                continue
+            try:
+                cell = row[it].strip()
+                if cell in _EMPTY:
+                    raise ValueError("empty time cell")
+                tv = float(cell)
+                rv = []
+                for k in iv:
+                    c = row[k].strip()
+                    rv.append(np.nan if c in _EMPTY else float(c))
+                if not np.isfinite(tv) or np.isinf(rv).any():
+                    raise ValueError("infinite value")
+            except ValueError as exc:
+                dmg.bad(LogFormatError(path, f"not a number: {str(exc)[:50]}", where), t_last)
+                continue
+            times.append(tv)
+            lines.append(lineno)
+            for lst, v in zip(vals, rv):
+                lst.append(v)
+            t_last = tv
+    return (np.asarray(times, dtype=float), {c: np.asarray(v, dtype=float) for c, v in zip(value_cols, vals)},
+            np.asarray(lines, dtype=np.int64))
+
+
+def _longest_increasing(t: np.ndarray) -> np.ndarray:
+    """Mask of a longest strictly increasing subsequence of ``t`` (O(n log n))."""
+    import bisect
+
+    n = len(t)
+    tails, tails_idx = [], []
+    prev = np.full(n, -1, dtype=np.int64)
+    for i, x in enumerate(t.tolist()):
+        k = bisect.bisect_left(tails, x)
+        if k == len(tails):
+            tails.append(x)
+            tails_idx.append(i)
+        else:
+            tails[k] = x
+            tails_idx[k] = i
+        prev[i] = tails_idx[k - 1] if k > 0 else -1
+    keep = np.zeros(n, dtype=bool)
+    i = tails_idx[-1] if tails_idx else -1
+    while i >= 0:
+        keep[i] = True
+        i = prev[i]
+    return keep
+
+
 def _numeric(col: pd.Series, path, name: str, first_line: int, allow_empty: bool) -> np.ndarray:
     s = col.astype(str).str.strip()
     empty = s.isin(["", "nan", "NaN", "NA", "null", "None"])
@@ -212,13 +372,13 @@ def _numeric(col: pd.Series, path, name: str, first_line: int, allow_empty: bool
     bad = np.flatnonzero(np.isnan(num) & ~empty.to_numpy())
     if len(bad):
         i = int(bad[0])
-        raise LogFormatError(path, f"not a number: {s.iloc[i][:40]!r}", f"line {first_line + i}, column {name!r}")
+        raise _RowDamage(path, f"not a number: {s.iloc[i][:40]!r}", f"line {first_line + i}, column {name!r}")
     if not allow_empty and empty.any():
         i = int(np.flatnonzero(empty.to_numpy())[0])
-        raise LogFormatError(path, "empty time cell", f"line {first_line + i}, column {name!r}")
+        raise _RowDamage(path, "empty time cell", f"line {first_line + i}, column {name!r}")
     if np.isinf(num).any():
         i = int(np.flatnonzero(np.isinf(num))[0])
-        raise LogFormatError(path, "infinite value", f"line {first_line + i}, column {name!r}")
+        raise _RowDamage(path, "infinite value", f"line {first_line + i}, column {name!r}")
     return num
 
 

@@ -8,14 +8,20 @@ Messages slightly out of log-time order are sorted and counted in ``meta.notes``
 """
 from __future__ import annotations
 
+import io
 import json
 import math
+import mmap
+import struct
+import zlib
 
 import numpy as np
+from mcap.data_stream import ReadDataStream
 
 from calib.drivelog import LogMeta, file_sha256
 from calib.errors import LogFormatError
 from calib.ingest.common import check_nonempty, make_series, parse_target, to_channel_unit
+from calib.ingest.damage import Damage, quiet_libraries
 
 #: Default topic -> field -> "channel [unit]" map (the layout the log writers produce).
 DEFAULT_TOPIC_MAP: dict[str, dict[str, str]] = {
@@ -73,14 +79,244 @@ def _get(obj, dotted: str):
     return obj
 
 
-def read_mcap_streams(path, topic_map: dict | None = None):
+_MAGIC = b"\x89MCAP0\r\n"
+_OP_HEADER, _OP_FOOTER, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK = 1, 2, 3, 4, 5, 6
+_OP_METADATA, _OP_DATA_END = 0x0C, 0x0F
+_KNOWN_OPS = set(range(1, 0x10))
+_U64 = struct.Struct("<Q")
+_MSG_HEAD = struct.Struct("<HIQQ")
+_CHUNK_HEAD = struct.Struct("<QQQI")
+# Where a chunk record's body would start, seen from its compression name (resynchronisation anchor).
+_ANCHORS = {b"\x04\x00\x00\x00zstd": "zstd", b"\x03\x00\x00\x00lz4": "lz4"}
+
+
+def _decompressor(compression: str):
+    """A function bytes -> bytes that inflates a (possibly cut) chunk body as far as it goes."""
+    if compression == "":
+        return lambda b: bytes(b)
+    if compression == "zstd":
+        import zstandard
+
+        def run(b):
+            d = zstandard.ZstdDecompressor().decompressobj()
+            out = []
+            try:
+                for i in range(0, len(b), 1 << 16):
+                    out.append(d.decompress(bytes(b[i:i + (1 << 16)])))
+            except zstandard.ZstdError:
+                pass
+            return b"".join(out)
+        return run
+    if compression == "lz4":
+        import lz4.frame
+
+        def run(b):
+            d = lz4.frame.LZ4FrameDecompressor()
+            out = []
+            try:
+                for i in range(0, len(b), 1 << 16):
+                    out.append(d.decompress(bytes(b[i:i + (1 << 16)])))
+            except RuntimeError:
+                pass
+            return b"".join(out)
+        return run
+    raise LogFormatError("", f"unsupported MCAP chunk compression {compression[:20]!r}")
+
+
+class _McapScan:
+    """Walk an MCAP file's records in order, keeping what can be trusted (see :func:`read_mcap_streams`)."""
+
+    def __init__(self, path, buf, dmg: Damage, on_message):
+        self.path = path
+        self.buf = buf
+        self.n = len(buf)
+        self.dmg = dmg
+        self.on_message = on_message  # (channel, log_time_ns, data, index) -> None
+        self.channels = {}
+        self.metadata = {}
+        self.footer = False
+        self.data_end = False  # the data section ended whole: a cut after it loses only the index
+        self.cut_in_summary = False
+        self.i = 0  # messages seen
+        self.t_last = -math.inf  # last good message time, s (file clock)
+
+    def bad(self, problem, where, byte_range=None, t_span=None):
+        self.dmg.bad(LogFormatError(self.path, problem, where), None if t_span else self.t_last,
+                     byte_range=byte_range, t_span=t_span)
+
+    def run(self):
+        buf, n = self.buf, self.n
+        if bytes(buf[:8]) != _MAGIC:
+            self.bad("bad MCAP magic", "byte 0", (0, 8))
+        pos = 8
+        ends_whole = bytes(buf[-8:]) == _MAGIC and n > 16
+        while pos < n and not self.footer:
+            if pos + 9 > n:
+                if self.data_end and not self.dmg.strict:
+                    self.cut_in_summary = True
+                else:
+                    self.dmg.truncated(pos, n, self.t_last, "file ends inside a record header")
+                break
+            op = buf[pos]
+            length = _U64.unpack_from(buf, pos + 1)[0]
+            body = pos + 9
+            if op not in _KNOWN_OPS and op < 0x80 or length > n - body:
+                if length > n - body and op == _OP_CHUNK and not ends_whole:
+                    self._chunk(body, n, cut=True)
+                    self.dmg.truncated(n, None, self.t_last, f"file ends inside the chunk at byte {pos} (read up to the cut)")
+                    break
+                if not ends_whole and length > n - body and op in _KNOWN_OPS:
+                    if self.data_end and not self.dmg.strict:
+                        self.cut_in_summary = True
+                    else:
+                        self.dmg.truncated(pos, n, self.t_last, "file ends inside a record")
+                    break
+                nxt = self._resync(pos + 1)
+                self.bad(f"garbled record header (opcode 0x{op:02X}, length {length})", f"byte {pos}",
+                         (pos, nxt if nxt is not None else n))
+                if nxt is None:
+                    break
+                pos = nxt
+                continue
+            end = body + length
+            try:
+                self._record(op, body, end)
+            except LogFormatError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - mcap record parsers raise struct/EndOfFile/Unicode errors
+                self.bad(f"unreadable record (opcode 0x{op:02X}): {_why(exc)}", f"byte {pos}", (pos, end))
+            pos = end
+        return self
+
+    def _resync(self, start):
+        """Offset of the next plausible chunk record after ``start``, or None."""
+        best = None
+        for anchor in _ANCHORS:
+            k = self.buf.find(anchor, start + 37)
+            while k >= 0:
+                cand = k - 37
+                if self.buf[cand] == _OP_CHUNK:
+                    length = _U64.unpack_from(self.buf, cand + 1)[0]
+                    clen = len(anchor) - 4
+                    data_len_at = cand + 9 + 28 + 4 + clen
+                    if data_len_at + 8 <= self.n:
+                        data_len = _U64.unpack_from(self.buf, data_len_at)[0]
+                        if length == 28 + 4 + clen + 8 + data_len and cand + 9 + length <= self.n:
+                            best = cand if best is None else min(best, cand)
+                            break
+                k = self.buf.find(anchor, k + 1)
+        return best
+
+    def _record(self, op, a, b):
+        buf = self.buf
+        if op == _OP_MESSAGE:
+            self._message(a, b, f"byte {a - 9}")
+        elif op == _OP_CHANNEL:
+            self._channel(a, b)
+        elif op == _OP_CHUNK:
+            self._chunk(a, b, cut=False)
+        elif op == _OP_METADATA:
+            from mcap.records import Metadata
+
+            md = Metadata.read(ReadDataStream(io.BytesIO(bytes(buf[a:b]))))
+            self.metadata[md.name] = dict(md.metadata)
+        elif op == _OP_FOOTER:
+            self.footer = True
+        elif op == _OP_DATA_END:
+            self.data_end = True
+
+    def _channel(self, a, b):
+        from mcap.records import Channel
+
+        ch = Channel.read(ReadDataStream(io.BytesIO(bytes(self.buf[a:b]))))
+        self.channels[ch.id] = ch
+
+    def _message(self, a, b, where, data_buf=None):
+        buf = self.buf if data_buf is None else data_buf
+        if b - a < _MSG_HEAD.size:
+            raise ValueError("message record too short")
+        cid, _seq, log_time, _pub = _MSG_HEAD.unpack_from(buf, a)
+        self.i += 1
+        ch = self.channels.get(cid)
+        if ch is None:
+            self.bad(f"message on unknown channel id {cid}", f"message {self.i}")
+            return
+        t = log_time * 1e-9
+        if self.on_message(ch, t, bytes(buf[a + _MSG_HEAD.size:b]), self.i, self):
+            self.t_last = max(self.t_last, t)
+
+    def _chunk(self, a, b, cut: bool):
+        buf = self.buf
+        if b - a < 28 + 4:
+            raise ValueError("chunk record too short")
+        t_start, t_end, usize, crc = _CHUNK_HEAD.unpack_from(buf, a)
+        clen = struct.unpack_from("<I", buf, a + 28)[0]
+        if clen > 16:
+            raise ValueError("bad compression name length")
+        comp = bytes(buf[a + 32:a + 32 + clen]).decode("ascii")
+        p = a + 32 + clen
+        dlen = _U64.unpack_from(buf, p)[0]
+        p += 8
+        stop = min(b, p + dlen)
+        where = f"chunk at byte {a - 9}"
+        try:
+            data = _decompressor(comp)(buf[p:stop])
+        except LogFormatError as exc:
+            raise LogFormatError(self.path, exc.problem, where) from None
+        span = (t_start * 1e-9, t_end * 1e-9)
+        if not cut:
+            if len(data) != usize or (crc and zlib.crc32(data) != crc):
+                self.bad("corrupt chunk (size or CRC does not match) dropped", where, (a - 9, b), t_span=span)
+                return
+        q, m = 0, len(data)
+        while q < m:
+            if q + 9 > m:
+                if not cut:
+                    self.bad("chunk ends inside a record", where, t_span=(self.t_last, span[1]))
+                return
+            op = data[q]
+            length = _U64.unpack_from(data, q + 1)[0]
+            s, e = q + 9, q + 9 + length
+            if e > m:
+                if not cut:
+                    self.bad("chunk ends inside a record", where, t_span=(self.t_last, span[1]))
+                return
+            try:
+                if op == _OP_MESSAGE:
+                    self._message(s, e, where, data_buf=data)
+                elif op == _OP_CHANNEL:
+                    from mcap.records import Channel
+
+                    ch = Channel.read(ReadDataStream(io.BytesIO(data[s:e])))
+                    self.channels[ch.id] = ch
+            except LogFormatError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - a record inside a damaged chunk
+                self.bad(f"unreadable record in chunk: {_why(exc)}", where, t_span=(self.t_last, span[1]))
+                return
+            q = e
+
+
+def _why(exc: Exception) -> str:
+    return (str(exc).splitlines()[0][:100] if str(exc) else type(exc).__name__).encode("utf-8", "replace").decode()
+
+
+def read_mcap_streams(path, topic_map: dict | None = None, strict: bool = False):
     """Read an MCAP log of JSON messages into streams.
+
+    The file's records are walked in order (as ``mcap recover`` does), so a file cut short (a recorder
+    killed mid-drive) gives every message before the cut, including those of the last, partial chunk.
+    A chunk whose CRC or size does not match is dropped whole; a message that is not JSON, or whose mapped
+    field is not a number, is skipped; a garbled record header is skipped by finding the next chunk.
+    What was lost is in ``meta.damage``; under ``strict`` the first damage is raised instead.
 
     Parameters
     ----------
     path : str or Path
     topic_map : dict, optional
         ``{topic: {field: "channel [unit]"}}``, merged over :data:`DEFAULT_TOPIC_MAP`.
+    strict : bool
+        Raise on any damage.
 
     Returns
     -------
@@ -89,73 +325,97 @@ def read_mcap_streams(path, topic_map: dict | None = None):
     Raises
     ------
     LogFormatError
-        Empty, truncated or corrupt file; a mapped field that is not a number; no mapped topic.
+        Empty file, nothing readable, a topic that is not JSON-encoded, no mapped topic; any damage
+        under ``strict``.
     """
-    from mcap.reader import make_reader
-
     check_nonempty(path)
     tmap = _resolve_map(path, topic_map)
     meta = LogMeta(source=str(path), sha256=file_sha256(path), format="mcap")
+    dmg = Damage(path, strict=strict, unit="message")
     parts: dict[str, tuple[list, list]] = {}
-    t_first, t_prev = math.inf, -math.inf
-    n_back, max_back, n_msgs = 0, 0.0, 0
+    state = {"t_first": math.inf, "t_prev": -math.inf, "n_back": 0, "max_back": 0.0, "n_msgs": 0}
     topics_seen = set()
-    i = 0
-    try:
-        with open(path, "rb") as fh:
-            reader = make_reader(fh, validate_crcs=True)
-            for i, (_schema, channel, message) in enumerate(reader.iter_messages(log_time_order=False), 1):
-                n_msgs += 1
-                t = message.log_time * 1e-9
-                t_first = min(t_first, t)
-                if t < t_prev:
-                    back = t_prev - t
-                    if back > MAX_BACKSTEP_S:
-                        raise LogFormatError(path, f"log time goes back by {back:.3f} s", f"message {i} on {channel.topic}")
-                    n_back += 1
-                    max_back = max(max_back, back)
-                else:
-                    t_prev = t
-                topics_seen.add(channel.topic)
-                fields = tmap.get(channel.topic)
-                if not fields:
+
+    def on_message(channel, t, data, i, scan) -> bool:
+        where = f"message {i} on {channel.topic}"
+        if not math.isfinite(t):
+            scan.bad("log time is not finite", where)
+            return False
+        if t < state["t_prev"]:
+            back = state["t_prev"] - t
+            if back > MAX_BACKSTEP_S:
+                scan.bad(f"log time goes back by {back:.3f} s", where)
+                return False
+            state["n_back"] += 1
+            state["max_back"] = max(state["max_back"], back)
+        else:
+            state["t_prev"] = t
+        topics_seen.add(channel.topic)
+        fields = tmap.get(channel.topic)
+        if fields:
+            if channel.message_encoding != "json":
+                raise LogFormatError(path, f"topic {channel.topic} is {channel.message_encoding!r}-encoded, "
+                                           "only JSON is supported", f"message {i}")
+            try:
+                obj = json.loads(data)
+            except (ValueError, UnicodeDecodeError):
+                scan.bad("message is not valid JSON", where)
+                return False
+            vals = []
+            for field, (ch, _unit) in fields.items():
+                v = _get(obj, field)
+                if v is None:
                     continue
-                if channel.message_encoding != "json":
-                    raise LogFormatError(path, f"topic {channel.topic} is {channel.message_encoding!r}-encoded, "
-                                               "only JSON is supported", f"message {i}")
-                try:
-                    obj = json.loads(message.data)
-                except (ValueError, UnicodeDecodeError):
-                    raise LogFormatError(path, "message is not valid JSON", f"message {i} on {channel.topic}") from None
-                for field, (ch, _unit) in fields.items():
-                    v = _get(obj, field)
-                    if v is None:
-                        continue
-                    if isinstance(v, bool) or not isinstance(v, (int, float)):
-                        raise LogFormatError(path, f"field {field!r} is not a number: {str(v)[:40]!r}",
-                                             f"message {i} on {channel.topic}")
-                    tl, vl = parts.setdefault(f"{channel.topic}\x00{field}", ([], []))
-                    tl.append(t)
-                    vl.append(float(v))
-            for md in reader.iter_metadata():
-                if md.name in ("iptm", "drive_log"):
-                    d = dict(md.metadata)
-                    meta.synthetic = d.get("synthetic", "").lower() in ("true", "1", "yes")
-                    meta.vehicle_id = d.get("vehicle_id", "")
-                    meta.start_time = d.get("start_time") or None
-    except LogFormatError:
-        raise
-    except Exception as exc:  # noqa: BLE001 - the mcap reader raises struct/EndOfFile/CRC/zstd/... errors
-        text = str(exc).splitlines()[0][:160] if str(exc) else type(exc).__name__
-        raise LogFormatError(path, f"corrupt or truncated MCAP file: {text}", f"after message {i}") from None
-    if n_msgs == 0:
-        raise LogFormatError(path, "MCAP file holds no messages")
+                if isinstance(v, bool) or not isinstance(v, (int, float)):
+                    scan.bad(f"field {field!r} is not a number: {str(v)[:40]!r}", where)
+                    return False
+                vals.append((field, float(v)))
+            for field, v in vals:
+                tl, vl = parts.setdefault(f"{channel.topic}\x00{field}", ([], []))
+                tl.append(t)
+                vl.append(v)
+        state["n_msgs"] += 1
+        state["t_first"] = min(state["t_first"], t)
+        if dmg._open_span is not None:
+            dmg.good(t)
+        return True
+
+    with quiet_libraries() as chatter:
+        try:
+            with open(path, "rb") as fh, mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mm:
+                scan = _McapScan(path, mm, dmg, on_message).run()
+                metadata = scan.metadata
+                if scan.cut_in_summary:
+                    meta.notes.append("the file is cut in its summary (index) section, after all the data: "
+                                      "no message lost")
+        except LogFormatError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - last resort: an mmap/OS error is still a clean message
+            raise LogFormatError(path, f"corrupt or truncated MCAP file: {_why(exc)}") from None
+    for text in chatter:
+        dmg.bad(LogFormatError(path, f"{text[:80].replace(':', ' -')} (reported by the mcap library)", "mcap"))
+    for name in ("iptm", "drive_log"):
+        if name in metadata:
+            d = metadata[name]
+            meta.synthetic = d.get("synthetic", "").lower() in ("true", "1", "yes")
+            meta.vehicle_id = d.get("vehicle_id", "")
+            meta.start_time = d.get("start_time") or None
+    if state["n_msgs"] == 0:
+        extra = f" ({'; '.join(dmg.problems)})" if dmg else ""
+        if dmg.truncated_at is not None:
+            extra += " - a compressed chunk decodes in whole blocks (up to 128 kB of messages for zstd)"
+        raise LogFormatError(path, "MCAP file holds no readable messages" + extra)
     mapped = [tp for tp in topics_seen if tp in tmap]
     if not mapped:
         raise LogFormatError(path, f"no topic matches the topic map (topics in file: {', '.join(sorted(topics_seen))[:200]})",
                              hint="pass a topic map (--map) naming topic, field, channel and unit")
-    if n_back:
-        meta.notes.append(f"{n_back} message(s) out of log-time order by up to {max_back * 1e3:.1f} ms were sorted")
+    if state["n_back"]:
+        meta.notes.append(f"{state['n_back']} message(s) out of log-time order by up to "
+                          f"{state['max_back'] * 1e3:.1f} ms were sorted")
+    meta.damage = dmg.finish(state["t_first"], state["t_prev"])
+    if meta.damage and not metadata:
+        meta.notes.append("the file's metadata record (synthetic flag, vehicle id) was lost with the damage")
+    t_first = state["t_first"]
     streams = {}
     for key, (tl, vl) in parts.items():
         topic, field = key.split("\x00")

@@ -7,13 +7,31 @@ channel's own unit, and a mapped channel with neither is an error.
 from __future__ import annotations
 
 import gc
+import struct
 import sys
+from pathlib import Path
 
 import numpy as np
 
 from calib.drivelog import LogMeta, file_sha256
 from calib.errors import LogFormatError
 from calib.ingest.common import canonical_name, check_nonempty, make_series, parse_target, split_spec, to_channel_unit
+from calib.ingest.damage import Damage, quiet_libraries
+
+
+def _declared_size(path) -> int:
+    """End of the farthest block the file's block headers reach (0 if none can be read)."""
+    end = 0
+    with open(path, "rb") as fh:
+        data = fh.read()
+    k = data.find(b"##", 64)
+    while 0 <= k < len(data) - 16:
+        if data[k + 2:k + 4].isalpha():
+            length = struct.unpack_from("<Q", data, k + 8)[0]
+            if length < 1 << 40:
+                end = max(end, k + length)
+        k = data.find(b"##", k + 1)
+    return end
 
 
 def _quiet_asammdf_del(unraisable, _prev=None):
@@ -44,7 +62,7 @@ def _open_mdf(MDF, path):
         sys.unraisablehook = prev
 
 
-def read_mdf_streams(path, column_map: dict | None = None):
+def read_mdf_streams(path, column_map: dict | None = None, strict: bool = False):
     """Read an MDF4 file into streams. See the module docstring.
 
     Raises
@@ -63,11 +81,19 @@ def read_mdf_streams(path, column_map: dict | None = None):
         head = fh.read(64)
     if len(head) < 64 or not head.startswith(b"MDF "):
         raise LogFormatError(path, "not an MDF file (no 'MDF' identification block)")
-    mdf, err = _open_mdf(MDF, path)
+    dmg = Damage(path, strict=strict, unit="block")
+    with quiet_libraries() as chatter:
+        mdf, err = _open_mdf(MDF, path)
     if err is not None:
+        if mdf is None and Path(path).stat().st_size < _declared_size(path):
+            # asammdf writes the channel definitions after the data: a cut file has no layout left.
+            raise LogFormatError(path, f"{err.problem}; the file is cut short and keeps its channel "
+                                       "definitions after the data, so nothing can be recovered") from None
         raise err
     parts = {}
     t_first = np.inf
+    chatter_ctx = quiet_libraries()
+    chatter2 = chatter_ctx.__enter__()
     try:
         names = list(mdf.channels_db)
         for name in names:
@@ -93,8 +119,12 @@ def read_mdf_streams(path, column_map: dict | None = None):
         raise LogFormatError(path, f"cannot read MDF channels: {str(exc)[:160]}") from None
     finally:
         mdf.close()
+        chatter_ctx.__exit__(None, None, None)
+    for text in list(chatter) + list(chatter2):
+        dmg.bad(LogFormatError(path, f"{text[:80].replace(':', ' -')} (reported by asammdf)", "asammdf"))
     if not parts:
         raise LogFormatError(path, "no MDF channel is a known channel", hint="pass a column map")
+    meta.damage = dmg.finish(0.0)
     streams = {}
     for ch, (t, v, name, unit) in parts.items():
         s = make_series(t - t_first, v, ch)

@@ -5,7 +5,10 @@ import numpy as np
 import pandas as pd
 
 from calib.drivelog import CHANNELS, DriveLog, LogMeta
-from calib.errors import IptmError
+from calib.errors import IptmError, LogFormatError
+
+#: Most rows of a resampled table (23 days at 1 Hz); more means garbled timestamps, not a drive.
+MAX_ROWS = 2_000_000
 
 
 def resample_stream(s: pd.Series, grid: np.ndarray, dt: float, max_gap_s: float) -> np.ndarray:
@@ -66,6 +69,10 @@ def to_drivelog(streams: dict, meta: LogMeta, rate_hz: float = 1.0, max_gap_s: f
         raise IptmError(f"max gap must be a non-negative number of seconds, got {max_gap_s}")
     dt = 1.0 / rate_hz
     t_end = max((float(s.index[-1]) for s in streams.values() if len(s)), default=0.0)
+    if t_end / dt > MAX_ROWS:
+        raise LogFormatError(meta.source, f"log spans {t_end:.4g} s: {t_end / dt:.3g} rows at {rate_hz:g} Hz is more "
+                                          f"than {MAX_ROWS:.0e}", hint="check the timestamps (a garbled one?) or "
+                                                                        "resample at a lower rate")
     n = int(np.floor(t_end / dt + 1e-9)) + 1
     grid = np.arange(n) * dt
     cols = {}

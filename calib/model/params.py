@@ -113,7 +113,8 @@ def _p(name, value, unit, lo, hi, source, description="", **kw) -> Parameter:
 def _battery_tables(T_C: int = 26, n_modules: int = 28):
     import csv
 
-    rows = list(csv.DictReader((DATA / "battery" / "nimh_module_ocv_resistance.csv").open()))
+    with (DATA / "battery" / "nimh_module_ocv_resistance.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
     rows = [r for r in rows if int(float(r["temperature_C"])) == T_C]
     soc = [float(r["soc"]) for r in rows]
     ocv = [round(n_modules * float(r["ocv_V"]), 4) for r in rows]

@@ -9,6 +9,7 @@ SUITES = {
     "calib": "iptm.benchmarks.calib",
     "dp": "iptm.benchmarks.dp",
     "sweep": "iptm.benchmarks.sweep",
+    "fuzz": "iptm.benchmarks.fuzz",
 }
 
 
@@ -16,11 +17,14 @@ def register(sub):
     p = sub.add_parser("bench", help="run benchmarks and print time, memory and throughput",
                        description="Benchmarks: sim (simulation speed, EPA table), ingest (30-min CAN dump), "
                                    "calib (full calibration of bundled-size logs), dp (three DP formulations on "
-                                   "paper grids), sweep (distributed study speed-up).")
+                                   "paper grids), sweep (distributed study speed-up), fuzz (mutated inputs to every reader: read / recovered / "
+                                   "clean error / escape counts, and random truncations of valid logs).")
     p.add_argument("suite", nargs="*", default=["sim", "dp"], help=f"any of {', '.join(SUITES)} or 'all' "
                                                                     "(default: sim dp)")
     p.add_argument("--quick", action="store_true", help="smaller sizes, for a smoke check")
     p.add_argument("--json", metavar="FILE", help="write all figures as JSON")
+    p.add_argument("--n", type=int, metavar="N", help="fuzz: mutated inputs per reader (default 10000, --quick 300)")
+    p.add_argument("--seed", type=int, default=0, help="fuzz: seed of the mutations (default 0)")
     p.set_defaults(func=run)
 
 
@@ -41,7 +45,8 @@ def run(args) -> int:
                 continue
             raise
         print(f"== {n}")
-        results[n] = mod.run(quick=args.quick)
+        extra = {"n": args.n, "seed": args.seed} if n == "fuzz" else {}
+        results[n] = mod.run(quick=args.quick, **extra)
     if args.json:
         write_json(args.json, results)
     return 0

@@ -18,6 +18,8 @@ def register(sub):
     p.add_argument("--plots", metavar="DIR", help="write measured-vs-simulated plots of the validation logs")
     p.add_argument("--rate", type=float, default=1.0, help="resampling rate in Hz (default 1)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--strict", action="store_true",
+                   help="refuse damaged logs (default: read what they still hold, say what was lost)")
     p.set_defaults(func=run)
 
 
@@ -25,7 +27,7 @@ def _names(s):
     return [n.strip() for n in s.split(",") if n.strip()] if s else None
 
 
-def _read(path, rate):
+def _read(path, rate, strict=False):
     from pathlib import Path
 
     from calib.ingest import read_canonical, read_log
@@ -33,7 +35,7 @@ def _read(path, rate):
     p = Path(path)
     if p.suffix.lower() == ".parquet" or (p.suffix.lower() == ".csv" and p.with_name(p.name + ".meta.json").exists()):
         return read_canonical(p)
-    return read_log(p, rate_hz=rate)
+    return read_log(p, rate_hz=rate, strict=strict)
 
 
 def run(args) -> int:
@@ -51,7 +53,7 @@ def run(args) -> int:
     paths = list(args.logs) + list(args.validate)
     logs, val = [], []
     for i, path in enumerate(tqdm(paths, desc="read logs", disable=args.quiet, leave=False, file=sys.stderr)):
-        lg = _read(path, args.rate)
+        lg = _read(path, args.rate, getattr(args, "strict", False))
         if not lg.meta.sha256:
             lg.meta.sha256 = file_sha256(path)
         (logs if i < len(args.logs) else val).append(lg)

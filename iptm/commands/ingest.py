@@ -37,6 +37,8 @@ def register(subparsers) -> None:
     p.add_argument("--out", help="output .parquet/.csv file (one input) or folder (default: next to each input, "
                                  "<name>.canonical.parquet)")
     p.add_argument("--json", metavar="FILE", help="write the channel reports as JSON")
+    p.add_argument("--strict", action="store_true",
+                   help="refuse damaged logs (default: read what they still hold and say what was lost)")
     p.set_defaults(func=run)
 
 
@@ -57,7 +59,8 @@ def run(args) -> int:
     for f in args.files:
         src = Path(f)
         streams, meta = read_streams(src, fmt=args.fmt, dbc=args.dbc, column_map=maps["columns"] or None,
-                                     topic_map=maps["topics"] or None, signal_map=maps["signals"] or None)
+                                     topic_map=maps["topics"] or None, signal_map=maps["signals"] or None,
+                                     strict=args.strict)
         if not streams:
             raise IptmError(f"{src}: no samples of any canonical channel")
         log = to_drivelog(streams, meta, rate_hz=args.rate, max_gap_s=args.max_gap)
@@ -77,6 +80,7 @@ def run(args) -> int:
             "duration_s": log.duration_s,
             "channels": rep.reset_index().to_dict(orient="records"),
             "notes": log.meta.notes,
+            "damage": log.meta.damage,
         }
     if args.json:
         write_json(args.json, reports)

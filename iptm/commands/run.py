@@ -18,6 +18,8 @@ def register(sub):
     p.add_argument("--cache", default=".iptm-cache", metavar="DIR", help="cache folder (default .iptm-cache)")
     p.add_argument("--no-cache", action="store_true", help="recompute everything")
     p.add_argument("--quiet", action="store_true", help="no progress display")
+    p.add_argument("--strict", action="store_true",
+                   help="refuse damaged logs (default: read what they still hold, say what was lost)")
     p.add_argument("--json", metavar="FILE", help="write the summary figures as JSON")
     p.set_defaults(func=run)
 
@@ -34,7 +36,8 @@ def run(args) -> int:
     scen, grids, strategies, cycle_log = pipeline.load_scenario(args.scenario)
     cfg = pipeline.RunConfig(logs=logs, scenario=scen, grids=grids, strategies=strategies,
                              cycle_from_log=cycle_log, validate=[Path(p) for p in args.validate],
-                             base_params=args.params, dbc=args.dbc, reports_dir=Path(args.reports),
+                             base_params=args.params, dbc=args.dbc, strict=args.strict,
+                             reports_dir=Path(args.reports),
                              cache_dir=None if args.no_cache else Path(args.cache), progress=not args.quiet,
                              command_line=" ".join(shlex.quote(a) for a in ["iptm"] + sys.argv[1:]))
     out = pipeline.run(cfg)

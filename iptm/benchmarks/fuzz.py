@@ -1,0 +1,375 @@
+"""Fuzzing benchmark: mutated inputs to every reader; nothing but a clean IptmError may come out.
+
+For each reader (the log formats CSV, MCAP, candump, ASC, BLF, TRC, MDF4, and the parameter, scenario
+and study TOML files) a small valid file is written, then ``n`` mutated copies are read. A mutation is 1-4
+edits drawn from bit flips, truncations, insertions of random bytes, deletions and duplications of a
+stretch; case ``i`` of reader ``r`` uses ``numpy.random.default_rng([seed, r, i])``, so any case can be
+replayed (``mutate(data, seed, r, i)``). Each read ends in one of:
+
+- ``read``: read, no damage reported;
+- ``recovered``: read, with a damage report (``LogMeta.damage``) and one LogDamageWarning;
+- ``error``: a clean :class:`calib.errors.IptmError` (one line, naming the file);
+- ``escape``: any other exception (a bug), listed with its case number.
+
+``printed`` counts reads that wrote anything to stdout/stderr or issued a foreign warning (a library
+talking past the project's own reporting); ``unclear`` counts IptmErrors whose message is not one line
+naming the file.
+
+The truncation check (``n / 20`` cuts per format, 50 to 500) cuts a larger valid log of each format at a uniformly random byte between 10 % and
+100 % of its length and requires it to be read or recovered, with every sample up to the recovered
+end time equal to the intact file's ("nothing before the cut lost").
+
+Run: ``iptm bench fuzz`` (10,000 mutated inputs per reader; ``--quick``: 300) or
+``python -m iptm.benchmarks.fuzz --n 200 --seed 1``.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import os
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+LOG_READERS = ("csv", "mcap", "candump", "asc", "blf", "trc", "mf4")
+TOML_READERS = ("params", "scenario", "study")
+READERS = LOG_READERS + TOML_READERS
+EXT = {"csv": "csv", "mcap": "mcap", "candump": "log", "asc": "asc", "blf": "blf", "trc": "trc", "mf4": "mf4",
+       "params": "toml", "scenario": "toml", "study": "toml"}
+KINDS = ("flip", "cut", "insert", "delete", "dup")
+
+_SCENARIO = """\
+# fuzz seed: a scenario file
+[scenario]
+cycle = "nycc"
+T_amb = -7.0
+soc0 = 0.6
+
+[grids]
+soc = 0.02
+tcl = 2.0
+
+[run]
+strategies = ["rule", "baseline"]
+"""
+
+_STUDY = """\
+# fuzz seed: a study file
+[study]
+name = "fuzz"
+strategies = ["rule", "baseline"]
+reference = "rule"
+grids = {soc = 0.02}
+
+[scenario]
+soc0 = 0.6
+
+[vary]
+T_amb = [-10, 0]
+cycle = ["nycc"]
+"""
+
+
+def _small_streams(duration_s=8.0, rate=5.0):
+    from calib.ingest.fabricate import fabricate_streams
+
+    rates = {c: rate for c in ("speed_mps", "bat_current_A", "bat_voltage_V", "engine_speed_rpm",
+                               "engine_torque_Nm", "fuel_rate_g_per_s")}
+    return fabricate_streams(duration_s, dropout=None, rates=rates)
+
+
+def _write_trc(blf: Path, out: Path) -> Path:
+    import can
+
+    with can.BLFReader(str(blf)) as reader, can.TRCWriter(str(out)) as w:
+        for msg in reader:
+            w.on_message_received(msg)
+    return out
+
+
+def _write_mf4(streams, out: Path) -> Path:
+    import asammdf
+
+    from calib.drivelog import CHANNELS
+    from calib.ingest.common import HUMAN_NAME
+
+    mdf = asammdf.MDF(version="4.10")
+    sigs = []
+    for ch, s in streams.items():
+        unit, scale = CHANNELS[ch][0], 1.0
+        if unit == "dimensionless":
+            unit, scale = "%", 100.0
+        sigs.append(asammdf.Signal(samples=s.to_numpy(float) * scale, timestamps=s.index.to_numpy(float),
+                                   name=HUMAN_NAME.get(ch, ch), unit=unit))
+    for sg in sigs:
+        mdf.append([sg])
+    mdf.save(out, overwrite=True)
+    mdf.close()
+    return out
+
+
+def make_seed_files(folder, duration_s: float = 8.0, rate: float = 5.0) -> dict[str, Path]:
+    """Valid input of every reader in ``folder`` (small by default; larger for the truncation check)."""
+    from calib.model.params import default_parameters
+    from calib.ingest.writers import write_streams
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    streams, meta = _small_streams(duration_s, rate)
+    out = {}
+    for fmt in ("csv", "mcap", "candump", "asc", "blf"):
+        out[fmt] = write_streams(streams, meta, folder / f"seed.{EXT[fmt]}", fmt)
+    out["trc"] = _write_trc(out["blf"], folder / "seed.trc")
+    try:
+        out["mf4"] = _write_mf4(streams, folder / "seed.mf4")
+    except ImportError:
+        pass
+    p = folder / "seed_params.toml"
+    default_parameters().save(p)
+    out["params"] = p
+    (folder / "seed_scenario.toml").write_text(_SCENARIO)
+    out["scenario"] = folder / "seed_scenario.toml"
+    (folder / "seed_study.toml").write_text(_STUDY)
+    out["study"] = folder / "seed_study.toml"
+    return out
+
+
+def reader_fn(name: str):
+    """path -> damage dict ({} when intact) for the reader ``name``; raises what the reader raises."""
+    if name in LOG_READERS:
+        from calib.ingest import read_log
+
+        fmt = name
+
+        def run(path):
+            return read_log(path, fmt=fmt).meta.damage
+        return run
+    if name == "params":
+        from calib.model.params import ParameterSet
+
+        return lambda path: (ParameterSet.load(path), {})[1]
+    if name == "scenario":
+        from iptm.pipeline import load_scenario
+
+        return lambda path: (load_scenario(path), {})[1]
+    if name == "study":
+        from optimize.sweep import load_study
+
+        return lambda path: (load_study(path), {})[1]
+    raise KeyError(name)
+
+
+def mutate(data: bytes, seed: int, reader_index: int, case: int) -> bytes:
+    """The mutated copy of ``data`` for one case (reproducible)."""
+    rng = np.random.default_rng([seed, reader_index, case])
+    b = bytearray(data)
+    for _ in range(int(rng.integers(1, 5))):
+        if not b:
+            break
+        kind = KINDS[int(rng.integers(len(KINDS)))]
+        i = int(rng.integers(len(b)))
+        if kind == "flip":
+            b[i] ^= 1 << int(rng.integers(8))
+        elif kind == "cut":
+            del b[i:]
+        elif kind == "insert":
+            b[i:i] = rng.integers(0, 256, int(rng.integers(1, 17)), dtype=np.uint8).tobytes()
+        elif kind == "delete":
+            del b[i:i + int(rng.integers(1, 65))]
+        else:
+            j = min(len(b), i + int(rng.integers(1, 257)))
+            b[i:i] = b[i:j]
+    return bytes(b)
+
+
+@contextlib.contextmanager
+def _fd_capture():
+    """Capture what is written to file descriptors 1 and 2 (handlers holding the real stderr, C code)."""
+    import sys
+
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = os.dup(1), os.dup(2)
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 1)
+        os.dup2(tmp.fileno(), 2)
+        text = []
+        try:
+            yield lambda: "".join(text)
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            os.close(saved[0])
+            os.close(saved[1])
+            tmp.seek(0)
+            text.append(tmp.read().decode("utf-8", "replace"))
+
+
+def classify(fn, path) -> tuple[str, str, bool]:
+    """Read ``path``: (outcome, detail, printed) with outcome read/recovered/error/unclear/escape."""
+    from calib.errors import IptmError, IptmWarning
+
+    out, err = io.StringIO(), io.StringIO()
+    detail = ""
+    with _fd_capture() as fd_out, contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), \
+            warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            damage = fn(path)
+            outcome = "recovered" if damage else "read"
+        except IptmError as exc:
+            msg = str(exc)
+            outcome = "error" if ("\n" not in msg and Path(path).name in msg) else "unclear"
+            detail = msg[:200]
+        except Exception as exc:  # noqa: BLE001 - this is what the harness looks for
+            outcome = "escape"
+            detail = f"{type(exc).__name__}: {str(exc)[:200]}"
+    foreign = [w for w in caught if not issubclass(w.category, IptmWarning)]
+    raw = fd_out()
+    printed = bool(out.getvalue() or err.getvalue() or foreign or raw)
+    if printed and not detail:
+        detail = (out.getvalue() or err.getvalue() or raw or str(foreign[0].message))[:200]
+    return outcome, detail, printed
+
+
+def _in_folder(fn):
+    """Run ``fn(folder=...)`` in a temporary folder removed afterwards unless the caller gave one."""
+    import functools
+    import shutil
+
+    @functools.wraps(fn)
+    def wrapper(*args, folder=None, **kw):
+        if folder is not None:
+            return fn(*args, folder=Path(folder), **kw)
+        tmp = Path(tempfile.mkdtemp(prefix=f"iptm-{fn.__name__}-"))
+        try:
+            return fn(*args, folder=tmp, **kw)
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+    return wrapper
+
+
+@_in_folder
+def fuzz(n: int = 10_000, seed: int = 0, readers=READERS, folder=None, log=print) -> dict:
+    """Mutated-input counts per reader (see the module docstring)."""
+    seeds = make_seed_files(folder / "seeds")
+    results = {}
+    for r, name in enumerate(READERS):
+        if name not in readers:
+            continue
+        if name not in seeds:
+            log(f"{name:9s} skipped (its library is not installed)")
+            continue
+        data = seeds[name].read_bytes()
+        fn = reader_fn(name)
+        assert classify(fn, seeds[name])[0] == "read", f"seed file of {name} does not read cleanly"
+        counts = dict.fromkeys(("read", "recovered", "error", "unclear", "escape", "printed"), 0)
+        examples = []
+        path = folder / f"case.{EXT[name]}"
+        t0 = time.perf_counter()
+        for i in range(n):
+            path.write_bytes(mutate(data, seed, r, i))
+            outcome, detail, printed = classify(fn, path)
+            counts[outcome] += 1
+            counts["printed"] += printed
+            if (outcome in ("escape", "unclear") or printed) and len(examples) < 5:
+                examples.append({"case": i, "outcome": outcome, "printed": printed, "detail": detail})
+        wall = time.perf_counter() - t0
+        results[name] = {**counts, "n": n, "wall_s": wall, "examples": examples}
+        log(f"{name:9s} n={n:6d}  read {counts['read']:6d}  recovered {counts['recovered']:6d}  "
+            f"clean error {counts['error']:6d}  unclear {counts['unclear']:4d}  escape {counts['escape']:4d}  "
+            f"printed {counts['printed']:4d}  {wall:7.1f} s")
+        for ex in examples:
+            log(f"    case {ex['case']}: {ex['outcome']}{' (printed)' if ex['printed'] else ''}: {ex['detail']}")
+    return results
+
+
+@_in_folder
+def truncation_check(n: int = 200, seed: int = 0, readers=LOG_READERS, folder=None, log=print) -> dict:
+    """Random cuts of a valid 120-s log per format: read or recovered, nothing before the cut lost."""
+    from calib.errors import IptmError
+    from calib.ingest import read_streams
+
+    seeds = make_seed_files(folder / "seeds", duration_s=120.0, rate=10.0)
+    results = {}
+    for r, name in enumerate(LOG_READERS):
+        if name not in readers or name not in seeds:
+            continue
+        data = seeds[name].read_bytes()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            ref, _ = read_streams(seeds[name], fmt=name)
+        rng = np.random.default_rng([seed, r])
+        ok = lost = failed = 0
+        kept = []
+        first_fail = ""
+        path = folder / f"cut.{EXT[name]}"
+        t0 = time.perf_counter()
+        for _ in range(n):
+            cut = int(rng.integers(int(0.1 * len(data)), len(data) + 1))
+            path.write_bytes(data[:cut])
+            with warnings.catch_warnings(), contextlib.redirect_stderr(io.StringIO()):
+                warnings.simplefilter("ignore")
+                try:
+                    streams, meta = read_streams(path, fmt=name)
+                except IptmError as exc:
+                    failed += 1
+                    first_fail = first_fail or f"cut at {cut} of {len(data)}: {str(exc)[:160]}"
+                    continue
+            t_end = (meta.damage or {}).get("last_time_s")
+            if t_end is None:
+                t_end = max(s.index[-1] for s in streams.values())
+            same = set(streams) <= set(ref)
+            for ch, s in streams.items():
+                if not same:
+                    break
+                a, b = s[s.index <= t_end], ref[ch][ref[ch].index <= t_end]
+                same = len(a) == len(b) and np.array_equal(a.to_numpy(), b.to_numpy())
+            ok += same
+            lost += not same
+            kept.append(t_end / max(s_.index[-1] for s_ in ref.values()) / (cut / len(data)))
+        wall = time.perf_counter() - t0
+        results[name] = {"n": n, "read_or_recovered_whole": ok, "lost_before_cut": lost, "error": failed,
+                         "median_time_kept_per_byte_kept": float(np.median(kept)) if kept else None,
+                         "wall_s": wall, "first_failure": first_fail}
+        log(f"{name:9s} cuts {n:5d}  read/recovered with nothing lost {ok:5d} ({100 * ok / n:5.1f} %)  "
+            f"lost data before the cut {lost:4d}  error {failed:4d}  {wall:6.1f} s")
+        if first_fail:
+            log(f"    {first_fail}")
+    return results
+
+
+def run(quick: bool = False, n: int | None = None, seed: int = 0, readers=READERS) -> dict:
+    """Entry point of ``iptm bench fuzz``."""
+    n = n or (300 if quick else 10_000)
+    print(f"fuzz: {n} mutated inputs per reader, seed {seed} (cpu count {os.cpu_count()}, "
+          f"load {os.getloadavg()[0]:.1f})")
+    res = {"mutations": fuzz(n=n, seed=seed, readers=readers)}
+    n_cut = min(500, max(50, n // 20))
+    print(f"truncation check: {n_cut} random cuts per log format")
+    res["truncation"] = truncation_check(n=n_cut, seed=seed, readers=readers)
+    return res
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, default=10_000)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--readers", default=",".join(READERS))
+    ap.add_argument("--json")
+    a = ap.parse_args(argv)
+    res = run(n=a.n, seed=a.seed, readers=tuple(a.readers.split(",")))
+    if a.json:
+        from calib.fileio import write_json
+
+        write_json(a.json, res)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,224 @@
+"""Damaged logs: read up to the damage, lose nothing before it, say what was lost; strict refuses them."""
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from calib.errors import LogDamageWarning, LogFormatError
+from calib.ingest import read_log, read_streams
+
+LOGS = Path(__file__).resolve().parents[1] / "logs"
+DRIVE = "winter_warm_restart"
+
+
+@pytest.fixture(scope="module")
+def intact():
+    """Streams of the bundled drive, per format (read once)."""
+    cache = {}
+
+    def get(ext):
+        if ext not in cache:
+            with warnings.catch_warnings():
+                warnings.simplefilter("error", LogDamageWarning)  # the bundled files are intact
+                cache[ext] = read_streams(LOGS / f"{DRIVE}.{ext}")
+        return cache[ext]
+    return get
+
+
+def _read_damaged(path, **kw):
+    with pytest.warns(LogDamageWarning) as rec:
+        streams, meta = read_streams(path, **kw)
+    assert len([w for w in rec if issubclass(w.category, LogDamageWarning)]) == 1  # one warning per log
+    assert meta.damage and meta.damage["recovered"]
+    return streams, meta
+
+
+def _same_before(streams, ref, t_end):
+    """Every channel equals the intact file's samples up to t_end (nothing before the damage lost)."""
+    assert set(streams) == set(ref)
+    for ch, s in streams.items():
+        r = ref[ch][ref[ch].index <= t_end]
+        a = s[s.index <= t_end]
+        assert len(a) == len(r), ch
+        np.testing.assert_array_equal(a.index.to_numpy(), r.index.to_numpy())
+        np.testing.assert_array_equal(a.to_numpy(), r.to_numpy())
+
+
+@pytest.mark.parametrize("ext,frac", [("mcap", 0.8), ("mcap", 0.45), ("blf", 0.63), ("log", 0.6), ("csv", 0.7)])
+def test_truncated_drive_reads_to_the_cut(tmp_path, intact, ext, frac):
+    src = LOGS / f"{DRIVE}.{ext}"
+    data = src.read_bytes()
+    p = tmp_path / f"cut.{ext}"
+    p.write_bytes(data[: int(len(data) * frac)])
+    streams, meta = _read_damaged(p)
+    ref, ref_meta = intact(ext)
+    t_last = meta.damage["last_time_s"]
+    duration = max(s.index[-1] for s in ref.values())
+    # Data is kept nearly to the cut (the byte fraction, less the summary/index bytes and a CSV/text row).
+    assert t_last >= 0.8 * frac * duration, (t_last, duration)
+    _same_before(streams, ref, t_last)
+    assert "summary" in meta.damage and "after" in meta.damage["summary"]
+    # The resampled table is the intact table up to the cut (the last, partly filled second excepted).
+    log = read_log(p) if ext != "mcap" else None
+    if log is not None:
+        full = read_log(src)
+        n = int(t_last) - 1
+        pd.testing.assert_frame_equal(log.data.iloc[:n], full.data.iloc[:n], check_freq=False)
+        assert "[RECOVERED]" in log.label()
+    with pytest.raises(LogFormatError):
+        read_streams(p, strict=True)
+
+
+def test_truncated_mcap_as_in_the_field_report(tmp_path, intact):
+    """An MCAP cut at 1.5 MB (a recorder killed mid-drive) was rejected whole."""
+    p = tmp_path / "killed.mcap"
+    p.write_bytes((LOGS / f"{DRIVE}.mcap").read_bytes()[:1_500_000])
+    streams, meta = _read_damaged(p)
+    assert meta.damage["last_time_s"] > 900
+    _same_before(streams, intact("mcap")[0], meta.damage["last_time_s"])
+
+
+def test_truncated_blf_of_each_bundled_drive(tmp_path):
+    for src in sorted(LOGS.glob("winter_*.blf")):
+        data = src.read_bytes()
+        p = tmp_path / src.name
+        p.write_bytes(data[: int(len(data) * 0.55)])
+        streams, meta = _read_damaged(p)
+        ref, _ = read_streams(src)
+        _same_before(streams, ref, meta.damage["last_time_s"])
+        assert meta.damage["truncated_at_byte"] is not None
+
+
+def test_candump_cut_mid_line(tmp_path, intact):
+    data = (LOGS / f"{DRIVE}.log").read_bytes()
+    cut = int(len(data) * 0.6)
+    cut = data.index(b"\n", cut) - 8  # inside the payload of a line
+    p = tmp_path / "cut.log"
+    p.write_bytes(data[:cut])
+    streams, meta = _read_damaged(p)
+    _same_before(streams, intact("log")[0], meta.damage["last_time_s"])
+
+
+def _garble_line(data: bytes, frac: float) -> tuple[bytes, int]:
+    """Replace the line at ``frac`` of the file with garbage; returns the data and its 1-based line number."""
+    a = data.index(b"\n", int(len(data) * frac)) + 1
+    b = data.index(b"\n", a)
+    return data[:a] + b"\x8f#!garbled@@@," + b"\xff" * 7 + data[b:], data[:a].count(b"\n") + 1
+
+
+@pytest.mark.parametrize("ext", ["csv", "log"])
+def test_one_garbled_line_in_the_middle(tmp_path, intact, ext):
+    src = LOGS / f"{DRIVE}.{ext}"
+    data, lineno = _garble_line(src.read_bytes(), 0.5)
+    p = tmp_path / f"garbled.{ext}"
+    p.write_bytes(data)
+    streams, meta = _read_damaged(p)
+    assert meta.damage["pieces_lost"] == 1 and meta.damage["where"] == [f"line {lineno}"]
+    assert f"line {lineno}" in meta.damage["summary"]
+    ref, _ = intact(ext)
+    # Every sample of the intact file is there but the garbled line's.
+    n_lost = sum(len(ref[ch]) - len(streams[ch]) for ch in ref)
+    assert 1 <= n_lost <= len(ref)  # one row (CSV) or one frame (candump)
+    a, b = meta.damage["spans_s"][0]
+    for ch in ref:
+        keep = (ref[ch].index <= a + 1e-6) | (ref[ch].index >= b - 1e-6)  # stream times are rounded to 1 us
+        np.testing.assert_array_equal(streams[ch].to_numpy(), ref[ch][keep].to_numpy())
+    with pytest.raises(LogFormatError, match=f"line {lineno}"):
+        read_streams(p, strict=True)
+
+
+def test_garbled_timestamp_costs_one_frame_not_the_rest(tmp_path):
+    lines = [f"({10 + i * 0.01:.6f}) can0 0B4#00000000000A6600" for i in range(200)]
+    lines[100] = lines[100].replace("(11.", "(91.")  # a digit flipped: a jump of 80 s and back
+    p = tmp_path / "t.log"
+    p.write_text("\n".join(lines) + "\n")
+    streams, meta = _read_damaged(p)
+    assert len(streams["speed_mps"]) == 199
+    assert meta.damage["where"] == ["line 101"]
+
+
+def test_nothing_readable_is_an_error(tmp_path):
+    p = tmp_path / "junk.log"
+    p.write_text("not a candump line\n" * 50)
+    with pytest.raises(LogFormatError, match="no CAN frames"):
+        read_log(p)
+    q = tmp_path / "junk.mcap"
+    q.write_bytes((LOGS / f"{DRIVE}.mcap").read_bytes()[:300])
+    with pytest.raises(LogFormatError):
+        read_log(q)
+
+
+def test_cli_ingest_reports_and_strict_refuses(tmp_path, capsys):
+    from iptm.cli import main
+
+    p = tmp_path / "cut.blf"
+    data = (LOGS / f"{DRIVE}.blf").read_bytes()
+    p.write_bytes(data[:300_000])
+    assert main(["ingest", str(p), "--out", str(tmp_path / "o.parquet")]) == 0
+    out = capsys.readouterr()
+    assert "RECOVERED" in out.out and "iptm: warning:" in out.err
+    assert main(["ingest", str(p), "--strict", "--out", str(tmp_path / "o2.parquet")]) == 2
+    assert "truncated" in capsys.readouterr().err
+    assert not (tmp_path / "o2.parquet").exists()
+
+
+def test_library_chatter_is_reported_not_printed(tmp_path, capfd):
+    """python-can logs "Unknown object header version" for a garbled BLF object: it becomes damage."""
+    import struct
+
+    import can
+
+    p = tmp_path / "u.blf"
+    with can.BLFWriter(str(p), compression_level=0) as w:  # uncompressed, so one object can be garbled
+        for i in range(200):
+            w.on_message_received(can.Message(timestamp=1000 + i * 0.01, arbitration_id=0xB4, is_extended_id=False,
+                                              data=bytes.fromhex("00000000000A6600")))
+    d = bytearray(p.read_bytes())
+    k = d.find(b"LOBJ", d.find(b"LOBJ") + 4)  # the first frame inside the container
+    k = d.find(b"LOBJ", k + 400)
+    struct.pack_into("<H", d, k + 6, 2048)  # its header version
+    p.write_bytes(bytes(d))
+    streams, meta = _read_damaged(p)
+    assert len(streams["speed_mps"]) == 199
+    assert "Unknown object header version (2048)" in meta.damage["summary"]
+    out = capfd.readouterr()
+    assert "Unknown object" not in out.out + out.err
+    with pytest.raises(LogFormatError, match="Unknown object header version"):
+        read_streams(p, strict=True)
+
+
+def test_strict_on_calibrate_and_run_refuses_a_damaged_log(tmp_path, capsys):
+    from iptm.cli import main
+
+    p = tmp_path / "cut.log"
+    data = (LOGS / f"{DRIVE}.log").read_bytes()
+    p.write_bytes(data[: len(data) // 2])
+    assert main(["calibrate", str(p), "--strict", "--quiet", "--out", str(tmp_path / "c.toml")]) == 2
+    assert "line cut short" in capsys.readouterr().err
+    assert main(["run", str(p), "--strict", "--quiet", "--reports", str(tmp_path / "r"),
+                 "--cache", str(tmp_path / "cache")]) == 2
+    assert "line cut short" in capsys.readouterr().err
+    assert not (tmp_path / "c.toml").exists()
+
+
+@pytest.mark.timeout(60)
+def test_blf_object_with_size_zero_does_not_hang(tmp_path):
+    """python-can's own loop never moves past an object whose size field reads 0."""
+    import struct
+
+    import can
+
+    p = tmp_path / "z.blf"
+    with can.BLFWriter(str(p), compression_level=0) as w:
+        for i in range(100):
+            w.on_message_received(can.Message(timestamp=1000 + i * 0.01, arbitration_id=0xB4, is_extended_id=False,
+                                              data=bytes.fromhex("00000000000A6600")))
+    d = bytearray(p.read_bytes())
+    k = d.find(b"LOBJ", d.find(b"LOBJ") + 4)
+    k = d.find(b"LOBJ", k + 400)
+    struct.pack_into("<HHL", d, k + 4, 32, 7, 0)  # unknown header version and size 0
+    p.write_bytes(bytes(d))
+    streams, meta = _read_damaged(p)
+    assert len(streams["speed_mps"]) == 99
