@@ -17,7 +17,9 @@ The file format is TOML (or JSON with the same structure)::
     bounds = [20000.0, 400000.0]
     source = "spec/model.md section 5 (prior)"
 
-A value given in another but compatible unit (``unit = "kJ/K"``) is converted on load; an incompatible
+A value given in another but compatible unit (``unit = "kJ/K"``) is converted on load; bounds are always
+in the parameter's canonical unit (unless ``bounds_unit`` says otherwise), so changing ``unit`` changes only
+how ``value`` is read. An incompatible
 unit, an unknown name, a value outside its bounds or a non-monotonic table breakpoint is an error.
 """
 from __future__ import annotations
@@ -265,7 +267,7 @@ class ParameterSet:
                 if not isinstance(v, (int, float)) or not math.isfinite(v):
                     raise ParameterError(f"{p.name}: value {v!r} is not a finite number")
                 if not lo <= v <= hi:
-                    raise ParameterError(f"{p.name} = {v:g} {p.unit} is outside its bounds [{lo:g}, {hi:g}]")
+                    raise ParameterError(f"{p.name} = {v:g} {p.unit} is outside its bounds [{lo:g}, {hi:g}] {p.unit}")
             if p.is_table:
                 if len(p.x) != len(p.value):
                     raise ParameterError(f"{p.name}: {len(p.x)} breakpoints but {len(p.value)} values")
@@ -378,7 +380,10 @@ class ParameterSet:
                 b = entry["bounds"]
                 if not (isinstance(b, list) and len(b) == 2):
                     raise ParameterError(f"{origin}: bounds of {name} must be [low, high]")
-                p.bounds = tuple(float(v) for v in _convert(b, unit, p.unit, f"{origin}: bounds of {name}"))
+                # Bounds belong to the parameter and are in its canonical unit (what save() writes), whatever
+                # unit the value is given in; ``bounds_unit`` states another unit explicitly.
+                bu = entry.get("bounds_unit", p.unit)
+                p.bounds = tuple(float(v) for v in _convert(b, bu, p.unit, f"{origin}: bounds of {name}"))
         try:
             new.validate()
         except ParameterError as exc:

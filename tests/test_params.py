@@ -55,3 +55,20 @@ def test_with_values_validates(params):
     with pytest.raises(ParameterError):
         params.with_values(eta_em=1.5)
     assert params.with_values(eta_em=0.9)["eta_em"] == 0.9
+
+
+def test_value_in_another_unit_keeps_canonical_bounds(tmp_path):
+    """A file that states a value in another unit (with the bounds save() writes, in the canonical unit)."""
+    ps = default_parameters()
+    lo, hi = ps.param("m_kg").bounds
+    f = tmp_path / "lb.toml"
+    f.write_text(f'[parameters.m_kg]\nvalue = 3375\nunit = "lb"\nbounds = [{lo}, {hi}]\n')
+    p = ParameterSet.load(f).param("m_kg")
+    assert p.unit == "kg" and p.value == pytest.approx(3375 * 0.45359237)
+    assert p.bounds == (lo, hi)
+    # bounds in another unit only when the file says so
+    f.write_text('[parameters.m_kg]\nvalue = 3375\nunit = "lb"\nbounds = [2000, 6000]\nbounds_unit = "lb"\n')
+    assert ParameterSet.load(f).param("m_kg").bounds == pytest.approx((2000 * 0.45359237, 6000 * 0.45359237))
+    f.write_text('[parameters.m_kg]\nvalue = 9000\nunit = "lb"\n')
+    with pytest.raises(ParameterError, match=r"outside its bounds \[.*\] kg"):
+        ParameterSet.load(f)
