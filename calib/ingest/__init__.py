@@ -23,7 +23,7 @@ from .canlog import CAN_FORMATS, DEFAULT_SIGNAL_MAP, PRIUS_DBC, TOYOTA_2017_DBC,
 from .csvlog import read_csv_streams, sniff_is_csv
 from .mcaplog import DEFAULT_TOPIC_MAP, read_mcap_streams
 from .mdflog import read_mdf_streams
-from .report import channel_report, format_report
+from .report import channel_report, display_report, format_report
 from .resample import to_drivelog
 
 FORMATS = ("csv", "mcap", "candump", "asc", "blf", "trc", "mf4")
@@ -33,7 +33,7 @@ _MAGIC = {b"\x89MCAP": "mcap", b"LOGG": "blf", b"MDF ": "mf4"}
 
 __all__ = [
     "FORMATS", "DEFAULT_SIGNAL_MAP", "DEFAULT_TOPIC_MAP", "PRIUS_DBC", "TOYOTA_2017_DBC",
-    "detect_format", "read_streams", "to_drivelog", "read_log", "channel_report", "format_report",
+    "detect_format", "read_streams", "to_drivelog", "read_log", "channel_report", "display_report", "format_report",
     "write_canonical", "read_canonical", "load_map", "decode_can_signals",
 ]
 

@@ -15,7 +15,10 @@ Layout accepted::
 - Every other column is a channel if its name (without the unit) is a canonical channel or a known
   alias, or if the column map names it. Its unit comes from the header bracket, the map, or the
   canonical name itself (``speed_mps`` is in m/s). A channel column with no unit is an error.
-- Unrecognised columns are ignored and listed in ``meta.notes``. Empty cells are missing samples.
+- A column whose name is not an accepted spelling but resembles exactly one channel whose unit fits
+  (``coolant [degF]``) is read as that channel, with a warning in ``meta.notes``; one that resembles
+  several, or none, is ignored (a warning names the accepted spellings of the look-alikes). ``iptm ingest
+  --list-channels`` prints every accepted name. Empty cells are missing samples.
 """
 from __future__ import annotations
 
@@ -29,9 +32,19 @@ import pandas as pd
 from ..drivelog import CHANNELS, LogMeta, file_sha256
 from ..errors import LogFormatError
 from ..units import UnitError, convert, parse_unit
-from .common import canonical_name, implied_unit, make_series, parse_target, sniff_text, split_spec, to_channel_unit
+from .common import (
+    TIME_NAMES,
+    aliases_of,
+    canonical_name,
+    implied_unit,
+    make_series,
+    parse_target,
+    sniff_text,
+    split_spec,
+    suggest_channel,
+    to_channel_unit,
+)
 
-TIME_NAMES = {"time", "t", "timestamp", "time_s", "times", "time_sec", "elapsed"}
 
 
 def _read_comments(text: str) -> tuple[list[str], int]:
@@ -114,6 +127,8 @@ def read_csv_streams(path, column_map: dict | None = None) -> tuple[dict, LogMet
     time_col, time_unit = None, None
     channel_cols: list[tuple[str, str, str]] = []  # (column, channel, unit)
     ignored = []
+    looks_like, matched = [], []  # warnings: unknown names that resemble a channel
+    fuzzy: list[tuple[str, str, str | None]] = []  # (column, channel, unit) matched by resemblance only
     for col in df.columns:
         where = f"line {header_line}, column {col!r}"
         name, unit = split_spec(col)
@@ -138,7 +153,20 @@ def read_csv_streams(path, column_map: dict | None = None) -> tuple[dict, LogMet
             continue
         ch = canonical_name(name)
         if ch is None:
-            ignored.append(col)
+            ch, cands = suggest_channel(name, unit)
+            if ch is None:
+                ignored.append(col)
+                if len(cands) > 2:
+                    looks_like.append(f"column {col!r} was not used: it could be any of {', '.join(cands)}; "
+                                      "rename it to an accepted name (`iptm ingest --list-channels`) or map it "
+                                      "with --map")
+                elif cands:
+                    looks_like.append(
+                        f"column {col!r} was not used: it looks like "
+                        + " or ".join(f"{c} (accepted names: {', '.join(aliases_of(c))})" for c in cands)
+                        + "; rename the column or map it with --map")
+                continue
+            fuzzy.append((col, ch, unit))
             continue
         if unit is None:
             if name.strip() == ch and ch in CHANNELS:
@@ -148,6 +176,17 @@ def read_csv_streams(path, column_map: dict | None = None) -> tuple[dict, LogMet
                                      "write 'name [unit]' in the header or give the unit in a column map")
         channel_cols.append((col, ch, unit))
 
+    taken = {ch for _, ch, _ in channel_cols}
+    for col, ch, unit in fuzzy:
+        if ch in taken or unit is None:  # an exact name wins; a look-alike needs its unit in the header
+            ignored.append(col)
+            looks_like.append(f"column {col!r} was not used: it looks like {ch} (accepted names: "
+                              f"{', '.join(aliases_of(ch))})" + (", but has no unit" if unit is None else
+                                                                 ", which another column already gives"))
+            continue
+        taken.add(ch)
+        channel_cols.append((col, ch, unit))
+        matched.append(f"column {col!r} read as {ch} (accepted names: {', '.join(aliases_of(ch))})")
     missing_map = [c for c in column_map if c not in df.columns]
     if missing_map:
         raise LogFormatError(path, f"column map names column(s) not in the file: {', '.join(map(repr, missing_map))}",
@@ -202,6 +241,7 @@ def read_csv_streams(path, column_map: dict | None = None) -> tuple[dict, LogMet
         meta.original_units[ch] = unit
     if ignored:
         meta.notes.append(f"ignored columns: {', '.join(ignored)}")
+    meta.notes.extend(f"warning: {m}" for m in matched + looks_like)
     return streams, meta
 
 
