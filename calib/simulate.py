@@ -182,9 +182,13 @@ class SimResult:
         ax[5].plot(self.t, np.concatenate([[0], np.cumsum(f["W_f"]) * self.Ts]), "C5")
         ax[5].set_ylabel("cumulative fuel [g]")
         ax[5].set_xlabel("time [s]")
-        fig.suptitle(title or f"{self.info.get('cycle', '')} at {self.info.get('T_amb_degC', '')} degC, "
-                     f"{self.info.get('controller', '')[:60]}", fontsize=10)
-        fig.tight_layout()
+        import textwrap
+
+        text = title or (f"{self.info.get('cycle', '')} at {self.info.get('T_amb_degC', '')} degC\n"
+                         f"{self.info.get('controller', '')}")
+        text = "\n".join(textwrap.fill(line, 110) for line in str(text).splitlines())
+        fig.suptitle(text, fontsize=9)
+        fig.tight_layout()  # makes room for the suptitle
         if path is not None:
             from .fileio import save_figure
 
