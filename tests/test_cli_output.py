@@ -5,6 +5,8 @@ import matplotlib
 
 matplotlib.use("Agg")
 
+import pytest  # noqa: E402
+
 from calib.params import default_parameters  # noqa: E402
 from calib.simulate import simulate  # noqa: E402
 from iptm.cli import main  # noqa: E402
@@ -26,3 +28,16 @@ def test_simulate_plot_title_is_whole():
     box = title.get_window_extent(fig.canvas.get_renderer())
     W, H = fig.canvas.get_width_height()
     assert box.x0 >= 0 and box.x1 <= W and box.y1 <= H
+
+
+def test_fuel_economy_units():
+    from calib import economy
+
+    e = economy.economy(152.1, 4.87)
+    # 152.1 g = 0.2055 L over 4.87 km
+    assert e["L_per_100km"] == pytest.approx(152.1 / 740 / 4.87 * 100)
+    assert e["mpg"] == pytest.approx(4.87 / (152.1 / 740) / 0.4251)
+    assert economy.format_economy(152.1, 4.87) == f"{e['L_per_100km']:.2f} L/100 km, {e['mpg']:.1f} mpg"
+    assert economy.format_economy(1.0, 0.0) == "-"
+    s = simulate(default_parameters(), "nycc").summary()
+    assert s["L_per_100km"] == economy.l_per_100km(s["fuel_g"], s["distance_km"])
