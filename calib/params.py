@@ -66,6 +66,9 @@ class Parameter:
         left at the prior), ``fixed``.
     note : str
         Why (for example which channels were missing).
+    entry_status : list of str, optional
+        For a table after a calibration: the status of each entry (a table is ``estimated`` when any entry
+        is; :meth:`status_text` says how many).
     """
 
     name: str
@@ -82,10 +85,25 @@ class Parameter:
     status: str = "prior"
     note: str = ""
     logs: list = field(default_factory=list)
+    entry_status: list | None = None
 
     @property
     def is_table(self) -> bool:
         return self.x is not None
+
+    def n_entries_estimated(self) -> tuple[int, int] | None:
+        """For a table with per-entry statuses: (entries estimated, entries); else None."""
+        if not self.is_table or not self.entry_status:
+            return None
+        return sum(st == "estimated" for st in self.entry_status), len(self.entry_status)
+
+    def status_text(self) -> str:
+        """The status as a reader should see it: a table says how many of its entries the data determined
+        (``estimated: 2 of 15 entries``)."""
+        n = self.n_entries_estimated()
+        if n is None or self.status != "estimated" or n[0] == n[1]:
+            return self.status
+        return f"estimated: {n[0]} of {n[1]} entries ({n[1] - n[0]} undetermined)"
 
     def to_dict(self) -> dict:
         d = {"value": self.value, "unit": self.unit, "bounds": list(self.bounds), "source": self.source}
@@ -102,6 +120,8 @@ class Parameter:
             d["note"] = self.note
         if self.logs:
             d["logs"] = list(self.logs)
+        if self.entry_status:
+            d["entry_status"] = list(self.entry_status)
         return d
 
 
@@ -376,6 +396,11 @@ class ParameterSet:
                 p.stderr = entry["stderr"]
             if "logs" in entry:
                 p.logs = list(entry["logs"])
+            if "entry_status" in entry and p.is_table:
+                st = entry["entry_status"]
+                if not (isinstance(st, list) and len(st) == len(p.value)):
+                    raise ParameterError(f"{origin}: entry_status of {name} must list one status per table entry")
+                p.entry_status = [str(v) for v in st]
             if "bounds" in entry:
                 b = entry["bounds"]
                 if not (isinstance(b, list) and len(b) == 2):
