@@ -42,3 +42,25 @@ def format_economy(fuel_g: float, distance_km: float) -> str:
     if not math.isfinite(e["L_per_100km"]):
         return "-"
     return f"{e['L_per_100km']:.2f} L/100 km, {e['mpg']:.1f} mpg"
+
+
+def log_fuel_distance(log) -> tuple[float, float]:
+    """Fuel burnt (g) and distance driven (km) over a drive log, integrating its fuel-rate and speed
+    channels on the log's time base (NaN for a channel the log lacks; gaps count as nothing)."""
+    import numpy as np
+
+    d = log.data
+    t = d.index.to_numpy(float)
+    if len(t) < 2:
+        return math.nan, math.nan
+    dt = np.diff(t)
+
+    def integral(col):
+        if col not in d.columns or not d[col].notna().any():
+            return math.nan
+        v = d[col].to_numpy(float)
+        return float(np.nansum(0.5 * (v[1:] + v[:-1]) * dt))
+
+    fuel = integral("fuel_rate_g_per_s")
+    dist = integral("speed_mps")
+    return fuel, dist / 1e3 if dist == dist else math.nan
