@@ -76,6 +76,18 @@ def test_safe_name_and_limits(monkeypatch):
     assert dash.max_upload_bytes() == int(dash.DEFAULT_MAX_UPLOAD_MB * 2**20)
 
 
+def test_error_messages_never_quote_raw_bytes():
+    exc = dash.IptmError("x.mcap: not a valid MCAP file, invalid magic: (104, 101, 108, 108, 111, 32, 116, 104)")
+    msg = dash.error_message(exc)
+    assert "104, 101" not in msg and "x.mcap: not a valid MCAP file" in msg and "header" in msg
+    assert "b'" not in dash.error_message(ValueError("bad start b'\\x89MCAP0\\r\\n'"))
+    st = {}
+    dash.record_upload(st, "a.csv", True, "ok")
+    dash.record_upload(st, "b.mcap", False, "broken")
+    assert dash.upload_history(st).to_dict("records") == [
+        {"file": "b.mcap", "status": "FAILED", "message": "broken"}, {"file": "a.csv", "status": "loaded", "message": "ok"}]
+
+
 def test_session_state_helpers(small_csv):
     a, b = {}, {}
     entry = dash.add_upload(a, "short.csv", small_csv)

@@ -95,4 +95,29 @@ def test_optimize_reuses_the_run_cache(run, capsys):
     assert rc == 0
     cap = capsys.readouterr()
     assert "baseline:" in cap.out and cap.out.count("(from the cache)") == 2
+    assert "fuel economy: baseline" in cap.out and "L/100 km" in cap.out and "mpg" in cap.out
     assert "Baseline-DP on thermal model" in cap.err and "from the cache" in cap.err
+
+
+def test_fuel_chart_labels_every_bar(tmp_path, monkeypatch):
+    """The fuel chart draws savings against rule-based (differences of a few % stay visible) and writes a
+    value on every bar; its legend sits outside the axes."""
+    import calib.fileio as fio
+    from calib.params import default_parameters
+    from optimize.casestudy import run_case_study
+
+    cs = run_case_study(default_parameters(), DPScenario(duration_s=60.0), strategies=("rule", "baseline"),
+                        progress=False, grids=GRIDS)
+    figs = {}
+    real = fio.save_figure
+    monkeypatch.setattr(fio, "save_figure", lambda fig, path, **kw: (figs.__setitem__(path.stem, fig),
+                                                                       real(fig, path, **kw)))
+    cs.plot_figures(tmp_path)
+    ax = figs["fuel_bars"].axes[0]
+    bars = list(ax.patches)
+    texts = [t.get_text() for t in ax.texts]
+    assert len(bars) == 2 * len(cs.table().query("key != 'baseline_warm'")) == len(texts)
+    assert sum("(reference)" in t for t in texts) == 2 and all(" g" in t for t in texts)
+    assert "saving vs Rule-based (tuned) [%]" == ax.get_xlabel()
+    leg = ax.get_legend()
+    assert leg is not None and leg.get_bbox_to_anchor().y0 < ax.bbox.y0  # below the axes, covering no bar

@@ -99,6 +99,8 @@ def run(args) -> int:
           + ", ".join(f"{k}={v:g}" for k, v in grids.to_dict().items()))
     print(cs.format_table())
     tab = cs.table()
+    print("fuel economy: " + "; ".join(f"{k} {r.L_per_100km:.2f} L/100 km ({r.mpg:.1f} mpg)"
+                                       for k, r in zip(tab["key"], tab.itertuples())))
     print("charge-sustaining (SOC_N >= SOC0 - %g): %s" % (scen.soc_tol, ", ".join(
         f"{k}={'yes' if v else 'NO'}" for k, v in zip(tab["key"], tab["charge_sustaining"]))))
     if all(k in cs.sims for k in allf):
