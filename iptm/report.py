@@ -16,7 +16,8 @@ table{border-collapse:collapse;margin:.8em 0;font-size:.9em}th,td{border:1px sol
 text-align:right}th{background:#f1f1f1}td:first-child,th:first-child{text-align:left}
 img{max-width:100%;border:1px solid #ddd;margin:.5em 0}.synthetic{background:#fff3cd;border:1px solid #e0c060;
 padding:.5em 1em;font-weight:600}.note{color:#555;font-size:.9em}code{background:#f4f4f4;padding:0 3px}
-nav a{margin-right:1em}.tablewrap{overflow-x:auto;max-width:100%}.warn{background:#fdecea;border:1px solid #e0a0a0;
+nav a{margin-right:1em}.tablewrap{overflow-x:auto;max-width:100%}pre{overflow-x:auto;max-width:100%;
+background:#f8f8f8;padding:.5em}p,figcaption{overflow-wrap:anywhere}.warn{background:#fdecea;border:1px solid #e0a0a0;
 padding:.4em 1em}
 """
 
