@@ -135,7 +135,8 @@ def test_dashboard_in_chromium(sync_playwright, server):
     with sync_playwright() as pw:
         browser = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
         try:
-            page = browser.new_page(viewport={"width": 1400, "height": 1800})
+            # README mode: tall enough that each page's charts are in the picture
+            page = browser.new_page(viewport={"width": 1400, "height": 2700 if README_MODE else 1800})
             page.goto(url, wait_until="domcontentloaded")
             page.get_by_role("heading", name="Logs").first.wait_for(timeout=60_000)
             _idle(page)
@@ -196,12 +197,12 @@ def test_dashboard_in_chromium(sync_playwright, server):
             page.get_by_role("button", name="Download the HTML report").wait_for(timeout=LONG)
             _idle(page)
             assert page.locator('[data-testid="stException"]').count() == 0
+            _shot(page, "page_report.png")  # before the downloads, which re-run the page
             with page.expect_download() as dl:
                 page.get_by_role("button", name="Download the JSON").click()
             saved = tmp / "report.json"
             dl.value.save_as(saved)
             assert saved.read_text().lstrip().startswith("{")
-            _shot(page, "page_report.png")
             with page.expect_download() as dl:
                 page.get_by_role("button", name="Download the HTML report").click()
             html = tmp / "report.html"
