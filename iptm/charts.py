@@ -32,7 +32,7 @@ def _stack(df: pd.DataFrame, panels: list[tuple[str, str]], color: str, domain=N
         c = (alt.Chart(sub).mark_line(strokeWidth=1.2, interpolate="linear")
              .encode(x=alt.X("time_s:Q", title="time [s]"),
                      y=alt.Y("value:Q", title=title, scale=alt.Scale(zero=False)),
-                     color=alt.Color(f"{color}:N", scale=scale, legend=alt.Legend(orient="top", title=None)),
+                     color=alt.Color(f"{color}:N", scale=scale, legend=alt.Legend(orient="top", title=None, labelLimit=320)),
                      strokeDash=alt.StrokeDash("kind:N", legend=None) if "kind" in sub.columns else alt.Undefined,
                      tooltip=[alt.Tooltip("time_s:Q", title="t [s]", format=".0f"), f"{color}:N",
                               alt.Tooltip("value:Q", title=title, format=".4g")])
