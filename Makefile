@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test test-slow test-browser screenshots bench venv clean
+.PHONY: run test test-slow test-browser screenshots browser bench venv clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -24,6 +24,17 @@ test: $(STAMP)
 
 test-slow: $(STAMP)
 	MPLBACKEND=Agg $(BIN)/python -m pytest -q -m slow
+
+## real-browser dashboard test (needs Chromium + playwright: scripts/install_browser.sh)
+browser: $(STAMP)
+	VENV_PY=$(BIN)/python bash scripts/install_browser.sh
+
+test-browser: $(STAMP)
+	IPTM_REQUIRE_BROWSER=1 MPLBACKEND=Agg $(BIN)/python -m pytest -q -m browser -rs tests/test_browser.py
+
+## the README's dashboard screenshots (bundled logs, whole cycle, paper grids) into reports/figures/
+screenshots: $(STAMP)
+	IPTM_README_SHOTS=1 IPTM_REQUIRE_BROWSER=1 MPLBACKEND=Agg $(BIN)/python -m pytest -q -m browser -rs tests/test_browser.py
 
 bench: $(STAMP)
 	MPLBACKEND=Agg $(BIN)/iptm bench

@@ -13,6 +13,16 @@ from pathlib import Path
 import numpy as np
 
 
+def _read_umask() -> int:
+    # os.umask can only be read by setting it; do that once, at import, before any threads exist
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _read_umask()
+
+
 @contextmanager
 def atomic_path(path):
     """Yield a temporary path next to ``path``; rename it onto ``path`` only on success."""
@@ -22,6 +32,8 @@ def atomic_path(path):
     os.close(fd)
     try:
         yield Path(tmp)
+        # mkstemp makes the file private (0600); the output gets the mode any new file would (umask)
+        os.chmod(tmp, 0o666 & ~_UMASK)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

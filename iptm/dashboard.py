@@ -37,6 +37,7 @@ DBC = "iptm_dbc"
 CALIB = "iptm_calibration"
 OPT = "iptm_optimisation"
 SCENARIO = "iptm_scenario"
+UPLOADS = "iptm_upload_history"
 
 DEFAULT_MAX_UPLOAD_MB = 200.0
 #: Extensions the readers understand (calib.ingest); anything else is refused up front with a message.
@@ -283,8 +284,11 @@ def parameter_table(params, names=None) -> pd.DataFrame:
             rel = f"{100 * abs(float(p.stderr) / float(p.value)):.2g} %"
         status = p.status or "prior"
         flag = {"estimated": "yes", "undetermined": "NO"}.get(status, "-")
+        n_est = p.n_entries_estimated()
+        if n_est and status == "estimated" and n_est[0] < n_est[1]:
+            flag = f"{n_est[0]} of {n_est[1]} entries"
         rows.append({"parameter": n, "subsystem": subsystem_of(n), "value": _fmt(p.value), "unit": p.unit,
-                     "stderr": _fmt(p.stderr), "rel. stderr": rel, "status": status, "identifiable": flag,
+                     "stderr": _fmt(p.stderr), "rel. stderr": rel, "status": p.status_text(), "identifiable": flag,
                      "note": p.note or ""})
     return pd.DataFrame(rows)
 
@@ -350,9 +354,49 @@ def render_sidebar(state=None) -> None:
                        "the workbench; they say nothing about a real car.", icon=":material/science:")
 
 
+_RAW_BYTES = re.compile(r"(\((?:\d{1,3}, ){3,}\d{1,3}\)|b'[^']{4,}'|b\"[^\"]{4,}\")")
+
+
 def error_message(exc: BaseException) -> str:
-    """One line for the page: the library's message for an IptmError, type and text for anything else."""
+    """One line for the page: the library's message for an IptmError, type and text for anything else.
+    Raw file bytes that a reader quoted (a header as a tuple of byte values) are replaced by words."""
     if isinstance(exc, IptmError):
-        return str(exc)
-    text = str(exc).splitlines()[0][:300] if str(exc) else ""
-    return f"unexpected error ({type(exc).__name__}{': ' + text if text else ''})"
+        text = str(exc)
+    else:
+        first = str(exc).splitlines()[0][:300] if str(exc) else ""
+        text = f"unexpected error ({type(exc).__name__}{': ' + first if first else ''})"
+    return _RAW_BYTES.sub("(the file's first bytes are not this format's header)", text)
+
+
+# ---------------------------------------------------------------------------------------------------
+# the session's upload history
+# ---------------------------------------------------------------------------------------------------
+def record_upload(state, name: str, ok: bool, message: str) -> None:
+    """Remember an upload attempt: every upload stays listed with its status and message."""
+    state.setdefault(UPLOADS, []).append({"file": name, "status": "loaded" if ok else "FAILED",
+                                          "message": message})
+
+
+def upload_history(state) -> pd.DataFrame:
+    """Every upload of the session, newest first: file, status (loaded / FAILED), message."""
+    return pd.DataFrame(list(reversed(state.get(UPLOADS, []))), columns=["file", "status", "message"])
+
+
+# ---------------------------------------------------------------------------------------------------
+# which logs are one drive
+# ---------------------------------------------------------------------------------------------------
+def drive_groups(state, names) -> list[list[str]]:
+    """The session's logs ``names`` grouped by drive (copies of one drive in several formats together)."""
+    from calib.ingest.drives import group_drives
+
+    names = list(names)
+    entries = logs(state)
+    return [[names[i] for i in g] for g in group_drives([entries[n].log for n in names])]
+
+
+def same_drive_as(state, name: str, others) -> str | None:
+    """The first of ``others`` that records the same drive as ``name`` (None if none)."""
+    from calib.ingest.drives import same_drive
+
+    entries = logs(state)
+    return next((o for o in others if o != name and same_drive(entries[o].log, entries[name].log)), None)

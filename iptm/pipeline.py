@@ -160,17 +160,18 @@ def calibrate_cached(fit_logs, val_logs, base, store: Store | None, progress=Tru
     """
     from calib.fit.driver import calibrate
     from calib.model.params import ParameterSet
-    from calib.fit.validate import plot_validation, replay
+    from calib.fit.validate import plot_residual_comparison, plot_validation, replay
 
+    # "figures-2": measured-vs-simulated on every log (fitted and held out) and the residuals figure
     key = content_key([lg.meta.sha256 for lg in fit_logs], [lg.meta.sha256 for lg in val_logs],
-                      base.to_dict()["parameters"], code_version("calib"))
+                      base.to_dict()["parameters"], code_version("calib", "iptm"))
     folder = store.root / "calib" / key if store else None
     if folder is not None and (folder / "done").is_file():
         try:
             ps = ParameterSet.load(folder / "calibration.toml")
             info = json.loads((folder / "calibration.json").read_text())
             text = (folder / "report.txt").read_text()
-            return ps, info, text, sorted(folder.glob("validation_*.png")), folder / "calibration.toml"
+            return ps, info, text, _figures(folder), folder / "calibration.toml"
         except (OSError, ValueError, IptmError):
             pass  # damaged cache entry: recompute
     res = calibrate(fit_logs, base=base, validate=val_logs or None, progress=progress)
@@ -182,9 +183,16 @@ def calibrate_cached(fit_logs, val_logs, base, store: Store | None, progress=Tru
 
     write_json(tmp / "calibration.json", res.to_dict())
     write_text(tmp / "report.txt", res.report())
-    for i, lg in enumerate(val_logs or fit_logs[:1]):
-        plot_validation(replay(lg, res.params), tmp / f"validation_{i}_{Path(lg.name).stem}.png",
-                        title=f"{lg.label()}: measured vs simulated")
+    reps = []
+    for role, logs_ in (("fit", fit_logs), ("validation", val_logs)):
+        for i, lg in enumerate(logs_):
+            rep = replay(lg, res.params)
+            what = "held out" if role == "validation" else "fitted"
+            reps.append((f"{lg.label()} ({what})", rep))
+            plot_validation(rep, tmp / f"{role}_{i}_{Path(lg.name).stem}.png",
+                            title=f"{lg.label()} ({what}): measured vs simulated")
+    plot_residual_comparison(reps, tmp / "residuals.png", title="residuals (simulated - measured) on the fitted and the "
+                                                      "held-out logs")
     (tmp / "done").write_text("")
     if folder is None:
         folder = tmp
@@ -192,22 +200,32 @@ def calibrate_cached(fit_logs, val_logs, base, store: Store | None, progress=Tru
         shutil.rmtree(folder, ignore_errors=True)
         tmp.rename(folder)
     return (ParameterSet.load(folder / "calibration.toml"), json.loads((folder / "calibration.json").read_text()),
-            (folder / "report.txt").read_text(), sorted(folder.glob("validation_*.png")), folder / "calibration.toml")
+            (folder / "report.txt").read_text(), _figures(folder), folder / "calibration.toml")
+
+
+def _figures(folder: Path) -> list[Path]:
+    """The calibration figures in report order: fitted logs, held-out logs, residuals."""
+    return (sorted(folder.glob("fit_*.png")) + sorted(folder.glob("validation_*.png"))
+            + sorted(folder.glob("residuals.png")))
 
 
 class _StoredOutcome:
     """What the report needs of a DP outcome, restored from the cache."""
 
+    cached = True
+
     def __init__(self, d: dict):
         self._d = d
-        self.extra = d.get("extra", {})
+        self.extra = d  # describe() flattens the outcome's extra figures into the dict
 
     def describe(self) -> dict:
         return self._d
 
 
-# Rough relative cost of each strategy (paper grids), so the progress bar's time-left estimate is useful.
-_WEIGHT = {"rule": 3.0, "baseline": 1.0, "thermal": 4.0, "thermal_cabin": 40.0}
+def _states_text(outcome: dict | None) -> str:
+    if not outcome or not outcome.get("n_states"):
+        return ""
+    return f"{outcome['n_states']:,} states x {outcome.get('n_controls', 0):,} controls, "
 
 
 def optimise_cached(params, scen, grids, strategies, store: Store | None, progress=True, cycle_log=None):
@@ -219,7 +237,7 @@ def optimise_cached(params, scen, grids, strategies, store: Store | None, progre
 
     from calib.drivelog import file_sha256
     from calib.model.simulate import sim_from_arrays, sim_to_arrays
-    from optimize.casestudy import CaseStudy, run_case_study
+    from optimize.casestudy import LABELS, CaseStudy, run_case_study
 
     if cycle_log is not None:
         from calib.model.cycles import load_cycle
@@ -235,37 +253,53 @@ def optimise_cached(params, scen, grids, strategies, store: Store | None, progre
         cyc_id = file_sha256(scen.cycle)
     pvals = {k: v["value"] for k, v in params.to_dict()["parameters"].items()}
     sims, outcomes, timings, rule = {}, {}, {}, None
-    total = sum(_WEIGHT.get(s, 1.0) for s in strategies)
-    with tqdm(total=total, desc="optimise", unit="", disable=not progress, file=sys.stderr,
-              bar_format="{l_bar}{bar}| {elapsed}<{remaining}") as bar:
-        for strat in strategies:
-            key = content_key(pvals, {**scen.to_dict(), "cycle": cyc_id}, grids.to_dict(), strat, code_version("calib", "optimize"))
-            entry = store.get_json("dp", key) if store else None
-            arrays = {name: store.get_npz("dp", f"{key}-{name}") for name in (entry or {}).get("sims", [])}
+    for i, strat in enumerate(strategies):
+        key = content_key(pvals, {**scen.to_dict(), "cycle": cyc_id}, grids.to_dict(), strat, code_version("calib", "optimize"))
+        entry = store.get_json("dp", key) if store else None
+        arrays = {name: store.get_npz("dp", f"{key}-{name}") for name in (entry or {}).get("sims", [])}
+        # one bar per strategy, named, with its state count: a single bar over all strategies gives a
+        # time-left estimate that jumps whenever a strategy of another size starts
+        with tqdm(total=1, desc=f"[{i + 1}/{len(strategies)}] {LABELS.get(strat, strat)}", unit="strategy",
+                  disable=not progress, file=sys.stderr, bar_format="{desc}: {bar:20}| {elapsed} {postfix}") as bar:
             if entry is not None and all(a is not None for a in arrays.values()):
-                bar.set_postfix_str(f"{strat} (cached)")
                 for name, a in arrays.items():
                     sims[name] = sim_from_arrays(a)
                 if entry.get("outcome"):
                     outcomes[strat] = _StoredOutcome(entry["outcome"])
                 timings[strat] = entry.get("timing", 0.0)
                 rule = entry.get("rule") or rule
+                bar.set_postfix_str(_states_text(entry.get("outcome")) + "from the cache")
             else:
-                bar.set_postfix_str(strat)
+                bar.set_postfix_str("solving" if strat != "rule" else "tuning the thresholds")
                 cs = run_case_study(params, scen, (strat,), progress=False, grids=grids)
                 sims.update(cs.sims)
                 outcomes.update(cs.outcomes)
                 timings.update(cs.timings)
                 rule = cs.rule or rule
+                o = cs.outcomes.get(strat)
                 if store is not None:
                     for name, sim in cs.sims.items():
                         store.put_npz("dp", f"{key}-{name}", sim_to_arrays(sim))
-                    o = cs.outcomes.get(strat)
                     store.put_json("dp", key, {"sims": list(cs.sims), "timing": cs.timings.get(strat, 0.0),
                                                "rule": cs.rule, "outcome": o.describe() if o else None})
-            bar.update(_WEIGHT.get(strat, 1.0))
+                bar.set_postfix_str(_states_text(o.describe() if o else None) + f"solved in {cs.timings.get(strat, 0.0):.1f} s")
+            bar.update(1)
     order = [k for k in ("rule", "baseline", "thermal", "thermal_cabin", "baseline_warm") if k in sims]
     return CaseStudy({k: sims[k] for k in order}, outcomes, scen, grids, rule, timings)
+
+
+def _truth_for(paths):
+    """The truth parameter file written by ``iptm synth`` next to SYNTHETIC logs, when there is one."""
+    from calib.model.params import ParameterSet
+
+    for folder in dict.fromkeys(Path(p).parent for p in paths):
+        f = folder / "truth_params.toml"
+        if f.is_file():
+            try:
+                return f, ParameterSet.load(f)
+            except IptmError:
+                return None
+    return None
 
 
 def new_run_id(cfg_key: str) -> str:
@@ -299,8 +333,14 @@ def run(cfg: RunConfig) -> RunOutcome:
     _say(f"[1/4] ingesting {len(paths) + len([p for p in val_paths if p not in paths])} log(s)", cfg.progress)
     ingested = ingest_all(list(dict.fromkeys(paths + val_paths)), store, cfg.dbc, cfg.progress, cfg.strict)
     by_path = {p: lg for p, lg, _ in ingested}
-    fit_logs = [by_path[p] for p in fit_paths]
-    val_logs = [by_path[p] for p in val_paths]
+    from calib.ingest.drives import split_fit_validation
+
+    # copies of one drive (e.g. the same drive as BLF and CSV) are fitted once, and never used to validate
+    fit_logs, val_logs, drive_warnings = split_fit_validation([by_path[p] for p in fit_paths],
+                                                              [by_path[p] for p in val_paths])
+    for w in drive_warnings:
+        _say(f"warning: {w}", True)
+    truth = _truth_for(paths) if all(lg.meta.synthetic for _, lg, _ in ingested) else None
     cycle_log = cfg.cycle_from_log
     if cycle_log is not None:
         cyc_path = Path(cycle_log) if cycle_log else paths[0]
@@ -329,6 +369,7 @@ def run(cfg: RunConfig) -> RunOutcome:
         reports_dir=Path(cfg.reports_dir), run_id=new_run_id(run_key), ingested=ingested, fit_logs=fit_logs,
         val_logs=val_logs, params=params, calib_info=calib_info, calib_text=calib_text, val_pngs=val_pngs,
         artifact=artifact, case_study=cs, scenario=scen, grids=grids, base_params=cfg.base_params,
-        command_line=cfg.command_line, wall_s=time.perf_counter() - t0)
+        command_line=cfg.command_line, wall_s=time.perf_counter() - t0, drive_warnings=drive_warnings,
+        truth=truth)
     summary = json.loads((report_dir / "report.json").read_text())["summary"]
     return RunOutcome(report_dir, summary, time.perf_counter() - t0)

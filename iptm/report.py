@@ -16,7 +16,9 @@ table{border-collapse:collapse;margin:.8em 0;font-size:.9em}th,td{border:1px sol
 text-align:right}th{background:#f1f1f1}td:first-child,th:first-child{text-align:left}
 img{max-width:100%;border:1px solid #ddd;margin:.5em 0}.synthetic{background:#fff3cd;border:1px solid #e0c060;
 padding:.5em 1em;font-weight:600}.note{color:#555;font-size:.9em}code{background:#f4f4f4;padding:0 3px}
-nav a{margin-right:1em}
+nav a{margin-right:1em}.tablewrap{overflow-x:auto;max-width:100%}pre{overflow-x:auto;max-width:100%;
+background:#f8f8f8;padding:.5em}p,figcaption{overflow-wrap:anywhere}.warn{background:#fdecea;border:1px solid #e0a0a0;
+padding:.4em 1em}
 """
 
 
@@ -76,7 +78,8 @@ def render(title: str, sections: list[Section], banner: str = "") -> str:
                 df, cap = b[1], b[2]
                 if cap:
                     out.append(f"<p class='note'>{html.escape(cap)}</p>")
-                out.append(df.map(_fmt).to_html(index=False, border=0, na_rep="", escape=True))
+                out.append("<div class='tablewrap'>" + df.map(_fmt).to_html(index=False, border=0, na_rep="",
+                                                                            escape=True) + "</div>")
             elif kind == "figure":
                 data = base64.b64encode(b[1].read_bytes()).decode()
                 out.append(f"<figure><img alt='{html.escape(b[2])}' src='data:image/png;base64,{data}'>"

@@ -17,7 +17,9 @@ import pandas as pd
 from calib._version import __version__
 from calib.fileio import write_json, write_text
 
-from .report import Section, render
+from html import escape as html_escape
+
+from iptm.report import Section, render
 
 FIG_SERIES = {  # what the paper-style figures plot, per strategy
     "soc": "soc", "T_cl_degC": "T_cl", "T_cab_degC": "T_cab",
@@ -47,8 +49,46 @@ def _clean(o):
     return o
 
 
+#: The comparison table's columns: (source column, header with unit, decimals).
+COMPARISON = [
+    ("strategy", "strategy", None), ("fuel_g", "fuel [g]", 1), ("L_per_100km", "L/100 km", 2), ("mpg", "mpg", 1),
+    ("fuel_corrected_g", "corrected fuel [g]", 1), ("soc_final", "final SOC [-]", 3),
+    ("T_cl_final_degC", "final coolant [degC]", 1), ("T_cab_mean_degC", "mean cabin [degC]", 1),
+    ("engine_starts", "engine starts", 0), ("idle_s", "idle [s]", 0), ("charge_sustaining", "charge-sustaining", None),
+    ("saving_vs_rule_pct", "saving vs rule-based [%]", 2), ("paper_vs_rule_pct", "paper [%]", 2),
+    ("saving_vs_baseline_pct", "saving vs Baseline-DP [%]", 2), ("paper_vs_baseline_pct", "paper [%] ", 2),
+]
+
+
+def _cell(v, dec):
+    if v is None or (isinstance(v, float) and not np.isfinite(v)):
+        return "-"
+    if isinstance(v, (bool, np.bool_)):
+        return "yes" if v else "NO"
+    if dec is None:
+        return str(v)
+    return f"{float(v):.{dec}f}"
+
+
+def comparison_table(tab: pd.DataFrame) -> pd.DataFrame:
+    """The case-study table as the report shows it: a labelled row per strategy, units in the headers,
+    numbers rounded to what they mean (strings, so the HTML shows them as given)."""
+    cols = [(c, h, d) for c, h, d in COMPARISON if c in tab.columns]
+    return pd.DataFrame([{h: _cell(r[c], d) for c, h, d in cols} for _, r in tab.iterrows()])
+
+
+def summary_table(tab: pd.DataFrame) -> pd.DataFrame:
+    """Headline per strategy: grams, L/100 km, mpg and the saving against rule-based."""
+    keep = [("strategy", "strategy", None), ("fuel_g", "fuel [g]", 1), ("L_per_100km", "L/100 km", 2),
+            ("mpg", "mpg", 1), ("fuel_corrected_g", "corrected fuel [g]", 1),
+            ("saving_vs_rule_pct", "saving vs rule-based [%]", 2)]
+    keep = [k for k in keep if k[0] in tab.columns]
+    return pd.DataFrame([{h: _cell(r[c], d) for c, h, d in keep} for _, r in tab.iterrows()])
+
+
 def build_report(*, reports_dir: Path, run_id: str, ingested, fit_logs, val_logs, params, calib_info, calib_text,
-                 val_pngs, artifact, case_study, scenario, grids, base_params, command_line, wall_s) -> Path:
+                 val_pngs, artifact, case_study, scenario, grids, base_params, command_line, wall_s,
+                 drive_warnings=(), truth=None) -> Path:
     reports_dir.mkdir(parents=True, exist_ok=True)
     final = reports_dir / run_id
     if final.exists():
@@ -58,7 +98,7 @@ def build_report(*, reports_dir: Path, run_id: str, ingested, fit_logs, val_logs
     (tmp / "figures").mkdir(parents=True)
     try:
         _build(tmp, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_text, val_pngs, artifact,
-               case_study, scenario, grids, base_params, command_line, wall_s)
+               case_study, scenario, grids, base_params, command_line, wall_s, list(drive_warnings), truth)
         tmp.rename(final)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -67,7 +107,7 @@ def build_report(*, reports_dir: Path, run_id: str, ingested, fit_logs, val_logs
 
 
 def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_text, val_pngs, artifact, cs,
-           scenario, grids, base_params, command_line, wall_s):
+           scenario, grids, base_params, command_line, wall_s, drive_warnings=(), truth=None):
     synthetic = any(lg.meta.synthetic for _, lg, _ in ingested)
     now = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
 
@@ -75,20 +115,37 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
     logs_info, reports = [], {}
     data = Section("data", "Data used")
     rows = []
+    from calib.ingest.drives import same_drive
+    from calib.economy import format_economy, log_fuel_distance
+    from calib.ingest import display_report
+
     for path, lg, rep in ingested:
-        role = "validation (held out)" if any(lg is v for v in val_logs) else "calibration"
+        if any(lg is v for v in val_logs):
+            role = "validation (held out)"
+        elif any(lg is f for f in fit_logs):
+            role = "calibration"
+        else:
+            twin = next((f for f in fit_logs + val_logs if same_drive(f, lg)), None)
+            role = f"not used: same drive as {twin.label()}" if twin is not None else "not used"
+        fuel_g, dist_km = log_fuel_distance(lg)
         info = {"file": str(path), "name": lg.name, "format": lg.meta.format, "sha256": lg.meta.sha256,
                 "synthetic": bool(lg.meta.synthetic), "duration_s": lg.duration_s, "role": role,
                 "channels": lg.channels()}
         logs_info.append(info)
         rows.append({"log": lg.label(), "format": lg.meta.format, "duration s": round(lg.duration_s),
+                     "distance km": round(dist_km, 2) if dist_km == dist_km else None,
+                     "fuel g": round(fuel_g, 1) if fuel_g == fuel_g else None,
+                     "economy": format_economy(fuel_g, dist_km) if fuel_g == fuel_g else "-",
                      "role": role, "sha256": lg.meta.sha256[:16] + "...", "channels": len(lg.channels())})
         rep = rep.reset_index() if rep.index.name else rep
         reports[lg.name] = rep
         rep.to_csv(out / f"channels_{Path(lg.name).stem}.csv", index=False)
-    data.table(pd.DataFrame(rows))
+    data.table(pd.DataFrame(rows), "fuel and distance as logged (fuel-rate and speed channels integrated)")
+    for w in drive_warnings:
+        data.raw(f"<p class='warn'>Warning: {html_escape(w)}</p>")
     for name, rep in reports.items():
-        data.table(rep, f"channel report: {name}")
+        data.table(display_report(rep.set_index("channel") if "channel" in rep.columns else rep),
+                   f"channel report: {name}")
 
     # --- calibration
     shutil.copyfile(artifact, out / "calibration.toml")
@@ -104,7 +161,7 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
         val = p.value if not p.is_table else "[" + ", ".join(f"{v:.4g}" for v in p.value) + "]"
         se = p.stderr if not isinstance(p.stderr, list) else "[" + ", ".join(
             "-" if v is None else f"{v:.2g}" for v in p.stderr) + "]"
-        ptab.append({"parameter": n, "value": val, "unit": p.unit, "stderr": se, "status": p.status,
+        ptab.append({"parameter": n, "value": val, "unit": p.unit, "stderr": se, "status": p.status_text(),
                      "note": p.note})
     cal.table(pd.DataFrame(ptab))
     val = (calib_info.get("validation") or {}).get("metrics", {})
@@ -117,25 +174,40 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
     if vrows:
         cal.table(pd.DataFrame(vrows), "validation on held-out logs: the calibrated model replayed from the "
                                        "logged inputs")
-    for i, png in enumerate(val_pngs):
+    if truth is not None:
+        from calib.fit.validate import truth_comparison
+
+        tfile, tps = truth
+        trows = truth_comparison(params, tps)
+        if trows:
+            cal.table(pd.DataFrame(trows), f"SYNTHETIC logs: estimates next to the truth they were simulated from "
+                                           f"({Path(tfile).name}); 'error / stderr' within +-2 means the stated "
+                                           "uncertainty covers the error")
+    for png in val_pngs:
         dst = out / "figures" / Path(png).name
         shutil.copyfile(png, dst)
-        cal.figure(dst, "measured vs simulated (paper Fig. 3 style)")
+        stem = Path(png).stem
+        cap = ("residuals (simulated - measured) on every log" if stem == "residuals" else
+               "measured vs simulated on a held-out log (paper Fig. 3 style)" if stem.startswith("validation_")
+               else "measured vs simulated on a fitted log")
+        cal.figure(dst, cap)
     cal.pre(calib_text)
 
     # --- optimisation
     opt = Section("optimisation", "Optimisation: rule-based vs the three DP formulations")
-    tab = cs.table().reset_index(drop=True)
-    keep = [c for c in ("strategy", "fuel_g", "fuel_corrected_g", "soc_final", "T_cl_final_degC", "T_cl_mean_degC",
-                        "T_cab_final_degC", "T_cab_mean_degC", "engine_starts", "idle_s", "charge_sustaining",
-                        "saving_vs_rule_pct", "paper_vs_rule_pct", "saving_vs_baseline_pct",
-                        "paper_vs_baseline_pct") if c in tab.columns]
+    tab = cs.table().reset_index()
     opt.p(f"Scenario: cycle {scenario.cycle}, ambient {scenario.T_amb:g} degC, SOC0 {scenario.soc0:g}, "
           f"coolant {scenario.T_cl0:g} degC, cabin {scenario.T_cab0:g} degC, heater {scenario.Q_heat:g} W "
           f"(Thermal-Cabin: {scenario.Q_heat_min:g}-{scenario.Q_heat_max:g} W). Grids: "
           + ", ".join(f"{k} {v:g}" for k, v in grids.to_dict().items()) + ".")
-    opt.table(tab[keep], "fuel and final states of each strategy; savings next to the paper's. Corrected fuel "
-                         "accounts for differences in final stored electric and thermal energy.")
+    opt.table(comparison_table(tab), "one row per strategy: fuel (with L/100 km and mpg), fuel corrected for "
+                                     "differences in final stored electric and thermal energy, final states, and "
+                                     "savings next to the paper's (Gong et al., CCTA 2019).")
+    if "baseline_warm" in set(tab["key"]):
+        opt.p("Baseline-DP is solved on a model without the engine thermal dynamics (coolant factor f_cl = 1): "
+              "the row 'Baseline-DP (own optimum, f_cl = 1)' is the fuel that model predicts for its own "
+              "optimum; 'Baseline-DP on thermal model' replays the same controls on the full thermal model and is "
+              "the one compared with the other strategies.")
     ok = cs.ordering_ok() if hasattr(cs, "ordering_ok") else None
     opt.p(f"Ordering rule-based > Baseline-DP on the thermal model > Thermal-DP > Thermal-Cabin-DP in fuel: "
           f"{'holds' if ok else 'does NOT hold (see the README for the physical explanation)'}.")
@@ -158,19 +230,24 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
     summ = Section("summary", "Summary")
     strat = {}
     for r in cs.to_dict()["table"]:
-        strat[r["key"]] = {k: r.get(k) for k in ("fuel_g", "fuel_corrected_g", "soc_final", "T_cl_final_degC",
+        strat[r["key"]] = {k: r.get(k) for k in ("fuel_g", "L_per_100km", "mpg", "fuel_corrected_g", "soc_final",
+                                                  "T_cl_final_degC",
                                                   "T_cab_final_degC", "T_cab_mean_degC", "saving_vs_rule_pct",
                                                   "saving_vs_baseline_pct", "charge_sustaining")}
     statuses = [params.param(n).status for n in params]
     summary = {"run_id": run_id, "synthetic_data": synthetic, "strategies": strat, "ordering_ok": ok,
                "n_estimated": statuses.count("estimated"), "n_undetermined": statuses.count("undetermined"),
                "wall_s": wall_s}
-    lines = [f"{k}: {v['fuel_g']:.1f} g" + (f" ({v['saving_vs_rule_pct']:.2f} % below rule-based)"
-                                              if v.get("saving_vs_rule_pct") not in (None, 0.0) else "")
-             for k, v in strat.items()]
-    summ.p("Fuel over the scenario: " + "; ".join(lines) + ".")
+    summ.table(summary_table(tab), "fuel over the scenario, per strategy")
+    partial = [f"{n}: {params.param(n).n_entries_estimated()[0]} of {params.param(n).n_entries_estimated()[1]} "
+               "entries estimated" for n in params
+               if params.param(n).status == "estimated" and params.param(n).n_entries_estimated()
+               and params.param(n).n_entries_estimated()[0] < params.param(n).n_entries_estimated()[1]]
     summ.p(f"Calibration: {summary['n_estimated']} parameters estimated, {summary['n_undetermined']} undetermined "
-           f"(left at their priors).")
+           f"(left at their priors)" + (f"; tables only partly determined: {'; '.join(partial)}" if partial else "")
+           + ".")
+    for w in drive_warnings:
+        summ.raw(f"<p class='warn'>Warning: {html_escape(w)}</p>")
 
     banner = ("SYNTHETIC DATA: the logs in this report were simulated by the workbench from known truth "
               "parameters; they are not measurements.") if synthetic else ""

@@ -54,6 +54,7 @@ class CaseStudy:
             paper = PAPER_SAVINGS.get(key, {})
             rows.append({
                 "strategy": LABELS.get(key, key), "key": key, "fuel_g": f,
+                "L_per_100km": s["L_per_100km"], "mpg": s["mpg"],
                 "fuel_corrected_g": s["fuel_corrected_g"], "soc_final": s["soc_final"],
                 "T_cl_final_degC": s["T_cl_final_degC"], "T_cl_mean_degC": s["T_cl_mean_degC"],
                 "T_cab_final_degC": s["T_cab_final_degC"], "T_cab_mean_degC": s["T_cab_mean_degC"],
@@ -169,19 +170,35 @@ class CaseStudy:
                 ax.set_title(title, fontsize=10)
             fig.tight_layout()
             save(fig, name)
-        # fuel bars
-        fig, ax = plt.subplots(figsize=(7, 3.8))
-        fuel = [self.sims[k].fuel_g for k in keys]
-        corr = [self.sims[k].summary()["fuel_corrected_g"] for k in keys]
-        x = np.arange(len(keys))
-        ax.bar(x - 0.2, fuel, 0.4, color=[colors[k] for k in keys], label="fuel")
-        ax.bar(x + 0.2, corr, 0.4, color=[colors[k] for k in keys], alpha=0.45, label="corrected fuel")
-        for xi, f in zip(x, fuel):
-            ax.text(xi - 0.2, f, f"{f:.1f}", ha="center", va="bottom", fontsize=8)
-        ax.set_xticks(x, [LABELS[k].replace(" on thermal model", "\non thermal") for k in keys], fontsize=8)
-        ax.set_ylabel("fuel [g]")
-        ax.legend(fontsize=8)
-        ax.set_title(title, fontsize=10)
+        # fuel bars: the saving of each strategy against the reference (rule-based when present), on fuel and
+        # on corrected fuel, every bar labelled; differences of a few percent stay visible, unlike grams from 0
+        ref = "rule" if "rule" in keys else keys[0]
+        fuel = {k: self.sims[k].fuel_g for k in keys}
+        corr = {k: self.sims[k].summary()["fuel_corrected_g"] for k in keys}
+        sav = [100 * (1 - fuel[k] / fuel[ref]) for k in keys]
+        sav_c = [100 * (1 - corr[k] / corr[ref]) for k in keys]
+        fig, ax = plt.subplots(figsize=(8, 0.75 * len(keys) + 1.9))
+        y = np.arange(len(keys))[::-1]
+        h = 0.38
+        ax.barh(y + h / 2, sav, h, color=[colors[k] for k in keys], label="fuel")
+        ax.barh(y - h / 2, sav_c, h, color=[colors[k] for k in keys], alpha=0.45, hatch="//",
+                label="corrected fuel (final SOC, coolant and cabin energy)")
+        papers = [PAPER_SAVINGS.get(k, {}).get("vs_rule") for k in keys] if ref == "rule" else []
+        span = max([abs(v) for v in sav + sav_c] + [p for p in papers if p is not None] + [0.5])
+        for yi, k, v, vc in zip(y, keys, sav, sav_c):
+            for yy, val, g in ((yi + h / 2, v, fuel[k]), (yi - h / 2, vc, corr[k])):
+                txt = f"{g:.1f} g" + (" (reference)" if k == ref else f", {val:+.2f} %")
+                ax.text(max(val, 0) + 0.02 * span, yy, txt, va="center", ha="left", fontsize=8)
+            paper = PAPER_SAVINGS.get(k, {}).get("vs_rule") if ref == "rule" else None
+            if paper is not None:
+                ax.plot([paper], [yi + h / 2], marker="D", color="k", ms=5, ls="none",
+                        label="paper (fuel)" if k == "thermal" else None)
+        ax.axvline(0, color="0.3", lw=0.8)
+        ax.set_yticks(y, [LABELS[k].replace(" on thermal model", "\non thermal model") for k in keys], fontsize=8)
+        ax.set_xlim(min(0.0, min(sav + sav_c)) - 0.1 * span, 1.45 * span)
+        ax.set_xlabel(f"saving vs {LABELS[ref]} [%]")
+        ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=3, frameon=False)
+        ax.set_title(f"fuel saving - {title}", fontsize=10)
         fig.tight_layout()
         save(fig, "fuel_bars")
         return paths

@@ -38,15 +38,30 @@ def _page():
 
     names = list(session_logs)
     label = lambda n: session_logs[n].label  # noqa: E731
+    # one log per drive by default (the same drive may be loaded as BLF, CSV, MCAP...): fit on all drives
+    # but the last, hold the last out
+    groups = dash.drive_groups(state, names)
+    firsts = [g[0] for g in groups]
     c1, c2 = st.columns(2)
     with c1:
-        fit_names = st.multiselect("Logs for fitting", names, default=names[:max(1, len(names) - 1)],
+        fit_names = st.multiselect("Logs for fitting", names, default=firsts[:max(1, len(firsts) - 1)],
                                    format_func=label, key="cal_fit_logs")
+    # a copy of a fitted drive cannot validate the fit: it is not offered
+    copies = {n: dash.same_drive_as(state, n, fit_names) for n in names if n not in fit_names}
+    val_opts = [n for n in names if n not in fit_names and copies.get(n) is None]
     with c2:
-        val_default = [names[-1]] if len(names) > 1 else []
-        val_names = st.multiselect("Held-out logs for validation", [n for n in names if n not in fit_names],
-                                   default=[n for n in val_default if n not in fit_names], format_func=label,
+        val_default = [firsts[-1]] if len(firsts) > 1 else []
+        val_names = st.multiselect("Held-out logs for validation (drives not used for fitting)", val_opts,
+                                   default=[n for n in val_default if n in val_opts], format_func=label,
                                    key="cal_val_logs")
+    for g in dash.drive_groups(state, fit_names) if len(fit_names) > 1 else []:
+        if len(g) > 1:
+            st.warning("These logs are the same drive: " + ", ".join(label(n) for n in g)
+                       + ". Fitting on copies counts that drive several times; keep one.")
+    hidden = [n for n, twin in copies.items() if twin is not None]
+    if hidden:
+        st.caption("Not offered for validation (same drive as a fitted log): "
+                   + ", ".join(f"{label(n)} = {label(copies[n])}" for n in hidden))
 
     allp = dash.calibratable_parameters()
     c3, c4 = st.columns(2)
@@ -95,7 +110,7 @@ def _page():
                 res = _calibrate(key, fit_logs, val_logs, base_ps, fit, fix)
             bar.progress(0.7, text="replaying the logs with the calibrated parameters")
             plots = []
-            show = val_names or fit_names[:1]
+            show = list(fit_names) + [n for n in val_names if n not in fit_names]
             for i, n in enumerate(show):
                 lg = dash.truncate(session_logs[n].log, trunc)
                 rep = _replay(content_key(key, session_logs[n].sha256, float(trunc)), lg, res.params)
@@ -145,10 +160,24 @@ def _page():
         st.dataframe(rows, hide_index=True, width="stretch")
 
     st.subheader("Measured vs simulated")
-    from calib.fit.validate import plot_validation  # noqa: E402
+    st.caption("Interactive: drag to pan, mouse wheel to zoom the time axis (all panels of a log follow), "
+               "hover for values; double-click resets. Solid: measured; dashed: simulated.")
+    from iptm.charts import validation_chart  # noqa: E402
 
-    for lbl, rep, held_out in cal["plots"]:
-        fig = plot_validation(rep, title=f"{lbl}: measured vs simulated" + (" (held out)" if held_out else " (fit)"))
+    tabs = st.tabs([f"{lbl} ({'held out' if held_out else 'fitted'})" for lbl, _, held_out in cal["plots"]]
+                   + ["residuals"])
+    for tab, (lbl, rep, held_out) in zip(tabs, cal["plots"]):
+        with tab:
+            m = rep.metrics()
+            st.caption(", ".join(f"{k} RMSE {v['rmse']:.3g} {v['unit']}" for k, v in m.items() if "rmse" in v)
+                       or "no channel to compare")
+            chart = validation_chart(rep)
+            if chart is not None:
+                st.altair_chart(chart, width="stretch")
+    with tabs[-1]:
+        from calib.fit.validate import plot_residual_comparison  # noqa: E402
+
+        fig = plot_residual_comparison([(f"{lbl} ({'held out' if h else 'fitted'})", rep) for lbl, rep, h in cal["plots"]])
         st.pyplot(fig, clear_figure=True)
         plt.close(fig)
 

@@ -2,7 +2,7 @@
 report, plot any channel."""
 import streamlit as st
 
-from calib.ingest import format_report
+from calib.ingest import display_report, format_report
 from iptm import dashboard as dash
 
 
@@ -44,9 +44,22 @@ def _page():
                 dash.check_size(up.name, up.size)
             with st.spinner(f"reading {up.name}..."):
                 entry = dash.add_upload(state, up.name, up.getvalue(), dbc=state.get(dash.DBC))
-            st.success(f"{entry.label}: {entry.log.duration_s:.0f} s, {len(entry.log.channels())} channels")
+            notes = [n[len("warning: "):] for n in entry.log.meta.notes if n.startswith("warning: ")]
+            msg = f"{entry.label}: {entry.log.duration_s:.0f} s, {len(entry.log.channels())} channels"
+            dash.record_upload(state, up.name, True, msg + ("; " + "; ".join(notes) if notes else ""))
+            st.success(msg)
         except Exception as exc:  # noqa: BLE001 - any failure is a message in the page, never a crash
-            st.error(f"Could not load {up.name}: {dash.error_message(exc)}")
+            dash.record_upload(state, up.name, False, dash.error_message(exc))
+
+    # every upload of the session stays listed with its outcome: an error does not vanish with the next file
+    hist = state.get(dash.UPLOADS, [])
+    for h in reversed(hist):
+        if h["status"] == "FAILED":
+            st.error(f"Could not load {h['file']}: {h['message']}")
+    if hist:
+        with st.expander(f"Uploads of this session ({len(hist)}; "
+                         f"{sum(h['status'] == 'FAILED' for h in hist)} failed)", expanded=False):
+            st.dataframe(dash.upload_history(state), hide_index=True, width="stretch")
 
     b1, b2 = st.columns([1, 2])
     with b2:
@@ -67,9 +80,21 @@ def _page():
         return
 
     st.subheader("Loaded logs")
-    overview = [{"log": e.label, "format": e.log.meta.format, "duration_s": round(e.log.duration_s, 1),
-                 "channels": len(e.log.channels()), "sha256": e.sha256[:12]} for e in session_logs.values()]
+    from calib.economy import format_economy, log_fuel_distance
+
+    overview = []
+    for e in session_logs.values():
+        fuel, dist = log_fuel_distance(e.log)
+        overview.append({"log": e.label, "format": e.log.meta.format, "duration_s": round(e.log.duration_s, 1),
+                         "distance km": round(dist, 2) if dist == dist else None,
+                         "fuel g": round(fuel, 1) if fuel == fuel else None,
+                         "economy": format_economy(fuel, dist) if fuel == fuel else "-",
+                         "channels": len(e.log.channels()), "sha256": e.sha256[:12]})
     st.dataframe(overview, hide_index=True, width="stretch")
+    for g in dash.drive_groups(state, list(session_logs)):
+        if len(g) > 1:
+            st.info("Same drive in several files: " + ", ".join(session_logs[n].label for n in g)
+                    + ". Calibration fits it once and never validates on a copy of a fitted drive.")
 
     names = list(session_logs)
     sel = st.selectbox("Log", names, key="logs_selected",
@@ -80,7 +105,10 @@ def _page():
 
     tab_plot, tab_report, tab_meta = st.tabs(["Plot", "Channel report", "Provenance"])
     with tab_report:
-        st.dataframe(entry.report, width="stretch")
+        st.dataframe(display_report(entry.report), hide_index=True, width="stretch")
+        for n in entry.log.meta.notes:
+            if n.startswith("warning: "):
+                st.warning(n[len("warning: "):])
         with st.expander("as text"):
             st.code(format_report(entry.report), language=None)
     with tab_plot:

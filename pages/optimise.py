@@ -3,6 +3,7 @@ strategies), run the case study of :mod:`optimize.casestudy` with progress, and 
 the savings and the paper-style figures."""
 import importlib.util
 import json
+import time
 
 import streamlit as st
 
@@ -181,17 +182,25 @@ def _page():
 
     ready = params_ok and scenario is not None and bool(strategies)
     if st.button("Run optimisation", type="primary", disabled=not ready, key="opt_run"):
+        order = [s for s in STRATS if s in strategies]
+        # one bar per strategy, named, with its state count when solved: a single bar's time-left estimate
+        # jumps as strategies of very different sizes follow each other
+        bars = {s: st.progress(0.0, text=f"{STRATS[s]}: waiting") for s in order}
         bar = st.progress(0.0, text="loading the cycle")
         try:
             cyc = scenario.load_cycle()  # a bad cycle or duration fails here, before any DP
             base_key = content_key(params.to_dict()["parameters"], dash.scenario_key(scenario), grids.to_dict())
             parts = []
-            order = [s for s in STRATS if s in strategies]
             for i, s in enumerate(order):
-                bar.progress(i / len(order), text=f"solving {STRATS[s]} ({i + 1}/{len(order)}) on {cyc.n_steps} steps")
-                parts.append(_solve(content_key(base_key, s), params, scenario, grids, s))
+                bars[s].progress(0.0, text=f"{STRATS[s]}: solving on {cyc.n_steps} steps ...")
+                t0 = time.perf_counter()
+                part = _solve(content_key(base_key, s), params, scenario, grids, s)
+                parts.append(part)
+                o = part.outcomes.get(s)
+                size = f"{o.n_states:,} states x {o.n_controls:,} controls, " if o is not None else ""
+                bars[s].progress(1.0, text=f"{STRATS[s]}: done - {size}{time.perf_counter() - t0:.1f} s")
             cs = dash.merge_case_studies(parts)
-            bar.progress(0.95, text="drawing the figures")
+            bar.progress(0.5, text="drawing the figures")
             figdir = dash.session_dir(state) / "figures" / base_key
             figs = cs.plot_figures(figdir)
             state[dash.OPT] = {"cs": cs, "figures": figs, "cycle": cyc.describe(), "key": base_key}
@@ -224,21 +233,40 @@ def _page():
         v = float(row[f"saving_{ref}_pct"].iloc[0])
         paper = row[f"paper_{ref}_pct"].iloc[0]
         other = "rule-based" if ref == "vs_rule" else "Baseline-DP"
-        col.metric(f"{STRATS[key]} saving vs {other}", f"{v:.2f} %" if v == v else "-",
-                   delta=f"paper {paper:.2f} %" if paper == paper else None, delta_color="off")
+        # the paper's figure is a reference, not a change: a caption, not a delta arrow
+        col.metric(f"{STRATS[key]} saving vs {other}", f"{v:.2f} %" if v == v else "-")
+        if paper == paper:
+            col.caption(f"paper (Gong et al.): {paper:.2f} %")
     if not cs.ordering_ok():
         st.warning("Fuel is not ordered rule >= Baseline >= Thermal >= Thermal-Cabin on these grids: refine the grids "
                    "(coarse grids cost accuracy).")
-    st.dataframe(tbl, width="stretch")
+    from iptm.reportbuild import comparison_table
+
+    st.dataframe(comparison_table(tbl.reset_index()), hide_index=True, width="stretch")
     st.download_button("Download the results (JSON)", json.dumps(cs.to_dict(), indent=1, default=str),
                        file_name="case_study.json", mime="application/json", key="opt_download")
 
+    st.subheader("Trajectories")
+    st.caption("Interactive: drag to pan, mouse wheel to zoom the time axis (every panel follows), hover to "
+               "compare the strategies point by point; double-click resets.")
+    from iptm.charts import trajectories_chart
+    from optimize.casestudy import LABELS
+
+    chart = trajectories_chart(cs.sims, LABELS)
+    if chart is not None:
+        st.altair_chart(chart, width="stretch")
+
     st.subheader("Figures")
     figs = opt["figures"]
-    for i in range(0, len(figs), 2):
-        cc = st.columns(2)
-        for col, f in zip(cc, figs[i:i + 2]):
-            col.image(f, width="stretch")
+    bars_png = [f for f in figs if f.endswith("fuel_bars.png")]
+    if bars_png:
+        st.image(bars_png[0])
+    with st.expander("The report's static figures (paper style)"):
+        rest = [f for f in figs if f not in bars_png]
+        for i in range(0, len(rest), 2):
+            cc = st.columns(2)
+            for col, f in zip(cc, rest[i:i + 2]):
+                col.image(f, width="stretch")
 
 
 _page()

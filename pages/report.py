@@ -69,9 +69,28 @@ def _page():
                        key="rep_dl_html")
     c2.download_button("Download the JSON", rep["json"], file_name="report.json", mime="application/json",
                        key="rep_dl_json")
+    import pandas as pd
+
+    from iptm.reportbuild import summary_table
+
+    full = json.loads(rep["json"])
+    summ = full["summary"]
     st.subheader("Summary")
-    st.json(rep["summary"] if isinstance(rep["summary"], (dict, list)) else json.loads(rep["summary"]))
-    st.caption("The HTML report is self-contained (figures embedded): open the downloaded file in a browser.")
+    if summ.get("synthetic_data"):
+        st.warning("Built from SYNTHETIC logs.")
+    st.dataframe(summary_table(pd.DataFrame(full["case_study"]["table"])), hide_index=True, width="stretch")
+    m1, m2, m3 = st.columns(3)
+    m1.metric("parameters estimated", summ.get("n_estimated", 0))
+    m2.metric("undetermined (kept prior)", summ.get("n_undetermined", 0))
+    m3.metric("fuel ordering rule > Baseline > Thermal > Thermal-Cabin",
+              "holds" if summ.get("ordering_ok") else "does not hold")
+    with st.expander("Summary as JSON"):
+        st.json(summ, expanded=False)
+    st.subheader("Preview")
+    st.caption("The HTML report as downloaded (self-contained, figures embedded).")
+    import streamlit.components.v1 as components
+
+    components.html(rep["html"].decode("utf-8"), height=900, scrolling=True)
 
 
 _page()

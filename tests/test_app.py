@@ -76,6 +76,18 @@ def test_safe_name_and_limits(monkeypatch):
     assert dash.max_upload_bytes() == int(dash.DEFAULT_MAX_UPLOAD_MB * 2**20)
 
 
+def test_error_messages_never_quote_raw_bytes():
+    exc = dash.IptmError("x.mcap: not a valid MCAP file, invalid magic: (104, 101, 108, 108, 111, 32, 116, 104)")
+    msg = dash.error_message(exc)
+    assert "104, 101" not in msg and "x.mcap: not a valid MCAP file" in msg and "header" in msg
+    assert "b'" not in dash.error_message(ValueError("bad start b'\\x89MCAP0\\r\\n'"))
+    st = {}
+    dash.record_upload(st, "a.csv", True, "ok")
+    dash.record_upload(st, "b.mcap", False, "broken")
+    assert dash.upload_history(st).to_dict("records") == [
+        {"file": "b.mcap", "status": "FAILED", "message": "broken"}, {"file": "a.csv", "status": "loaded", "message": "ok"}]
+
+
 def test_session_state_helpers(small_csv):
     a, b = {}, {}
     entry = dash.add_upload(a, "short.csv", small_csv)
@@ -121,9 +133,11 @@ def test_upload_channel_report_and_plot(small_csv):
     assert not errors(at)
     assert any("short.csv [SYNTHETIC]" in s.value for s in at.success)
     assert any("SYNTHETIC" in w.value for w in at.sidebar.warning)
-    assert len(at.dataframe) >= 2  # overview + channel report
-    rep = at.dataframe[1].value
-    assert "speed_mps" in rep.index and bool(rep.loc["speed_mps", "present"])
+    frames = [d.value for d in at.dataframe]
+    rep = next(f for f in frames if "channel" in f.columns).set_index("channel")  # the channel report
+    assert rep.loc["speed_mps", "unit"] == "m/s (km/h)" and rep.loc["soc", "unit"] == "%"
+    hist = next(f for f in frames if "status" in f.columns and "file" in f.columns)
+    assert hist.to_dict("records")[0]["file"] == "short.csv" and hist["status"].tolist() == ["loaded"]
     at.multiselect(key="chans_short.csv").set_value(["speed_mps", "soc", "coolant_temp_degC"])
     ok(at.run())
     assert list(at.session_state[dash.LOGS]) == ["short.csv"]
@@ -136,8 +150,10 @@ def test_bad_uploads_show_messages_and_app_keeps_working(small_csv, monkeypatch)
                        ("empty.csv", b""), ("text.csv", b"this is not,a drive log\n1,2\n")):
         upload(at, name, data)
         got = errors(at)
-        assert len(got) == 1 and name in got[0], got  # each bad file: one message, shown once
-        msgs += got
+        # each bad file: one message, newest first; earlier failures stay visible
+        assert name in got[0] and len(got) == len(msgs) + 1, got
+        assert all(m in got for m in msgs)
+        msgs = got
         assert at.title[0].value == "Logs"
     assert any("corrupt.blf" in m for m in msgs)
     assert any("unsupported file type '.docx'" in m for m in msgs)
@@ -148,6 +164,8 @@ def test_bad_uploads_show_messages_and_app_keeps_working(small_csv, monkeypatch)
     monkeypatch.setenv("IPTM_MAX_UPLOAD_MB", "0.05")
     upload(at, "big.csv", small_csv, "text/csv")
     assert any("too large" in m and "big.csv" in m for m in errors(at))
+    hist = dash.upload_history(at.session_state)
+    assert hist["status"].tolist() == ["FAILED"] * 5 and hist["file"].iloc[0] == "big.csv"
     monkeypatch.delenv("IPTM_MAX_UPLOAD_MB")
     # a bad DBC is refused too
     at.file_uploader(key="dbc_upload").upload("bad.dbc", b"\x00\x01 garbage", "application/octet-stream")
@@ -196,6 +214,9 @@ def test_calibrate_optimise_report_flow(small_csv):
     assert not errors(at), errors(at)
     tbl = at.dataframe[0].value
     assert {"parameter", "value", "stderr", "status", "identifiable"} <= set(tbl.columns)
+    # measured vs simulated: interactive, on the fitted log too
+    charts = at.get("vega_lite_chart")
+    assert len(charts) == 1 and '"vconcat"' in charts[0].proto.spec and "simulated" in charts[0].proto.spec
     assert tbl.set_index("parameter").loc["kappa", "status"] == "fixed"
     assert (tbl["identifiable"] == "yes").any()
     assert at.get("download_button"), "calibration download missing"
@@ -213,7 +234,16 @@ def test_calibrate_optimise_report_flow(small_csv):
     assert {"rule", "baseline", "thermal", "thermal_cabin"} <= set(cs.sims)
     assert len(at.session_state[dash.OPT]["figures"]) >= 9
     assert len(at.metric) == 3
-    assert "fuel_g" in at.dataframe[0].value.columns
+    # the paper's savings are a reference caption, not a delta arrow that reads as an improvement
+    assert all(m.proto.delta == "" for m in at.metric)
+    assert sum("paper (Gong et al.)" in c.value for c in at.caption) == 3
+    comp = at.dataframe[0].value
+    assert comp["strategy"].tolist()[:4] == ["Rule-based (tuned)", "Baseline-DP on thermal model", "Thermal-DP",
+                                            "Thermal-Cabin-DP"]
+    assert {"fuel [g]", "L/100 km", "mpg"} <= set(comp.columns)
+    # interactive trajectories (one Vega-Lite chart, panels with a shared time axis)
+    charts = at.get("vega_lite_chart")
+    assert len(charts) == 1 and '"vconcat"' in charts[0].proto.spec
 
     # --- cycle from the uploaded log, one strategy
     at.radio(key="opt_cycle_src").set_value("from a loaded log")
@@ -244,6 +274,12 @@ def test_calibrate_optimise_report_flow(small_csv):
     assert rep["json"].lstrip().startswith(b"{")
     assert len(at.get("download_button")) == 2
     assert Path(rep["dir"]).is_relative_to(Path(at.session_state[dash.TMP]))
+    # a formatted summary (a row per strategy, economy units) and a preview of the HTML report, not raw JSON
+    summ = at.dataframe[0].value
+    assert summ["strategy"].tolist() == ["Rule-based (tuned)", "Thermal-DP"]
+    assert {"fuel [g]", "L/100 km", "mpg"} <= set(summ.columns)
+    assert all(len(v.split(".")[1]) <= 2 for v in summ["fuel [g]"])  # no 16-digit numbers
+    assert at.get("iframe") and "<table" in at.get("iframe")[0].proto.srcdoc
 
 
 def test_optimise_sweep_over_ambient():
@@ -265,3 +301,25 @@ def test_optimise_sweep_over_ambient():
     at.button(key="sweep_run").click()
     ok(at.run())
     assert any("Sweep failed" in m for m in errors(at))
+
+
+def test_copies_of_a_drive_are_not_validated_on():
+    """The bundled set offers the warm restart also as CSV, MCAP and candump: one drive, four files."""
+    at = new_app()
+    at.checkbox(key="bundled_other_formats").check()
+    at.button(key="load_bundled").click()
+    ok(at.run())
+    assert any("Same drive in several files" in i.value for i in at.info)
+    ok(at.switch_page("pages/calibrate.py").run())
+    fit = at.multiselect(key="cal_fit_logs").value
+    val = at.multiselect(key="cal_val_logs")
+    # defaults: one file per drive; the held-out drive is not one that was fitted
+    assert fit == ["winter_cold_start.blf", "winter_long_mixed.blf"]
+    assert val.value == ["winter_warm_restart.blf"]
+    at.multiselect(key="cal_fit_logs").set_value(fit + ["winter_warm_restart.csv"])
+    ok(at.run())
+    opts = at.multiselect(key="cal_val_logs").options
+    assert not any("winter_warm_restart" in o for o in opts), opts  # no copy of a fitted drive is offered
+    at.multiselect(key="cal_fit_logs").set_value(["winter_warm_restart.csv", "winter_warm_restart.mcap"])
+    ok(at.run())
+    assert any("same drive" in w.value for w in at.warning)

@@ -55,3 +55,42 @@ def test_with_values_validates(params):
     with pytest.raises(ParameterError):
         params.with_values(eta_em=1.5)
     assert params.with_values(eta_em=0.9)["eta_em"] == 0.9
+
+
+def test_value_in_another_unit_keeps_canonical_bounds(tmp_path):
+    """A file that states a value in another unit (with the bounds save() writes, in the canonical unit)."""
+    ps = default_parameters()
+    lo, hi = ps.param("m_kg").bounds
+    f = tmp_path / "lb.toml"
+    f.write_text(f'[parameters.m_kg]\nvalue = 3375\nunit = "lb"\nbounds = [{lo}, {hi}]\n')
+    p = ParameterSet.load(f).param("m_kg")
+    assert p.unit == "kg" and p.value == pytest.approx(3375 * 0.45359237)
+    assert p.bounds == (lo, hi)
+    # bounds in another unit only when the file says so
+    f.write_text('[parameters.m_kg]\nvalue = 3375\nunit = "lb"\nbounds = [2000, 6000]\nbounds_unit = "lb"\n')
+    assert ParameterSet.load(f).param("m_kg").bounds == pytest.approx((2000 * 0.45359237, 6000 * 0.45359237))
+    f.write_text('[parameters.m_kg]\nvalue = 9000\nunit = "lb"\n')
+    with pytest.raises(ParameterError, match=r"outside its bounds \[.*\] kg"):
+        ParameterSet.load(f)
+
+
+def test_table_status_is_per_entry(tmp_path):
+    from types import SimpleNamespace
+
+    from calib.fit.toolkit import ParamEstimate
+    from calib.fit.driver import _merge
+
+    ps = default_parameters()
+    n = len(ps.param("U_oc_V").value)
+    st = ["undetermined"] * n
+    st[3] = st[4] = "estimated"
+    val = list(ps.param("U_oc_V").value)
+    est = ParamEstimate("U_oc_V", val, [None] * n, "estimated", "", prior=val, entry_status=st)
+    _merge(ps, SimpleNamespace(estimates={"U_oc_V": est}, logs=["a.csv"]), {"U_oc_V"}, set())
+    p = ps.param("U_oc_V")
+    assert p.status == "estimated" and p.n_entries_estimated() == (2, n)
+    assert p.status_text() == f"estimated: 2 of {n} entries ({n - 2} undetermined)"
+    ps.save(tmp_path / "c.toml")
+    back = ParameterSet.load(tmp_path / "c.toml").param("U_oc_V")
+    assert back.entry_status == st and back.status_text() == p.status_text()
+    assert default_parameters().param("m_kg").status_text() == "prior"

@@ -330,3 +330,5 @@ def _merge(ps, fit: SubsystemFit, allowed, fixed):
         else:
             p.status = e.status
             p.stderr = None
+        if p.is_table:
+            p.entry_status = list(e.entry_status) if e.entry_status else [p.status] * len(p.value)

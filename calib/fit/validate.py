@@ -20,6 +20,7 @@ engine power, heater power), so all fits read a log the same way.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -136,3 +137,70 @@ def plot_validation(rep: Replay, path=None, title=None):
 
         save_figure(fig, path)
     return fig
+
+
+def plot_residual_comparison(reps, path=None, title=None):
+    """Residuals (simulated - measured) of SOC, coolant, cabin temperature and fuel rate, one line per log.
+
+    ``reps`` is a list of ``(label, Replay)``; fitted and held-out logs side by side show whether the fit
+    only follows the logs it was fitted on. Written atomically when ``path`` is given. Returns the Figure.
+    """
+    import matplotlib
+
+    if path is not None:
+        matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    panels = [("soc", "SOC [-]"), ("coolant_temp", "coolant [degC]"), ("cabin_temp", "cabin [degC]"),
+              ("fuel_rate", "fuel rate [g/s]")]
+    fig, ax = plt.subplots(len(panels), 1, figsize=(8, 8.5), sharex=True)
+    for i, (label, rep) in enumerate(reps):
+        for a, (k, _) in zip(ax, panels):
+            m, s = rep.measured.get(k), rep.simulated.get(k)
+            if m is None or s is None:
+                continue
+            a.plot(rep.t / 60.0, s - m, lw=0.7, color=f"C{i}", label=label)
+    for a, (_, lab) in zip(ax, panels):
+        a.axhline(0.0, color="k", lw=0.6)
+        a.set_ylabel("residual " + lab, fontsize=8)
+        a.grid(alpha=0.3)
+    ax[0].legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, 1.45), ncol=2, frameon=False)
+    ax[-1].set_xlabel("time [min]")
+    fig.suptitle(title or "residuals: simulated - measured", fontsize=9)
+    fig.tight_layout()
+    if path is not None:
+        from calib.fileio import save_figure
+
+        save_figure(fig, path)
+    return fig
+
+
+def truth_comparison(params, truth) -> list[dict]:
+    """Estimated parameters next to the truth they were simulated from (SYNTHETIC logs only).
+
+    One row per scalar parameter that the calibration estimated or tried (status not ``prior``/``fixed``):
+    estimate, standard error, truth, error in % of the truth and in standard errors, and whether the truth
+    lies within two standard errors. Tables are summarised by their largest entry error.
+    """
+    rows = []
+    for n in params:
+        p = params.param(n)
+        if p.status in ("prior", "fixed") or n not in truth:
+            continue
+        tv = truth.param(n).value
+        if p.is_table:
+            est, tru = np.asarray(p.value, float), np.asarray(tv, float)
+            if est.shape != tru.shape:
+                continue
+            j = int(np.argmax(np.abs(est - tru)))
+            rows.append({"parameter": f"{n} (largest entry error, {p.x_name} {p.x[j]:g})", "estimate": float(est[j]),
+                         "stderr": None, "truth": float(tru[j]), "unit": p.unit,
+                         "error %": 100.0 * (est[j] - tru[j]) / tru[j] if tru[j] else float("nan"),
+                         "error / stderr": None, "status": p.status_text()})
+            continue
+        se = p.stderr if isinstance(p.stderr, (int, float)) and math.isfinite(p.stderr) and p.stderr > 0 else None
+        err = float(p.value) - float(tv)
+        rows.append({"parameter": n, "estimate": float(p.value), "stderr": se, "truth": float(tv), "unit": p.unit,
+                     "error %": 100.0 * err / float(tv) if tv else float("nan"),
+                     "error / stderr": err / se if se else None, "status": p.status_text()})
+    return rows

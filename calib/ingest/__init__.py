@@ -20,12 +20,12 @@ from calib.drivelog import CHANNELS, DriveLog, LogMeta
 from calib.errors import LogFormatError
 from calib.fileio import atomic_path, write_json
 from calib.ingest.canlog import CAN_FORMATS, DEFAULT_SIGNAL_MAP, PRIUS_DBC, TOYOTA_2017_DBC, decode_can_signals, read_can_streams
+from calib.ingest.channels import channel_report, display_report, format_report
 from calib.ingest.csvlog import read_csv_streams, sniff_is_csv
 from calib.ingest.damage import summarize as damage_summary
 from calib.ingest.damage import warn_damage
 from calib.ingest.mcaplog import DEFAULT_TOPIC_MAP, read_mcap_streams
 from calib.ingest.mdflog import read_mdf_streams
-from calib.ingest.channels import channel_report, format_report
 from calib.ingest.resample import to_drivelog
 
 FORMATS = ("csv", "mcap", "candump", "asc", "blf", "trc", "mf4")
@@ -35,7 +35,7 @@ _MAGIC = {b"\x89MCAP": "mcap", b"LOGG": "blf", b"MDF ": "mf4"}
 
 __all__ = [
     "FORMATS", "DEFAULT_SIGNAL_MAP", "DEFAULT_TOPIC_MAP", "PRIUS_DBC", "TOYOTA_2017_DBC",
-    "detect_format", "read_streams", "to_drivelog", "read_log", "channel_report", "format_report",
+    "detect_format", "read_streams", "to_drivelog", "read_log", "channel_report", "display_report", "format_report",
     "write_canonical", "read_canonical", "load_map", "decode_can_signals", "damage_summary",
 ]
 

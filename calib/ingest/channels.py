@@ -66,18 +66,69 @@ def channel_report(log: DriveLog, streams: dict | None = None, max_gap_s: float 
     return out
 
 
-def format_report(report: pd.DataFrame, title: str = "") -> str:
-    """Plain-text table of a :func:`channel_report` (missing channels listed at the end)."""
-    lines = [title] if title else []
-    lines.append(f"{'channel':22s} {'n':>8s} {'rate Hz':>8s} {'gaps':>5s} {'longest':>8s} {'min':>10s} {'max':>10s}  unit")
-    missing = []
+#: How a channel is shown to a reader when its canonical unit is not the one engineers read:
+#: (display unit, factor from the canonical unit). Speed is shown in km/h beside m/s.
+DISPLAY_UNITS = {"soc": ("%", 100.0)}
+SECOND_UNIT = {"speed_mps": ("km/h", 3.6)}
+
+
+def _decimals(lo: float, hi: float, sig: int = 3) -> int:
+    """Decimals that show ``sig`` significant digits of the larger magnitude: a resampling artefact such as
+    a minimum of 0.0006 m/s beside a maximum of 20 m/s prints as 0.00."""
+    big = max(abs(lo), abs(hi)) if np.isfinite(lo) and np.isfinite(hi) else 0.0
+    if big == 0.0:
+        return 0
+    return int(max(0, sig - 1 - np.floor(np.log10(big))))
+
+
+def _num(v: float, dec: int) -> str:
+    if not np.isfinite(v):
+        return "-"
+    s = f"{v:.{dec}f}"
+    return "0" + ("." + "0" * dec if dec else "") if float(s) == 0.0 else s  # no "-0.00"
+
+
+def display_report(report: pd.DataFrame) -> pd.DataFrame:
+    """The channel report as a reader sees it: present channels only, ranges rounded to the channel's own
+    scale (3 significant digits of its largest magnitude), SOC in %, speed in m/s and km/h.
+
+    Returns a DataFrame of strings and integers with columns ``channel, samples, rate Hz, gaps,
+    longest gap s, min, max, unit``.
+    """
+    rows = []
     for ch, r in report.iterrows():
         if not r["present"]:
-            missing.append(ch)
             continue
-        rate = f"{r['rate_hz']:8.2f}" if np.isfinite(r["rate_hz"]) else f"{'-':>8s}"
-        lines.append(f"{ch:22s} {int(r['n']):8d} {rate} {int(r['gaps']):5d} {r['longest_gap_s']:8.1f} "
-                     f"{r['min']:10.4g} {r['max']:10.4g}  {r['unit']}")
+        unit, f = r["unit"], 1.0
+        if ch in DISPLAY_UNITS:
+            unit, f = DISPLAY_UNITS[ch]
+        lo, hi = float(r["min"]) * f, float(r["max"]) * f
+        dec = _decimals(lo, hi)
+        mn, mx = _num(lo, dec), _num(hi, dec)
+        if ch in SECOND_UNIT:
+            u2, f2 = SECOND_UNIT[ch]
+            d2 = _decimals(lo * f2, hi * f2)
+            mn, mx = f"{mn} ({_num(lo * f2, d2)})", f"{mx} ({_num(hi * f2, d2)})"
+            unit = f"{unit} ({u2})"
+        rate = r["rate_hz"]
+        rows.append({"channel": ch, "samples": int(r["n"]),
+                     "rate Hz": f"{rate:.2f}" if np.isfinite(rate) else "-", "gaps": int(r["gaps"]),
+                     "longest gap s": f"{float(r['longest_gap_s']):.1f}", "min": mn, "max": mx, "unit": unit})
+    return pd.DataFrame(rows, columns=["channel", "samples", "rate Hz", "gaps", "longest gap s", "min", "max",
+                                       "unit"])
+
+
+def format_report(report: pd.DataFrame, title: str = "") -> str:
+    """Plain-text table of a :func:`channel_report` (as :func:`display_report`; missing channels listed at
+    the end)."""
+    lines = [title] if title else []
+    disp = display_report(report)
+    lines.append(f"{'channel':22s} {'n':>8s} {'rate Hz':>8s} {'gaps':>5s} {'longest':>8s} {'min':>16s} "
+                 f"{'max':>16s}  unit")
+    for _, r in disp.iterrows():
+        lines.append(f"{r['channel']:22s} {r['samples']:8d} {r['rate Hz']:>8s} {r['gaps']:5d} "
+                     f"{r['longest gap s']:>8s} {r['min']:>16s} {r['max']:>16s}  {r['unit']}")
+    missing = [ch for ch, r in report.iterrows() if not r["present"]]
     src = report.attrs.get("speed_source")
     if src:
         lines.append(f"speed from: {src}")

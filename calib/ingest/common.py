@@ -13,6 +13,9 @@ from calib.units import UnitError, convert, parse_unit
 
 # Base names a human header uses for each channel (the canonical name without its unit suffix), plus a
 # few common synonyms. Matching is case-insensitive and ignores spaces/dashes.
+#: Header base names of the time column (CSV).
+TIME_NAMES = {"time", "t", "timestamp", "time_s", "times", "time_sec", "elapsed"}
+
 CHANNEL_ALIASES: dict[str, str] = {}
 for _ch in CHANNELS:
     CHANNEL_ALIASES[_ch] = _ch
@@ -26,6 +29,7 @@ _BASE = {
     "engine_torque": "engine_torque_Nm", "torque": "engine_torque_Nm",
     "fuel_rate": "fuel_rate_g_per_s", "fuel_flow": "fuel_rate_g_per_s", "fuel": "fuel_rate_g_per_s",
     "coolant_temp": "coolant_temp_degC", "coolant_temperature": "coolant_temp_degC", "ect": "coolant_temp_degC",
+    "coolant": "coolant_temp_degC", "engine_coolant_temp": "coolant_temp_degC",
     "bay_temp": "bay_temp_degC", "engine_bay_temp": "bay_temp_degC",
     "ambient_temp": "ambient_temp_degC", "ambient_temperature": "ambient_temp_degC",
     "outside_temp": "ambient_temp_degC", "ambient": "ambient_temp_degC",
@@ -58,6 +62,76 @@ def canonical_name(name: str) -> str | None:
         if alias.lower() == key:
             return ch
     return None
+
+
+def aliases_of(channel: str) -> list[str]:
+    """Every header base name accepted for ``channel`` (its canonical name first)."""
+    return [channel] + sorted(a for a, ch in CHANNEL_ALIASES.items() if ch == channel and a != channel)
+
+
+def _tokens(name: str) -> set[str]:
+    key = re.sub(r"[\s\-.]+", "_", str(name).strip()).lower()
+    return {t for t in key.split("_") if t}
+
+
+# Words that say what kind of quantity a column is, not which one: a shared word like these alone does not
+# make a column look like a channel.
+_GENERIC = {"temp", "temperature", "speed", "rate", "power", "flow", "air", "the", "of", "value", "signal",
+            "sensor", "engine", "battery", "bat", "a", "v", "s", "w", "degc", "degf"}
+
+
+def _unit_fits(unit: str | None, channel: str) -> bool:
+    if unit is None:
+        return True
+    try:
+        convert(1.0, unit, CHANNELS[channel][0])
+        return True
+    except (UnitError, Exception):  # noqa: BLE001 - pint raises several types
+        return False
+
+
+def suggest_channel(name: str, unit: str | None = None) -> tuple[str | None, list[str]]:
+    """A header name that is not an accepted spelling but looks like a known channel.
+
+    A channel "looks like" the column when one of its accepted names shares a distinctive word with the
+    column name (``coolant [degF]`` shares ``coolant`` with ``coolant_temp``) or is a close spelling of it
+    (``colant_temp``), and the column's unit (when given) converts to the channel's unit.
+
+    Returns
+    -------
+    (channel or None, candidates)
+        The channel when exactly one candidate fits (safe to use), else None and the candidates (possibly
+        empty) for a warning.
+    """
+    import difflib
+
+    all_words = _tokens(name)
+    words = all_words - _GENERIC
+    key = "_".join(sorted(all_words))
+    strong, weak = [], []
+    for ch in CHANNELS:
+        if not _unit_fits(unit, ch):
+            continue
+        tok = [_tokens(a) for a in aliases_of(ch)]
+        if any(words & (at - _GENERIC) for at in tok) or any(
+                difflib.SequenceMatcher(None, key, "_".join(sorted(at))).ratio() >= 0.85 for at in tok):
+            strong.append(ch)
+        elif any(all_words & at for at in tok):
+            weak.append(ch)  # only a generic word in common (``engine [rpm]``): worth a warning, not a match
+    if strong:
+        return (strong[0] if len(strong) == 1 else None), strong
+    return None, weak
+
+
+def describe_channels() -> str:
+    """The canonical channels, their units and every accepted header spelling (``iptm ingest --list-channels``)."""
+    lines = [f"{'channel':22s} {'unit':14s} accepted header names (case and spaces/dashes ignored; "
+             "write the unit in brackets, e.g. 'coolant_temp [degF]')"]
+    for ch, (unit, desc) in CHANNELS.items():
+        lines.append(f"{ch:22s} {unit:14s} {', '.join(aliases_of(ch))}")
+        lines.append(f"{'':22s} {'':14s} ({desc})")
+    lines.append("time column: " + ", ".join(sorted(TIME_NAMES)) + " (with a time unit, e.g. 'time [s]')")
+    return "\n".join(lines)
 
 
 def split_spec(spec: str) -> tuple[str, str | None]:

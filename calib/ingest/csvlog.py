@@ -15,7 +15,10 @@ Layout accepted::
 - Every other column is a channel if its name (without the unit) is a canonical channel or a known
   alias, or if the column map names it. Its unit comes from the header bracket, the map, or the
   canonical name itself (``speed_mps`` is in m/s). A channel column with no unit is an error.
-- Unrecognised columns are ignored and listed in ``meta.notes``. Empty cells are missing samples.
+- A column whose name is not an accepted spelling but resembles exactly one channel whose unit fits
+  (``coolant [degF]``) is read as that channel, with a warning in ``meta.notes``; one that resembles
+  several, or none, is ignored (a warning names the accepted spellings of the look-alikes). ``iptm ingest
+  --list-channels`` prints every accepted name. Empty cells are missing samples.
 """
 from __future__ import annotations
 
@@ -30,6 +33,8 @@ from calib.drivelog import CHANNELS, LogMeta, file_sha256
 from calib.errors import LogFormatError
 from calib.units import UnitError, convert, parse_unit
 from calib.ingest.common import (
+    TIME_NAMES,
+    aliases_of,
     canonical_name,
     implied_unit,
     make_series,
@@ -37,11 +42,11 @@ from calib.ingest.common import (
     sniff_text,
     sniff_text_lenient,
     split_spec,
+    suggest_channel,
     to_channel_unit,
 )
 from calib.ingest.damage import Damage
 
-TIME_NAMES = {"time", "t", "timestamp", "time_s", "times", "time_sec", "elapsed"}
 
 
 def _read_comments(text: str) -> tuple[list[str], int]:
@@ -118,6 +123,8 @@ def _columns(columns, column_map, path, header_line):
     time_col, time_unit = None, None
     channel_cols: list[tuple[str, str, str]] = []  # (column, channel, unit)
     ignored = []
+    looks_like, matched = [], []  # warnings: unknown names that resemble a channel
+    fuzzy: list[tuple[str, str, str | None]] = []  # (column, channel, unit) matched by resemblance only
     for col in columns:
         where = f"line {header_line}, column {col!r}"
         name, unit = split_spec(col)
@@ -142,7 +149,20 @@ def _columns(columns, column_map, path, header_line):
             continue
         ch = canonical_name(name)
         if ch is None:
-            ignored.append(col)
+            ch, cands = suggest_channel(name, unit)
+            if ch is None:
+                ignored.append(col)
+                if len(cands) > 2:
+                    looks_like.append(f"column {col!r} was not used: it could be any of {', '.join(cands)}; "
+                                      "rename it to an accepted name (`iptm ingest --list-channels`) or map it "
+                                      "with --map")
+                elif cands:
+                    looks_like.append(
+                        f"column {col!r} was not used: it looks like "
+                        + " or ".join(f"{c} (accepted names: {', '.join(aliases_of(c))})" for c in cands)
+                        + "; rename the column or map it with --map")
+                continue
+            fuzzy.append((col, ch, unit))
             continue
         if unit is None:
             if name.strip() == ch and ch in CHANNELS:
@@ -152,6 +172,17 @@ def _columns(columns, column_map, path, header_line):
                                      "write 'name [unit]' in the header or give the unit in a column map")
         channel_cols.append((col, ch, unit))
 
+    taken = {ch for _, ch, _ in channel_cols}
+    for col, ch, unit in fuzzy:
+        if ch in taken or unit is None:  # an exact name wins; a look-alike needs its unit in the header
+            ignored.append(col)
+            looks_like.append(f"column {col!r} was not used: it looks like {ch} (accepted names: "
+                              f"{', '.join(aliases_of(ch))})" + (", but has no unit" if unit is None else
+                                                                 ", which another column already gives"))
+            continue
+        taken.add(ch)
+        channel_cols.append((col, ch, unit))
+        matched.append(f"column {col!r} read as {ch} (accepted names: {', '.join(aliases_of(ch))})")
     missing_map = [c for c in column_map if c not in columns]
     if missing_map:
         raise LogFormatError(path, f"column map names column(s) not in the file: {', '.join(map(repr, missing_map))}",
@@ -179,7 +210,7 @@ def _columns(columns, column_map, path, header_line):
             raise LogFormatError(path, f"columns {seen[ch]!r} and {col!r} both map to channel {ch}",
                                  f"line {header_line}", "drop one or map it elsewhere")
         seen[ch] = col
-    return time_col, time_unit, channel_cols, ignored
+    return time_col, time_unit, channel_cols, ignored, matched + looks_like
 
 
 def _read_csv(path, column_map, fast: bool):
@@ -207,7 +238,8 @@ def _read_csv(path, column_map, fast: bool):
     if df.shape[1] < 2:
         raise LogFormatError(path, "fewer than two columns: need a time column and at least one channel",
                              f"line {header_line}", "is the delimiter a comma?")
-    time_col, time_unit, channel_cols, ignored = _columns(list(df.columns), column_map, path, header_line)
+    time_col, time_unit, channel_cols, ignored, notes = _columns(list(df.columns), column_map, path, header_line)
+    meta.notes.extend(f"warning: {m}" for m in notes)
     if fast:
         if len(df) == 0:
             raise LogFormatError(path, "header but no data rows", f"line {header_line}")

@@ -17,7 +17,9 @@ The file format is TOML (or JSON with the same structure)::
     bounds = [20000.0, 400000.0]
     source = "docs/model.md section 5 (prior)"
 
-A value given in another but compatible unit (``unit = "kJ/K"``) is converted on load; an incompatible
+A value given in another but compatible unit (``unit = "kJ/K"``) is converted on load; bounds are always
+in the parameter's canonical unit (unless ``bounds_unit`` says otherwise), so changing ``unit`` changes only
+how ``value`` is read. An incompatible
 unit, an unknown name, a value outside its bounds or a non-monotonic table breakpoint is an error.
 """
 from __future__ import annotations
@@ -65,6 +67,9 @@ class Parameter:
         left at the prior), ``fixed``.
     note : str
         Why (for example which channels were missing).
+    entry_status : list of str, optional
+        For a table after a calibration: the status of each entry (a table is ``estimated`` when any entry
+        is; :meth:`status_text` says how many).
     """
 
     name: str
@@ -81,11 +86,26 @@ class Parameter:
     status: str = "prior"
     note: str = ""
     logs: list = field(default_factory=list)
+    entry_status: list | None = None
 
     @property
     def is_table(self) -> bool:
         """Whether the value is a table over breakpoints ``x``."""
         return self.x is not None
+
+    def n_entries_estimated(self) -> tuple[int, int] | None:
+        """For a table with per-entry statuses: (entries estimated, entries); else None."""
+        if not self.is_table or not self.entry_status:
+            return None
+        return sum(st == "estimated" for st in self.entry_status), len(self.entry_status)
+
+    def status_text(self) -> str:
+        """The status as a reader should see it: a table says how many of its entries the data determined
+        (``estimated: 2 of 15 entries``)."""
+        n = self.n_entries_estimated()
+        if n is None or self.status != "estimated" or n[0] == n[1]:
+            return self.status
+        return f"estimated: {n[0]} of {n[1]} entries ({n[1] - n[0]} undetermined)"
 
     def to_dict(self) -> dict:
         """The parameter as a TOML/JSON-able dict."""
@@ -103,6 +123,8 @@ class Parameter:
             d["note"] = self.note
         if self.logs:
             d["logs"] = list(self.logs)
+        if self.entry_status:
+            d["entry_status"] = list(self.entry_status)
         return d
 
 
@@ -272,7 +294,7 @@ class ParameterSet:
                 if not isinstance(v, (int, float)) or not math.isfinite(v):
                     raise ParameterError(f"{p.name}: value {v!r} is not a finite number")
                 if not lo <= v <= hi:
-                    raise ParameterError(f"{p.name} = {v:g} {p.unit} is outside its bounds [{lo:g}, {hi:g}]")
+                    raise ParameterError(f"{p.name} = {v:g} {p.unit} is outside its bounds [{lo:g}, {hi:g}] {p.unit}")
             if p.is_table:
                 if len(p.x) != len(p.value):
                     raise ParameterError(f"{p.name}: {len(p.x)} breakpoints but {len(p.value)} values")
@@ -382,11 +404,19 @@ class ParameterSet:
                 p.stderr = entry["stderr"]
             if "logs" in entry:
                 p.logs = list(entry["logs"])
+            if "entry_status" in entry and p.is_table:
+                st = entry["entry_status"]
+                if not (isinstance(st, list) and len(st) == len(p.value)):
+                    raise ParameterError(f"{origin}: entry_status of {name} must list one status per table entry")
+                p.entry_status = [str(v) for v in st]
             if "bounds" in entry:
                 b = entry["bounds"]
                 if not (isinstance(b, list) and len(b) == 2):
                     raise ParameterError(f"{origin}: bounds of {name} must be [low, high]")
-                p.bounds = tuple(float(v) for v in _convert(b, unit, p.unit, f"{origin}: bounds of {name}"))
+                # Bounds belong to the parameter and are in its canonical unit (what save() writes), whatever
+                # unit the value is given in; ``bounds_unit`` states another unit explicitly.
+                bu = entry.get("bounds_unit", p.unit)
+                p.bounds = tuple(float(v) for v in _convert(b, bu, p.unit, f"{origin}: bounds of {name}"))
         try:
             new.validate()
         except ParameterError as exc:

@@ -16,8 +16,8 @@ from calib.model.cycles import Cycle, load_cycle
 from calib.errors import ScenarioError
 from calib.model.equations import INFEASIBLE_REASONS, OFF, ON, OUTPUTS, IDLE, battery_ocv_r, step, traction_power
 
-GASOLINE_KG_PER_L = 0.74
-KM_PER_L_PER_MPG = 0.4251
+from calib import economy
+from calib.economy import GASOLINE_KG_PER_L, KM_PER_L_PER_MPG  # noqa: F401 - re-exported
 
 
 @dataclass
@@ -134,18 +134,16 @@ class SimResult:
         eq = self.fuel_equivalents()
         corr = fuel - eq["electric_g"] - eq["coolant_g"] - eq["cabin_g"]
         fuel_el = fuel - eq["electric_g"]
-        litres = fuel / 1e3 / GASOLINE_KG_PER_L
         dist = self.distance_km
         running = self.e_mode != OFF
         starts = int(np.sum(running[1:] & ~running[:-1]) + (1 if running[0] else 0))
         short = np.clip(self.Q_heat_cmd - f["Q_heat"], 0.0, None)
         bal = self.energy_balance()
-        mpg = lambda g: (dist / (g / 1e3 / GASOLINE_KG_PER_L)) / KM_PER_L_PER_MPG if g > 0 else float("inf")  # noqa
         return {
             **self.info,
             "duration_s": float(self.t[-1] - self.t[0]), "distance_km": dist, "fuel_g": fuel,
-            "fuel_L": litres, "L_per_100km": litres / dist * 100 if dist > 0 else float("nan"),
-            "mpg": mpg(fuel), "mpg_soc_corrected": mpg(fuel_el),
+            "fuel_L": economy.litres(fuel), "L_per_100km": economy.l_per_100km(fuel, dist),
+            "mpg": economy.mpg(fuel, dist), "mpg_soc_corrected": economy.mpg(fuel_el, dist),
             "fuel_soc_corrected_g": fuel_el, "fuel_corrected_g": corr, "fuel_equivalents_g": eq,
             "soc_initial": float(self.soc[0]), "soc_final": float(self.soc[-1]),
             "T_cl_initial_degC": float(self.T_cl[0]), "T_cl_final_degC": float(self.T_cl[-1]),
@@ -185,9 +183,13 @@ class SimResult:
         ax[5].plot(self.t, np.concatenate([[0], np.cumsum(f["W_f"]) * self.Ts]), "C5")
         ax[5].set_ylabel("cumulative fuel [g]")
         ax[5].set_xlabel("time [s]")
-        fig.suptitle(title or f"{self.info.get('cycle', '')} at {self.info.get('T_amb_degC', '')} degC, "
-                     f"{self.info.get('controller', '')[:60]}", fontsize=10)
-        fig.tight_layout()
+        import textwrap
+
+        text = title or (f"{self.info.get('cycle', '')} at {self.info.get('T_amb_degC', '')} degC\n"
+                         f"{self.info.get('controller', '')}")
+        text = "\n".join(textwrap.fill(line, 110) for line in str(text).splitlines())
+        fig.suptitle(text, fontsize=9)
+        fig.tight_layout()  # makes room for the suptitle
         if path is not None:
             from calib.fileio import save_figure
 

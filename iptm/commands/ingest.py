@@ -23,10 +23,13 @@ def register(subparsers) -> None:
         description=(
             "Read drive logs (CSV with units in the header, MCAP with JSON topics, candump -L/.asc/.blf/.trc "
             "CAN dumps decoded with a DBC, MDF4), print a channel report per log and write the canonical "
-            "table (SI units, uniform time base, NaN across long gaps)."
+            "table (SI units, uniform time base, NaN across long gaps). CSV columns are recognised by name "
+            "(`--list-channels` prints the accepted names) with the unit in brackets: 'coolant_temp [degF]'."
         ),
     )
-    p.add_argument("files", nargs="+", metavar="FILE", help="log file(s)")
+    p.add_argument("files", nargs="*", metavar="FILE", help="log file(s)")
+    p.add_argument("--list-channels", action="store_true",
+                   help="print the canonical channels, their units and every accepted column name, then exit")
     p.add_argument("--format", dest="fmt", choices=FORMATS, help="force the format (default: detect)")
     p.add_argument("--dbc", help="DBC for CAN logs (default: the shipped Prius DBC)")
     p.add_argument("--map", dest="map_file",
@@ -34,17 +37,22 @@ def register(subparsers) -> None:
     p.add_argument("--rate", type=float, default=1.0, help="output rate, Hz (default 1)")
     p.add_argument("--max-gap", type=float, default=5.0,
                    help="never interpolate across gaps longer than this, s (default 5)")
-    p.add_argument("--out", help="output .parquet/.csv file (one input) or folder (default: next to each input, "
-                                 "<name>.canonical.parquet)")
+    p.add_argument("--out", help="output .parquet/.csv file (one input) or folder (default: "
+                                 f"{DEFAULT_OUT}/<name>.canonical.parquet, so the logs' folder stays untouched)")
     p.add_argument("--json", metavar="FILE", help="write the channel reports as JSON")
     p.add_argument("--strict", action="store_true",
                    help="refuse damaged logs (default: read what they still hold and say what was lost)")
     p.set_defaults(func=run)
 
 
+#: Where canonical tables go without --out: the working folder's cache, never next to the input (a log
+#: folder, such as the bundled logs/, may be read-only or under version control).
+DEFAULT_OUT = ".iptm-cache/canonical"
+
+
 def _out_path(src: Path, out: str | None, n_inputs: int) -> Path:
     if out is None:
-        return src.with_name(src.name + ".canonical.parquet")
+        return Path(DEFAULT_OUT) / (src.name + ".canonical.parquet")
     o = Path(out)
     if o.suffix.lower() in (".parquet", ".csv"):
         if n_inputs > 1:
@@ -54,6 +62,15 @@ def _out_path(src: Path, out: str | None, n_inputs: int) -> Path:
 
 
 def run(args) -> int:
+    import sys
+
+    from calib.ingest.common import describe_channels
+
+    if args.list_channels:
+        print(describe_channels())
+        return 0
+    if not args.files:
+        raise IptmError("no log files given (iptm ingest FILE...; --list-channels shows the accepted column names)")
     maps = load_map(args.map_file) if args.map_file else {"columns": {}, "topics": {}, "signals": {}}
     reports = {}
     for f in args.files:
@@ -68,7 +85,10 @@ def run(args) -> int:
         title = f"{log.label()}  ({meta.format}, {log.duration_s:.1f} s, {len(log.data)} rows at {args.rate:g} Hz)"
         print(format_report(rep, title))
         for note in log.meta.notes:
-            print(f"  note: {note}")
+            if note.startswith("warning: "):
+                print(f"iptm ingest: {src.name}: {note}", file=sys.stderr)
+            else:
+                print(f"  note: {note}")
         out = _out_path(src, args.out, len(args.files))
         write_canonical(log, out)
         print(f"  wrote {out}")

@@ -25,6 +25,10 @@ def register(sub):
     p.add_argument("--convergence", action="store_true",
                    help="solve each chosen DP formulation on the grid and with every step halved; print the fuel "
                         "change (all = baseline and thermal)")
+    p.add_argument("--cache", default=".iptm-cache", metavar="DIR",
+                   help="content-keyed result cache shared with `iptm run` (default .iptm-cache): a strategy "
+                        "already solved for the same parameters, scenario and grids is reused")
+    p.add_argument("--no-cache", action="store_true", help="solve everything again")
     p.add_argument("--plots", metavar="DIR", help="write the paper's figures (PNG) into DIR")
     p.add_argument("--json", metavar="FILE", help="write the table and DP figures as JSON")
     p.set_defaults(func=run)
@@ -80,9 +84,14 @@ def run(args) -> int:
         if args.json:
             write_json(args.json, {"convergence": rows, "scenario": scen.to_dict()})
         return 0
-    from optimize.casestudy import run_case_study
+    from pathlib import Path
 
-    cs = run_case_study(ps, scen, strategies=chosen, progress=True, grids=grids)
+    from calib.store import Store
+    from iptm.pipeline import optimise_cached
+
+    # the same store entries as `iptm run`: the identical problem is solved once
+    store = None if args.no_cache else Store(Path(args.cache))
+    cs = optimise_cached(ps, scen, grids, chosen, store, progress=True)
     cyc = scen.load_cycle()
     d = cyc.describe()
     print(f"\ncase study: {d['name']} ({d['duration_s']:.0f} s, {d['distance_km']:.2f} km), ambient "
@@ -90,6 +99,8 @@ def run(args) -> int:
           + ", ".join(f"{k}={v:g}" for k, v in grids.to_dict().items()))
     print(cs.format_table())
     tab = cs.table()
+    print("fuel economy: " + "; ".join(f"{k} {r.L_per_100km:.2f} L/100 km ({r.mpg:.1f} mpg)"
+                                       for k, r in zip(tab["key"], tab.itertuples())))
     print("charge-sustaining (SOC_N >= SOC0 - %g): %s" % (scen.soc_tol, ", ".join(
         f"{k}={'yes' if v else 'NO'}" for k, v in zip(tab["key"], tab["charge_sustaining"]))))
     if all(k in cs.sims for k in allf):
@@ -98,8 +109,10 @@ def run(args) -> int:
     if cs.rule:
         print("tuned rule-based thresholds: " + ", ".join(f"{k}={v:g}" for k, v in cs.rule["thresholds"].items()))
     for k, o in cs.outcomes.items():
-        print(f"{k}: {o.n_states} states x {o.n_controls} controls x {o.dp.u.shape[0]} steps, backward "
-              f"{o.t_backward:.2f} s ({o.evals_per_second / 1e6:.0f} M evals/s), total {o.t_total:.2f} s")
+        d = o.describe()
+        print(f"{k}: {d['n_states']} states x {d['n_controls']} controls, backward {d['t_backward_s']:.2f} s "
+              f"({d['evals_per_second'] / 1e6:.0f} M evals/s), total {d['t_total_s']:.2f} s"
+              + (" (from the cache)" if getattr(o, "cached", False) else ""))
     if args.plots:
         paths = cs.plot_figures(args.plots)
         print(f"figures: {len(paths)} PNG in {args.plots}")

@@ -42,7 +42,8 @@ def run(args) -> int:
     print(f"final coolant   {s['T_cl_final_degC']:.1f} degC, cabin {s['T_cab_final_degC']:.1f} degC "
           f"(mean {s['T_cab_mean_degC']:.1f})")
     print(f"engine starts   {s['engine_starts']}, on {s['engine_on_s']:.0f} s, idle {s['idle_s']:.0f} s")
-    print(f"heater shortfall {s['heater_shortfall_J'] / 1e3:.0f} kJ (coolant too cold to deliver the demand)")
+    if s["heater_shortfall_J"] >= 500.0:  # shown only when it rounds to at least 1 kJ
+        print(f"heater shortfall {s['heater_shortfall_J'] / 1e3:.0f} kJ (coolant too cold to deliver the demand)")
     print(f"energy balance residual {s['energy_balance_residual_rel']:.1e} (relative)")
     if args.plot:
         res.plot(args.plot)

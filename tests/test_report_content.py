@@ -1,0 +1,123 @@
+"""What a reader of the HTML report sees: a labelled row per strategy, economy units, channel reports in
+reader units, copies of a drive flagged and never used for validation, figures on the fitted logs, the
+truth table for SYNTHETIC logs; and `iptm optimize` reusing what `iptm run` solved."""
+import json
+import re
+
+import pytest
+
+from calib.synth import Scenario, draw_truth, synthesise
+from calib.ingest.writers import write_streams
+from iptm import pipeline
+from iptm.cli import main
+from optimize.formulations import DPGrids, DPScenario
+
+GRIDS = DPGrids(soc=0.02, tcl=2.0, tcab=1.0, pbat=1000.0, qheat=100.0)
+SCEN = DPScenario(duration_s=120.0)
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    d = tmp_path_factory.mktemp("logs")
+    truth = draw_truth(11)
+    truth.save(d / "truth_params.toml")
+    logs = []
+    for i, (name, cyc, T_cl0) in enumerate([("a_cold", "udds", -10.0), ("c_city", "nycc", 40.0)]):
+        sc = Scenario(name, cyc, -10.0, 0.6, T_cl0, -10.0 if T_cl0 < 0 else 10.0, T_bat=0.0)
+        _, streams, meta = synthesise(sc, truth, seed=i)
+        logs.append(write_streams(streams, meta, d / f"{name}.csv", "csv"))
+        if i == 0:  # the same drive again, in another format
+            logs.append(write_streams(streams, meta, d / f"{name}.mcap", "mcap"))
+    root = tmp_path_factory.mktemp("run")
+    cfg = pipeline.RunConfig(logs=logs, scenario=SCEN, grids=GRIDS, reports_dir=root / "reports",
+                             cache_dir=root / "cache", progress=False)
+    return cfg, pipeline.run(cfg)
+
+
+def _rows(html, caption_start):
+    """The body rows (lists of cell texts) of the first table after the caption that starts so."""
+    i = html.index(caption_start)
+    table = html[html.index("<table", i):html.index("</table>", i)]
+    body = table[table.index("<tbody>"):]
+    return [re.findall(r"<td>(.*?)</td>", r, re.S) for r in re.findall(r"<tr>(.*?)</tr>", body, re.S)]
+
+
+def test_comparison_table_has_a_labelled_row_per_strategy(run):
+    _, out = run
+    html = (out.report_dir / "index.html").read_text()
+    rows = _rows(html, "one row per strategy")
+    names = [r[0] for r in rows]
+    assert names == ["Rule-based (tuned)", "Baseline-DP on thermal model", "Thermal-DP", "Thermal-Cabin-DP",
+                     "Baseline-DP (own optimum, f_cl = 1)"]
+    assert "own optimum" in html.split("one row per strategy")[1].split("<h2")[0].split("</table>")[1]
+    head = html[html.index("one row per strategy"):]
+    head = head[:head.index("</thead>")]
+    assert "L/100 km" in head and "mpg" in head and "fuel [g]" in head
+    assert "class='tablewrap'" in html
+    # the summary gives the same per strategy, in the units engineers read
+    summ = _rows(html, "fuel over the scenario, per strategy")
+    assert [r[0] for r in summ][:4] == names[:4]
+    assert all(re.fullmatch(r"\d+\.\d\d", r[2]) and re.fullmatch(r"\d+\.\d", r[3]) for r in summ)
+
+
+def test_copies_flagged_and_never_validated(run):
+    _, out = run
+    rep = json.loads((out.report_dir / "report.json").read_text())
+    roles = {lg["name"]: lg["role"] for lg in rep["provenance"]["logs"]}
+    assert roles["a_cold.csv"] == "calibration"
+    assert roles["a_cold.mcap"].startswith("not used: same drive as")
+    assert roles["c_city.csv"].startswith("validation")
+    html = (out.report_dir / "index.html").read_text()
+    assert "are the same drive" in html and "class='warn'" in html
+
+
+def test_channel_report_in_reader_units_and_fit_figures(run):
+    _, out = run
+    html = (out.report_dir / "index.html").read_text()
+    chan = html[html.index("channel report: a_cold.csv"):]
+    chan = chan[:chan.index("</table>")]
+    assert "m/s (km/h)" in chan and "<td>%</td>" in chan and "dimensionless" not in chan
+    figs = json.loads((out.report_dir / "report.json").read_text())["figures"]
+    assert any(f.startswith("fit_0_a_cold") for f in figs) and any(f.startswith("validation_") for f in figs)
+    assert "residuals.png" in figs
+    assert "measured vs simulated on a fitted log" in html
+    # SYNTHETIC logs with their truth file: estimates next to the truth
+    rows = _rows(html, "SYNTHETIC logs: estimates next to the truth")
+    assert rows and all(len(r) == 8 for r in rows)
+
+
+def test_optimize_reuses_the_run_cache(run, capsys):
+    cfg, out = run
+    capsys.readouterr()
+    rc = main(["optimize", "--params", str(out.report_dir / "calibration.toml"), "--duration", "120",
+               "--grid", "soc=0.02,tcl=2,tcab=1,pbat=1000,qheat=100", "--formulation", "baseline,thermal",
+               "--cache", str(cfg.cache_dir)])
+    assert rc == 0
+    cap = capsys.readouterr()
+    assert "baseline:" in cap.out and cap.out.count("(from the cache)") == 2
+    assert "fuel economy: baseline" in cap.out and "L/100 km" in cap.out and "mpg" in cap.out
+    assert "Baseline-DP on thermal model" in cap.err and "from the cache" in cap.err
+
+
+def test_fuel_chart_labels_every_bar(tmp_path, monkeypatch):
+    """The fuel chart draws savings against rule-based (differences of a few % stay visible) and writes a
+    value on every bar; its legend sits outside the axes."""
+    import calib.fileio as fio
+    from calib.model.params import default_parameters
+    from optimize.casestudy import run_case_study
+
+    cs = run_case_study(default_parameters(), DPScenario(duration_s=60.0), strategies=("rule", "baseline"),
+                        progress=False, grids=GRIDS)
+    figs = {}
+    real = fio.save_figure
+    monkeypatch.setattr(fio, "save_figure", lambda fig, path, **kw: (figs.__setitem__(path.stem, fig),
+                                                                       real(fig, path, **kw)))
+    cs.plot_figures(tmp_path)
+    ax = figs["fuel_bars"].axes[0]
+    bars = list(ax.patches)
+    texts = [t.get_text() for t in ax.texts]
+    assert len(bars) == 2 * len(cs.table().query("key != 'baseline_warm'")) == len(texts)
+    assert sum("(reference)" in t for t in texts) == 2 and all(" g" in t for t in texts)
+    assert "saving vs Rule-based (tuned) [%]" == ax.get_xlabel()
+    leg = ax.get_legend()
+    assert leg is not None and leg.get_bbox_to_anchor().y0 < ax.bbox.y0  # below the axes, covering no bar
