@@ -128,7 +128,8 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
     tab = cs.table().reset_index(drop=True)
     keep = [c for c in ("strategy", "fuel_g", "fuel_corrected_g", "soc_final", "T_cl_final_degC", "T_cl_mean_degC",
                         "T_cab_final_degC", "T_cab_mean_degC", "engine_starts", "idle_s", "charge_sustaining",
-                        "saving_vs_rule_pct", "paper_vs_rule_pct", "saving_vs_baseline_pct",
+                        "saving_vs_rule_pct", "raw_saving_vs_rule_pct", "paper_vs_rule_pct",
+                        "saving_vs_baseline_pct", "raw_saving_vs_baseline_pct",
                         "paper_vs_baseline_pct") if c in tab.columns]
     opt.p(f"Scenario: cycle {scenario.cycle}, ambient {scenario.T_amb:g} degC, SOC0 {scenario.soc0:g}, "
           f"coolant {scenario.T_cl0:g} degC, cabin {scenario.T_cab0:g} degC, heater {scenario.Q_heat:g} W "
@@ -137,8 +138,14 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
     opt.table(tab[keep], "fuel and final states of each strategy; savings next to the paper's. Corrected fuel "
                          "accounts for differences in final stored electric and thermal energy.")
     ok = cs.ordering_ok() if hasattr(cs, "ordering_ok") else None
-    opt.p(f"Ordering rule-based > Baseline-DP on the thermal model > Thermal-DP > Thermal-Cabin-DP in fuel: "
-          f"{'holds' if ok else 'does NOT hold (see the README for the physical explanation)'}.")
+    ordering = cs.ordering_statement() if hasattr(cs, "ordering_statement") else None
+    opt.p(f"Terminal condition on coolant and cabin: {scenario.terminal}. Savings are on corrected fuel (equal "
+          "final stored energy); the raw savings (fuel as burnt) are shown beside them.")
+    if ordering:
+        opt.p("Paper's ordering (rule-based, Baseline-DP on the thermal model, Thermal-DP, Thermal-Cabin-DP), "
+              + ordering + ".")
+    if hasattr(cs, "format_value_check") and cs.outcomes:
+        opt.pre(cs.format_value_check())
     if cs.rule:
         opt.p("Tuned rule-based thresholds: " + ", ".join(f"{k} = {v:g}" for k, v in cs.rule["thresholds"].items()))
     for png in cs.plot_figures(out / "figures"):
@@ -163,6 +170,7 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
                                                   "saving_vs_baseline_pct", "charge_sustaining")}
     statuses = [params.param(n).status for n in params]
     summary = {"run_id": run_id, "synthetic_data": synthetic, "strategies": strat, "ordering_ok": ok,
+               "ordering": ordering, "terminal": scenario.terminal,
                "n_estimated": statuses.count("estimated"), "n_undetermined": statuses.count("undetermined"),
                "wall_s": wall_s}
     lines = [f"{k}: {v['fuel_g']:.1f} g" + (f" ({v['saving_vs_rule_pct']:.2f} % below rule-based)"

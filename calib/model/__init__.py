@@ -9,7 +9,7 @@ from .equations import (IDLE, INFEASIBLE_REASONS, OFF, ON, OUTPUTS, battery, bat
 from .params import Parameter, ParameterSet, default_parameters
 from .cycles import Cycle, available_cycles, load_cycle
 from .rulebased import RuleBasedController, RuleParams
-from .simulate import SimResult, simulate
+from .simulate import SimResult, fuel_equivalents_g, simulate
 from .fuelmap import FuelMap, apply_fuel_map, optimal_operating_line, read_fuel_map
 from .epa import epa_comparison, tune_fuel_scale
 
@@ -20,7 +20,7 @@ __all__ = [
     "Parameter", "ParameterSet", "default_parameters",
     "Cycle", "available_cycles", "load_cycle",
     "RuleBasedController", "RuleParams",
-    "SimResult", "simulate",
+    "SimResult", "simulate", "fuel_equivalents_g",
     "FuelMap", "read_fuel_map", "optimal_operating_line", "apply_fuel_map",
     "epa_comparison", "tune_fuel_scale",
 ]

@@ -47,7 +47,7 @@ def run(args) -> int:
         sav = v.get("saving_vs_rule_pct")
         print(f"  {k:15s} fuel {v['fuel_g']:8.2f} g  corrected {v['fuel_corrected_g']:8.2f} g  SOC_N "
               f"{v['soc_final']:.3f}" + (f"  saving vs rule-based {sav:5.2f} %" if sav is not None else ""))
-    print(f"ordering rule > baseline > thermal > thermal-cabin: {'holds' if s['ordering_ok'] else 'does not hold'}")
+    print(s.get("ordering") or f"ordering in corrected fuel: {'holds' if s['ordering_ok'] else 'does not hold'}")
     print(f"report: {out.report_dir / 'index.html'}")
     if args.json:
         write_json(args.json, {**s, "report_dir": str(out.report_dir)})
