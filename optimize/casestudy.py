@@ -200,8 +200,9 @@ class CaseStudy:
                 if name == "cabin" and "thermal_cabin" in self.outcomes:
                     ex = self.outcomes["thermal_cabin"].extra
                     ax.axhline(ex.get("T_cab_ub", np.nan), color="0.5", ls=":", lw=0.8, label="upper bound")
-                    ax.axhline(ex.get("T_cab_terminal_min", np.nan), color="0.5", ls="--", lw=0.8,
-                               label="terminal minimum")
+                    if self.scenario.terminal == "free":
+                        ax.axhline(ex.get("T_cab_terminal_min", np.nan), color="0.5", ls="--", lw=0.8,
+                                   label="terminal minimum")
                 ax.set_xlabel("time [s]")
                 ax.set_ylabel(ylabel)
                 ax.legend(fontsize=8, loc="best")

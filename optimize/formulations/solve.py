@@ -158,6 +158,21 @@ def _t_cl_tables(mp, tclg, T_amb):
     return fcl, loss
 
 
+def dp_objective(params, sim, scen: DPScenario, nx: int, T_cab_terminal_min: float | None = None) -> float:
+    """The objective a formulation with ``nx`` states minimises, evaluated on any simulated run ``sim``:
+    fuel plus the scenario's terminal cost at its final state (the ``match`` bounds and ``SOC_N >= SOC_0``
+    are constraints, not costs). Compares strategies on the DP's own terms: a DP whose feasible set
+    contains another strategy's run has an objective at most that run's, up to grid error."""
+    cab_soft = None
+    if nx == 3 and T_cab_terminal_min is not None:
+        cab_soft = (float(T_cab_terminal_min), float(scen.cab_terminal_g_per_K))
+    phi = _terminal_cost(_mp(params), scen, nx, cab_soft)
+    if phi is None:
+        return float(sim.fuel_g)
+    X = np.array([[sim.soc[-1], sim.T_cl[-1], sim.T_cab[-1]]])
+    return float(sim.fuel_g + phi(X)[0])
+
+
 @dataclass
 class _Built:
     prob: DPProblem
