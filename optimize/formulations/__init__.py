@@ -48,7 +48,9 @@ Common choices
       leaves the inner loop); the engine's ``precompute`` hook copies step k's slice into ``tab``.
       ``f_cl``, engine-bay loss and radiator heat are tabulated per T_cl node. In the backward pass the
       transition uses the grid indices ``ix``; in the forward pass (``ix = -1``) it evaluates the same
-      equations at the true state.
+      equations at the true state. The transition and the fused kernels call the model's own compiled
+      equations (battery current, heater-core limit, radiator, engine-bay loss, coolant and cabin heat
+      rates of :mod:`calib.model.equations`, in their scalar forms; numba inlines them).
     * Parameters reach the compiled code as one flat float64 vector (:func:`pack_params`): the engine's
       parallel kernel cannot take the ``ModelParams`` namedtuple (numba's parfor lowering rejects a struct
       holding arrays: "scalar type ModelParams given for non scalar argument").
@@ -65,8 +67,10 @@ Common choices
       covers terminal sets only). Re-simulated results are checked to stay inside the boxes.
 """
 from .scenario import FORMULATIONS, DPGrids, DPScenario, parse_grid_spec
-from .solve import (DPOutcome, peak_rss_mb, replay, solve_baseline, solve_formulation, solve_thermal,
-                    solve_thermal_cabin)
+from .scenario import TERMINALS
+from .solve import (DPOutcome, dp_objective, peak_rss_mb, replay, solve_baseline, solve_formulation,
+                    solve_thermal, solve_thermal_cabin)
 
 __all__ = ["DPScenario", "DPGrids", "DPOutcome", "parse_grid_spec", "solve_baseline", "solve_thermal",
-           "solve_thermal_cabin", "solve_formulation", "FORMULATIONS", "replay", "peak_rss_mb"]
+           "solve_thermal_cabin", "solve_formulation", "FORMULATIONS", "TERMINALS", "replay", "peak_rss_mb",
+           "dp_objective"]

@@ -14,6 +14,8 @@ with the engine to rounding; cross-checked in tests/test_formulations.py) by exp
   (T_cab node, Q_heat): V and L are interpolated along T_cab once per (T_cab node, Q_heat) into 2-D slices
   (the engine's own trilinear formula, first stage), so the inner loop is bilinear; where the heater core
   limits the heat (cold coolant) the full trilinear interpolation is used.
+* levels are signed (negative inside the terminal set) and the true minimum is stored, with the engine's
+  choice rule (:func:`optimize.dp.kernels.level_better`).
 
 The forward pass is the engine's (:func:`optimize.dp.engine.forward_pass`) on the value functions produced here.
 """
@@ -27,6 +29,7 @@ from optimize.formulations.layout import _C_CH, _C_CHI, _C_PEN, _C_SH, _C_SHI, _
 from optimize.dp.kernels import _interp_slow as _slow  # the engine's exact multilinear interpolation
 from optimize.dp.kernels import level_better, level_needs_cost  # the engine's level-set choice rule
 from optimize.dp.engine import ValueFunctions
+from calib.model.equations import cabin_heat_rate, coolant_heat_rate, heater_core_limit
 
 _SNAP = 1e-9
 
@@ -76,9 +79,9 @@ def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol):
         Vn = VT[k + 1]
         Ln = LT[k + 1]
         T_cab = w[k, 1]
-        T_in = P[_MS0 + _RECIRC] * T_cab + (1.0 - P[_MS0 + _RECIRC]) * T_amb
         for j in range(nt):
-            q_lim = P[_MS0 + _EPS] * P[_C_WBL] * P[_MS0 + _CP] * (tclg[j] - T_in)
+            q_lim = heater_core_limit(P[_MS0 + _EPS], P[_C_WBL], P[_MS0 + _CP], P[_MS0 + _RECIRC], tclg[j], T_cab,
+                                      T_amb)
             q = Q[0]
             if q > q_lim:
                 q = q_lim
@@ -94,8 +97,7 @@ def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol):
             for j in range(nt):
                 W_f = wf * fclg[j]
                 Q_fuel = P[_MS0 + _LHV] * W_f
-                Q_exh = P[_MS0 + _GAMMA] * (Q_fuel - P_e)
-                tn = tclg[j] + Ts * (Q_fuel - P_e - Q_exh - lossg[j] - qv[j]) / P[_MS0 + _CENG]
+                tn = tclg[j] + Ts * coolant_heat_rate(P[_MS0 + _GAMMA], Q_fuel, P_e, lossg[j], qv[j])[0] / P[_MS0 + _CENG]
                 pt = 0.0
                 if tn < P[_C_TLO]:
                     pt = (P[_C_TLO] - tn) / P[_C_TH]
@@ -192,7 +194,7 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol):
     TB = np.empty((np_, nt, nq), np.int64)
     TT = np.empty((np_, nt, nq))
     PT = np.empty((np_, nt, nq))
-    BASE = np.empty((np_, nt))
+    QFUEL = np.empty((np_, nt))
     C0 = np.empty((np_, nt))
     for k in range(N - 1, -1, -1):
         tab = big[k]
@@ -200,9 +202,9 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol):
         Ln = LT[k + 1]
         lb = w[k, 2]
         for m in range(nc):
-            T_in = P[_MS0 + _RECIRC] * cabg[m] + (1.0 - P[_MS0 + _RECIRC]) * T_amb
             for j in range(nt):
-                ql = P[_MS0 + _EPS] * P[_C_WBL] * P[_MS0 + _CP] * (tclg[j] - T_in)
+                ql = heater_core_limit(P[_MS0 + _EPS], P[_C_WBL], P[_MS0 + _CP], P[_MS0 + _RECIRC], tclg[j], cabg[m],
+                                       T_amb)
                 qlim[j, m] = ql
                 cnt = 0
                 for iq in range(nq):
@@ -210,7 +212,7 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol):
                         cnt += 1
                 nunl[j, m] = cnt
             for iq in range(nq):
-                tc = cabg[m] + Ts * (Q[iq] + P[_MS0 + _UACAB] * (T_amb - cabg[m]) + P[_MS0 + _QSUN]) / P[_MS0 + _CCAB]
+                tc = cabg[m] + Ts * cabin_heat_rate(P[_MS0 + _UACAB], P[_MS0 + _QSUN], cabg[m], T_amb, Q[iq])[0] / P[_MS0 + _CCAB]
                 pc = 0.0
                 if tc < lb:
                     pc = (lb - tc) / P[_C_CH]
@@ -237,12 +239,10 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol):
             for j in range(nt):
                 W_f = wf * fclg[j]
                 Q_fuel = P[_MS0 + _LHV] * W_f
-                Q_exh = P[_MS0 + _GAMMA] * (Q_fuel - P_e)
-                base = Q_fuel - P_e - Q_exh - lossg[j]
-                BASE[ip, j] = base
+                QFUEL[ip, j] = Q_fuel
                 C0[ip, j] = W_f * Ts
                 for iq in range(nq):
-                    tn = tclg[j] + Ts * (base - Q[iq]) / P[_MS0 + _CENG]
+                    tn = tclg[j] + Ts * coolant_heat_rate(P[_MS0 + _GAMMA], Q_fuel, P_e, lossg[j], Q[iq])[0] / P[_MS0 + _CENG]
                     pt = 0.0
                     if tn < P[_C_TLO]:
                         pt = (P[_C_TLO] - tn) / P[_C_TH]
@@ -317,15 +317,14 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol):
                             continue
                         # the first heater-limited control (the others repeat it)
                         q = qlim[j, m]
-                        if q < 0.0:
-                            q = 0.0
-                        tn = tclg[j] + Ts * (BASE[ip, j] - q) / P[_MS0 + _CENG]
+                        tn = tclg[j] + Ts * coolant_heat_rate(P[_MS0 + _GAMMA], QFUEL[ip, j], tab[ip, _T_PE], lossg[j],
+                                                              q)[0] / P[_MS0 + _CENG]
                         pen = pen0
                         if tn < P[_C_TLO]:
                             pen += (P[_C_TLO] - tn) / P[_C_TH]
                         elif tn > P[_C_THI]:
                             pen += (tn - P[_C_THI]) / P[_C_TH]
-                        tc = cabg[m] + Ts * (q + P[_MS0 + _UACAB] * (T_amb - cabg[m]) + P[_MS0 + _QSUN]) / P[_MS0 + _CCAB]
+                        tc = cabg[m] + Ts * cabin_heat_rate(P[_MS0 + _UACAB], P[_MS0 + _QSUN], cabg[m], T_amb, q)[0] / P[_MS0 + _CCAB]
                         if tc < lb:
                             pen += (lb - tc) / P[_C_CH]
                         elif tc > P[_C_CHI]:

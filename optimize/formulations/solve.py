@@ -13,7 +13,7 @@ import numpy as np
 
 from calib.model.cycles import Cycle
 from calib.errors import ScenarioError
-from calib.model.equations import IDLE, OFF, ON, f_cold, radiator, traction_power
+from calib.model.equations import IDLE, OFF, ON, engine_bay_loss, f_cold, radiator, traction_power
 from calib.model.simulate import fuel_equivalents_g
 
 from ..dp.engine import DPProblem, DPResult, backward_pass, forward_pass
@@ -153,8 +153,7 @@ def _traction(mp, cyc: Cycle) -> np.ndarray:
 
 def _t_cl_tables(mp, tclg, T_amb):
     fcl = np.array([f_cold(mp, t) for t in tclg])
-    T_com = T_amb + mp.kappa * (tclg - T_amb)
-    loss = mp.hA_eng * (tclg - T_com) + np.array([radiator(mp, t) for t in tclg])
+    loss = np.array([engine_bay_loss(mp.hA_eng, mp.kappa, t, T_amb)[0] + radiator(mp, t) for t in tclg])
     return fcl, loss
 
 
