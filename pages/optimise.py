@@ -224,11 +224,12 @@ def _page():
         v = float(row[f"saving_{ref}_pct"].iloc[0])
         paper = row[f"paper_{ref}_pct"].iloc[0]
         other = "rule-based" if ref == "vs_rule" else "Baseline-DP"
-        col.metric(f"{STRATS[key]} saving vs {other}", f"{v:.2f} %" if v == v else "-",
+        col.metric(f"{STRATS[key]} saving vs {other} (corrected fuel)", f"{v:.2f} %" if v == v else "-",
                    delta=f"paper {paper:.2f} %" if paper == paper else None, delta_color="off")
+    st.caption(f"Terminal condition on coolant and cabin: {cs.scenario.terminal}. " + cs.ordering_statement() + ".")
     if not cs.ordering_ok():
-        st.warning("Fuel is not ordered rule >= Baseline >= Thermal >= Thermal-Cabin on these grids: refine the grids "
-                   "(coarse grids cost accuracy).")
+        st.warning("Corrected fuel is not ordered rule >= Baseline >= Thermal >= Thermal-Cabin on these grids: refine "
+                   "the grids (coarse grids cost accuracy) or compare with the valued terminal condition.")
     st.dataframe(tbl, width="stretch")
     st.download_button("Download the results (JSON)", json.dumps(cs.to_dict(), indent=1, default=str),
                        file_name="case_study.json", mime="application/json", key="opt_download")
