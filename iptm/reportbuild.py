@@ -167,16 +167,19 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
     for r in cs.to_dict()["table"]:
         strat[r["key"]] = {k: r.get(k) for k in ("fuel_g", "fuel_corrected_g", "soc_final", "T_cl_final_degC",
                                                   "T_cab_final_degC", "T_cab_mean_degC", "saving_vs_rule_pct",
-                                                  "saving_vs_baseline_pct", "charge_sustaining")}
+                                                  "raw_saving_vs_rule_pct", "saving_vs_baseline_pct",
+                                                  "charge_sustaining")}
     statuses = [params.param(n).status for n in params]
     summary = {"run_id": run_id, "synthetic_data": synthetic, "strategies": strat, "ordering_ok": ok,
                "ordering": ordering, "terminal": scenario.terminal,
                "n_estimated": statuses.count("estimated"), "n_undetermined": statuses.count("undetermined"),
                "wall_s": wall_s}
-    lines = [f"{k}: {v['fuel_g']:.1f} g" + (f" ({v['saving_vs_rule_pct']:.2f} % below rule-based)"
-                                              if v.get("saving_vs_rule_pct") not in (None, 0.0) else "")
+    lines = [f"{k}: {v['fuel_corrected_g']:.1f} g corrected, {v['fuel_g']:.1f} g burnt"
+             + (f" ({v['saving_vs_rule_pct']:.2f} % below rule-based corrected; raw {v['raw_saving_vs_rule_pct']:.2f} %)"
+                if v.get("saving_vs_rule_pct") not in (None, 0.0) else "")
              for k, v in strat.items()]
-    summ.p("Fuel over the scenario: " + "; ".join(lines) + ".")
+    summ.p(f"Fuel over the scenario (terminal condition on coolant and cabin: {scenario.terminal}): "
+           + "; ".join(lines) + ".")
     summ.p(f"Calibration: {summary['n_estimated']} parameters estimated, {summary['n_undetermined']} undetermined "
            f"(left at their priors).")
 

@@ -6,13 +6,14 @@ as converged when halving every step changes the corrected fuel by less than 0.1
 temperature by less than 0.1 degC. ``iptm optimize --convergence`` prints it.
 """
 
-#: Convergence criteria: relative change of corrected fuel (%) and of the mean cabin temperature (degC).
-FUEL_TOL_PCT = 0.1
-CABIN_TOL_K = 0.1
 from __future__ import annotations
 
 from optimize.formulations.scenario import DPGrids, DPScenario
 from optimize.formulations.solve import solve_formulation
+
+#: Convergence criteria: relative change of corrected fuel (%) and of the mean cabin temperature (degC).
+FUEL_TOL_PCT = 0.1
+CABIN_TOL_K = 0.1
 
 
 def convergence_study(params, scenario: DPScenario | None = None, formulations=("baseline", "thermal"),

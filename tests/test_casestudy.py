@@ -80,11 +80,15 @@ def test_cli_optimize(tmp_path, capsys):
     from iptm.cli import main
 
     rc = main(["optimize", "--duration", "60", "--tcl0", "30", "--formulation", "rule,baseline,thermal",
-               "--grid", "pbat=2000,tcl=2", "--json", str(tmp_path / "o.json")])
+               "--grid", "pbat=2000,tcl=2", "--terminal", "match", "--json", str(tmp_path / "o.json")])
     out = capsys.readouterr().out
     assert rc == 0
-    assert "Thermal-DP" in out and "paper%" in out
-    assert json.loads((tmp_path / "o.json").read_text())["table"]
+    assert "Thermal-DP" in out and "paper%" in out and "terminal match" in out and "V_0(x0)" in out
+    d = json.loads((tmp_path / "o.json").read_text())
+    assert d["table"] and d["terminal"] == "match"
+    # match: Thermal-DP's final coolant is at least the tuned rule-based run's
+    t_cl = {r["key"]: r["T_cl_final_degC"] for r in d["table"]}
+    assert t_cl["thermal"] >= t_cl["rule"] - 1e-6
     assert main(["optimize", "--formulation", "nope"]) == 2
 
 

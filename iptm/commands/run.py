@@ -46,7 +46,9 @@ def run(args) -> int:
     for k, v in s["strategies"].items():
         sav = v.get("saving_vs_rule_pct")
         print(f"  {k:15s} fuel {v['fuel_g']:8.2f} g  corrected {v['fuel_corrected_g']:8.2f} g  SOC_N "
-              f"{v['soc_final']:.3f}" + (f"  saving vs rule-based {sav:5.2f} %" if sav is not None else ""))
+              f"{v['soc_final']:.3f}" + (f"  saving vs rule-based {sav:5.2f} % corrected "
+                                         f"({v.get('raw_saving_vs_rule_pct', float('nan')):.2f} % raw)"
+                                         if sav is not None else ""))
     print(s.get("ordering") or f"ordering in corrected fuel: {'holds' if s['ordering_ok'] else 'does not hold'}")
     print(f"report: {out.report_dir / 'index.html'}")
     if args.json:
