@@ -190,6 +190,14 @@ class _StoredOutcome:
     def describe(self) -> dict:
         return self._d
 
+    @property
+    def dp_cost(self) -> float:
+        return self._d["dp_cost_g"]
+
+    @property
+    def predicted_cost(self) -> float:
+        return self._d["predicted_cost_g"]
+
 
 # Rough relative cost of each strategy (paper grids), so the progress bar's time-left estimate is useful.
 _WEIGHT = {"rule": 3.0, "baseline": 1.0, "thermal": 4.0, "thermal_cabin": 40.0}
