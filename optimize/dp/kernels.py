@@ -158,7 +158,6 @@ def level_better(lv, v, tol, feas, Lsel, best):
     return lv < Lsel or (lv == Lsel and v < best)
 
 
-
 @njit(parallel=True, cache=False)  # no disk cache: kernels specialised on a user function never hit it
 def backward(transition, precompute, N, X, controls, w, p, tab, VT, LT, use_level, level_tol,
              lo, inv_dx, n, uniform, pts, strides, clip, policy, store_policy):
