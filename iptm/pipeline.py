@@ -221,6 +221,14 @@ class _StoredOutcome:
     def describe(self) -> dict:
         return self._d
 
+    @property
+    def dp_cost(self) -> float:
+        return self._d["dp_cost_g"]
+
+    @property
+    def predicted_cost(self) -> float:
+        return self._d["predicted_cost_g"]
+
 
 def _states_text(outcome: dict | None) -> str:
     if not outcome or not outcome.get("n_states"):

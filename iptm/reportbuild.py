@@ -53,10 +53,13 @@ def _clean(o):
 COMPARISON = [
     ("strategy", "strategy", None), ("fuel_g", "fuel [g]", 1), ("L_per_100km", "L/100 km", 2), ("mpg", "mpg", 1),
     ("fuel_corrected_g", "corrected fuel [g]", 1), ("soc_final", "final SOC [-]", 3),
-    ("T_cl_final_degC", "final coolant [degC]", 1), ("T_cab_mean_degC", "mean cabin [degC]", 1),
+    ("T_cl_final_degC", "final coolant [degC]", 1), ("T_cl_mean_degC", "mean coolant [degC]", 1),
+    ("T_cab_final_degC", "final cabin [degC]", 1), ("T_cab_mean_degC", "mean cabin [degC]", 1),
     ("engine_starts", "engine starts", 0), ("idle_s", "idle [s]", 0), ("charge_sustaining", "charge-sustaining", None),
-    ("saving_vs_rule_pct", "saving vs rule-based [%]", 2), ("paper_vs_rule_pct", "paper [%]", 2),
-    ("saving_vs_baseline_pct", "saving vs Baseline-DP [%]", 2), ("paper_vs_baseline_pct", "paper [%] ", 2),
+    ("saving_vs_rule_pct", "saving vs rule-based, corrected [%]", 2),
+    ("raw_saving_vs_rule_pct", "saving vs rule-based, raw [%]", 2), ("paper_vs_rule_pct", "paper [%]", 2),
+    ("saving_vs_baseline_pct", "saving vs Baseline-DP, corrected [%]", 2),
+    ("raw_saving_vs_baseline_pct", "saving vs Baseline-DP, raw [%]", 2), ("paper_vs_baseline_pct", "paper [%] ", 2),
 ]
 
 
@@ -81,7 +84,8 @@ def summary_table(tab: pd.DataFrame) -> pd.DataFrame:
     """Headline per strategy: grams, L/100 km, mpg and the saving against rule-based."""
     keep = [("strategy", "strategy", None), ("fuel_g", "fuel [g]", 1), ("L_per_100km", "L/100 km", 2),
             ("mpg", "mpg", 1), ("fuel_corrected_g", "corrected fuel [g]", 1),
-            ("saving_vs_rule_pct", "saving vs rule-based [%]", 2)]
+            ("saving_vs_rule_pct", "saving vs rule-based, corrected [%]", 2),
+            ("raw_saving_vs_rule_pct", "saving vs rule-based, raw [%]", 2)]
     keep = [k for k in keep if k[0] in tab.columns]
     return pd.DataFrame([{h: _cell(r[c], d) for c, h, d in keep} for _, r in tab.iterrows()])
 
@@ -209,8 +213,14 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
               "optimum; 'Baseline-DP on thermal model' replays the same controls on the full thermal model and is "
               "the one compared with the other strategies.")
     ok = cs.ordering_ok() if hasattr(cs, "ordering_ok") else None
-    opt.p(f"Ordering rule-based > Baseline-DP on the thermal model > Thermal-DP > Thermal-Cabin-DP in fuel: "
-          f"{'holds' if ok else 'does NOT hold (see the README for the physical explanation)'}.")
+    ordering = cs.ordering_statement() if hasattr(cs, "ordering_statement") else None
+    opt.p(f"Terminal condition on coolant and cabin: {scenario.terminal}. Savings are on corrected fuel (equal "
+          "final stored energy); the raw savings (fuel as burnt) are shown beside them.")
+    if ordering:
+        opt.p("Paper's ordering (rule-based, Baseline-DP on the thermal model, Thermal-DP, Thermal-Cabin-DP), "
+              + ordering + ".")
+    if hasattr(cs, "format_value_check") and cs.outcomes:
+        opt.pre(cs.format_value_check())
     if cs.rule:
         opt.p("Tuned rule-based thresholds: " + ", ".join(f"{k} = {v:g}" for k, v in cs.rule["thresholds"].items()))
     for png in cs.plot_figures(out / "figures"):
@@ -233,12 +243,18 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
         strat[r["key"]] = {k: r.get(k) for k in ("fuel_g", "L_per_100km", "mpg", "fuel_corrected_g", "soc_final",
                                                   "T_cl_final_degC",
                                                   "T_cab_final_degC", "T_cab_mean_degC", "saving_vs_rule_pct",
-                                                  "saving_vs_baseline_pct", "charge_sustaining")}
+                                                  "raw_saving_vs_rule_pct", "saving_vs_baseline_pct",
+                                                  "charge_sustaining")}
     statuses = [params.param(n).status for n in params]
     summary = {"run_id": run_id, "synthetic_data": synthetic, "strategies": strat, "ordering_ok": ok,
+               "ordering": ordering, "terminal": scenario.terminal,
                "n_estimated": statuses.count("estimated"), "n_undetermined": statuses.count("undetermined"),
                "wall_s": wall_s}
-    summ.table(summary_table(tab), "fuel over the scenario, per strategy")
+    summ.p(f"Fuel over the scenario. Terminal condition on coolant and cabin: {scenario.terminal}; corrected fuel "
+           "values each strategy's final SOC, coolant and cabin heat in grams of fuel, so strategies that end in "
+           "different states compare on equal terms." + (f" {ordering}." if ordering else ""))
+    summ.table(summary_table(tab), "fuel over the scenario, per strategy (corrected: valued at equal final stored "
+                                   "energy; raw: as burnt)")
     partial = [f"{n}: {params.param(n).n_entries_estimated()[0]} of {params.param(n).n_entries_estimated()[1]} "
                "entries estimated" for n in params
                if params.param(n).status == "estimated" and params.param(n).n_entries_estimated()

@@ -1,12 +1,19 @@
 """Grid convergence: solve a formulation on a grid and with every grid step halved; compare the fuel.
 
-The fuel compared is the re-simulated (true-model) fuel of each solution; for Baseline-DP its own
-f_cl = 1 optimum. ``iptm optimize --convergence`` prints it.
+The fuel compared is the re-simulated (true-model) fuel of each solution, raw and corrected (equal final
+stored energy), and the mean cabin temperature; for Baseline-DP its own f_cl = 1 optimum. A grid counts
+as converged when halving every step changes the corrected fuel by less than 0.1 % and the mean cabin
+temperature by less than 0.1 degC. ``iptm optimize --convergence`` prints it.
 """
+
 from __future__ import annotations
 
 from optimize.formulations.scenario import DPGrids, DPScenario
 from optimize.formulations.solve import solve_formulation
+
+#: Convergence criteria: relative change of corrected fuel (%) and of the mean cabin temperature (degC).
+FUEL_TOL_PCT = 0.1
+CABIN_TOL_K = 0.1
 
 
 def convergence_study(params, scenario: DPScenario | None = None, formulations=("baseline", "thermal"),
@@ -19,6 +26,9 @@ def convergence_study(params, scenario: DPScenario | None = None, formulations=(
         for tag, gg in (("", g), ("_half", g.halved())):
             o = solve_formulation(f, params, scen, gg)
             r["fuel_g" + tag] = o.sim.fuel_g
+            summ = o.sim.summary()
+            r["fuel_corrected_g" + tag] = summ["fuel_corrected_g"]
+            r["T_cab_mean_degC" + tag] = summ["T_cab_mean_degC"]
             r["soc_final" + tag] = float(o.sim.soc[-1])
             r["time_s" + tag] = o.t_total
             r["n_states" + tag] = o.n_states
@@ -27,14 +37,21 @@ def convergence_study(params, scenario: DPScenario | None = None, formulations=(
                 print(f"{f} {'halved' if tag else 'default'} grid: {o.sim.fuel_g:.3f} g, SOC_N "
                       f"{o.sim.soc[-1]:.4f} [{o.t_total:.1f} s]", flush=True)
         r["rel_change_pct"] = 100.0 * (r["fuel_g_half"] - r["fuel_g"]) / r["fuel_g"]
+        r["rel_change_corrected_pct"] = 100.0 * (r["fuel_corrected_g_half"] - r["fuel_corrected_g"]) / abs(
+            r["fuel_corrected_g"])
+        r["T_cab_mean_change_K"] = r["T_cab_mean_degC_half"] - r["T_cab_mean_degC"]
+        r["converged"] = bool(abs(r["rel_change_corrected_pct"]) < FUEL_TOL_PCT
+                              and abs(r["T_cab_mean_change_K"]) < CABIN_TOL_K)
         rows.append(r)
     return rows
 
 
 def format_convergence(rows) -> str:
     """The convergence study as text: fuel per grid and the change when every step is halved."""
-    lines = [f"{'formulation':<14s} {'fuel (grid) g':>14s} {'fuel (halved) g':>16s} {'change %':>9s}  < 0.5 %?"]
+    lines = [f"{'formulation':<14s} {'fuel (grid) g':>14s} {'fuel (halved) g':>16s} {'change %':>9s} "
+             f"{'corrected %':>12s} {'cabin mean K':>13s}  converged (< {FUEL_TOL_PCT:g} %, < {CABIN_TOL_K:g} K)?"]
     for r in rows:
         lines.append(f"{r['formulation']:<14s} {r['fuel_g']:14.3f} {r['fuel_g_half']:16.3f} "
-                     f"{r['rel_change_pct']:9.3f}  {'yes' if abs(r['rel_change_pct']) < 0.5 else 'NO'}")
+                     f"{r['rel_change_pct']:9.3f} {r['rel_change_corrected_pct']:12.3f} "
+                     f"{r['T_cab_mean_change_K']:13.3f}  {'yes' if r['converged'] else 'NO'}")
     return "\n".join(lines)

@@ -315,7 +315,14 @@ def _limit_threads():
         return
     try:
         import numba
+        from numba.core import config as nb_config
+        from numba.np.ufunc import parallel as nb_parallel
 
+        # The worker's NUMBA_NUM_THREADS=1 may postdate numba's import; numba re-reads the environment at
+        # every compilation and refuses a changed thread count once its pool runs, so read it now, before a
+        # cached parallel kernel starts the pool and a later (uncached) compilation would fail.
+        if not nb_parallel._is_initialized:
+            nb_config.reload_config()
         if numba.get_num_threads() != 1:
             numba.set_num_threads(1)
     except Exception:  # noqa: BLE001 - never fail a case over a thread setting

@@ -234,12 +234,13 @@ def _page():
         paper = row[f"paper_{ref}_pct"].iloc[0]
         other = "rule-based" if ref == "vs_rule" else "Baseline-DP"
         # the paper's figure is a reference, not a change: a caption, not a delta arrow
-        col.metric(f"{STRATS[key]} saving vs {other}", f"{v:.2f} %" if v == v else "-")
+        col.metric(f"{STRATS[key]} saving vs {other} (corrected fuel)", f"{v:.2f} %" if v == v else "-")
         if paper == paper:
             col.caption(f"paper (Gong et al.): {paper:.2f} %")
+    st.caption(f"Terminal condition on coolant and cabin: {cs.scenario.terminal}. " + cs.ordering_statement() + ".")
     if not cs.ordering_ok():
-        st.warning("Fuel is not ordered rule >= Baseline >= Thermal >= Thermal-Cabin on these grids: refine the grids "
-                   "(coarse grids cost accuracy).")
+        st.warning("Corrected fuel is not ordered rule >= Baseline >= Thermal >= Thermal-Cabin on these grids: refine "
+                   "the grids (coarse grids cost accuracy) or compare with the valued terminal condition.")
     from iptm.reportbuild import comparison_table
 
     st.dataframe(comparison_table(tbl.reset_index()), hide_index=True, width="stretch")

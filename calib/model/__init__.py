@@ -3,15 +3,15 @@
 :mod:`calib.model.equations` holds every equation once (numba scalar functions); everything else,
 the simulator, the fitters and the DP kernels in :mod:`optimize`, calls those functions.
 """
-from .equations import (IDLE, INFEASIBLE_REASONS, OFF, ON, OUTPUTS, battery, battery_ocv_r, cabin_rate,
+from calib.model.equations import (IDLE, INFEASIBLE_REASONS, OFF, ON, OUTPUTS, battery, battery_ocv_r, cabin_rate,
                         coolant_flows, engine_speed, evaluate, f_cold, fuel_map, fuel_rate, heater_limit,
                         power_split, radiator, step, traction_power)
-from .params import Parameter, ParameterSet, default_parameters
-from .cycles import Cycle, available_cycles, load_cycle
-from .rulebased import RuleBasedController, RuleParams
-from .simulate import SimResult, simulate
-from .fuelmap import FuelMap, apply_fuel_map, optimal_operating_line, read_fuel_map
-from .epa import epa_comparison, tune_fuel_scale
+from calib.model.params import Parameter, ParameterSet, default_parameters
+from calib.model.cycles import Cycle, available_cycles, load_cycle
+from calib.model.rulebased import RuleBasedController, RuleParams
+from calib.model.simulate import SimResult, fuel_equivalents_g, simulate
+from calib.model.fuelmap import FuelMap, apply_fuel_map, optimal_operating_line, read_fuel_map
+from calib.model.epa import epa_comparison, tune_fuel_scale
 
 __all__ = [
     "OFF", "IDLE", "ON", "OUTPUTS", "INFEASIBLE_REASONS",
@@ -20,7 +20,7 @@ __all__ = [
     "Parameter", "ParameterSet", "default_parameters",
     "Cycle", "available_cycles", "load_cycle",
     "RuleBasedController", "RuleParams",
-    "SimResult", "simulate",
+    "SimResult", "simulate", "fuel_equivalents_g",
     "FuelMap", "read_fuel_map", "optimal_operating_line", "apply_fuel_map",
     "epa_comparison", "tune_fuel_scale",
 ]

@@ -87,13 +87,22 @@ def battery_ocv_r(p, soc, T_bat):
 
 
 @njit(cache=True)
+def battery_current(U, R, P_bat):
+    """Eq. 1's current for terminal power P_bat at open-circuit voltage U and resistance R (cancellation-
+    free root); NaN where ``U^2 < 4 R P_bat`` (no real current)."""
+    disc = U * U - 4.0 * R * P_bat
+    if disc < 0.0:
+        return np.nan
+    return 2.0 * P_bat / (U + math.sqrt(disc))
+
+
+@njit(cache=True)
 def battery(p, soc, P_bat, T_bat):
     """Eq. 1: returns (I, V, U_oc, R_int, code); code 0 feasible, else an infeasibility code."""
     U, R = battery_ocv_r(p, soc, T_bat)
-    disc = U * U - 4.0 * R * P_bat
-    if disc < 0.0:
+    I = battery_current(U, R, P_bat)
+    if not (I == I):
         return np.nan, np.nan, U, R, BATTERY_ROOT
-    I = 2.0 * P_bat / (U + math.sqrt(disc))
     code = FEASIBLE
     if P_bat < p.P_bat_min or P_bat > p.P_bat_max:
         code = BATTERY_LIMIT
@@ -134,38 +143,72 @@ def fuel_rate(p, e_mode, P_e, T_cl):
     return fuel_map(p, P_e) * f_cold(p, T_cl)
 
 
+# Scalar forms (parameters as plain numbers): the DP kernels, which receive the parameters as a flat
+# vector, call these; the ``p`` forms below call them too, so each equation is written once.
+@njit(cache=True)
+def heater_core_limit(eps_hc, W_bl, cp_air, recirc, T_cl, T_cab, T_amb):
+    """Most heat the core can pass to the air: eps W_bl c_p (T_cl - T_in), >= 0."""
+    T_in = recirc * T_cab + (1.0 - recirc) * T_amb
+    q = eps_hc * W_bl * cp_air * (T_cl - T_in)
+    return q if q > 0.0 else 0.0
+
+
+@njit(cache=True)
+def radiator_heat(k_rad, T_open, Q_rad_max, T_cl):
+    """Eq. 9: radiator heat rejection (W)."""
+    if T_cl <= T_open:
+        return 0.0
+    q = k_rad * (T_cl - T_open)
+    return q if q < Q_rad_max else Q_rad_max
+
+
+@njit(cache=True)
+def engine_bay_loss(hA_eng, kappa, T_cl, T_amb):
+    """Eqs. 7-8: (heat lost to the engine-bay air Q_air, engine-compartment temperature T_com)."""
+    T_com = T_amb + kappa * (T_cl - T_amb)
+    return hA_eng * (T_cl - T_com), T_com
+
+
+@njit(cache=True)
+def coolant_heat_rate(gamma_exh, Q_fuel, P_e, Q_loss, Q_heat):
+    """Eqs. 3, 6: net heat into the coolant (W) and Q_exh, with Q_loss = engine-bay loss + radiator."""
+    Q_exh = gamma_exh * (Q_fuel - P_e)
+    return Q_fuel - P_e - Q_exh - Q_loss - Q_heat, Q_exh
+
+
+@njit(cache=True)
+def cabin_heat_rate(UA_cab, Q_sun, T_cab, T_amb, Q_heat):
+    """Eq. 10: net heat into the cabin (W) and the load Q_load."""
+    Q_load = UA_cab * (T_amb - T_cab)
+    return Q_heat + Q_load + Q_sun, Q_load
+
+
 @njit(cache=True)
 def heater_limit(p, T_cl, T_cab, T_amb, W_bl):
     """Most heat the core can pass to the air: eps W_bl c_p (T_cl - T_in), >= 0."""
-    T_in = p.recirc * T_cab + (1.0 - p.recirc) * T_amb
-    q = p.eps_hc * W_bl * p.cp_air * (T_cl - T_in)
-    return q if q > 0.0 else 0.0
+    return heater_core_limit(p.eps_hc, W_bl, p.cp_air, p.recirc, T_cl, T_cab, T_amb)
 
 
 @njit(cache=True)
 def radiator(p, T_cl):
     """Eq. 9: radiator heat rejection (W)."""
-    if T_cl <= p.T_open:
-        return 0.0
-    q = p.k_rad * (T_cl - p.T_open)
-    return q if q < p.Q_rad_max else p.Q_rad_max
+    return radiator_heat(p.k_rad, p.T_open, p.Q_rad_max, T_cl)
 
 
 @njit(cache=True)
 def coolant_flows(p, T_cl, T_amb, Q_fuel, P_e, Q_heat):
     """Eqs. 3, 6-8: returns (dT_cl/dt, Q_exh, Q_air, Q_rad, T_com)."""
-    Q_exh = p.gamma_exh * (Q_fuel - P_e)
-    T_com = T_amb + p.kappa * (T_cl - T_amb)
-    Q_air = p.hA_eng * (T_cl - T_com)
+    Q_air, T_com = engine_bay_loss(p.hA_eng, p.kappa, T_cl, T_amb)
     Q_rad = radiator(p, T_cl)
-    return (Q_fuel - P_e - Q_exh - Q_air - Q_rad - Q_heat) / p.C_eng, Q_exh, Q_air, Q_rad, T_com
+    net, Q_exh = coolant_heat_rate(p.gamma_exh, Q_fuel, P_e, Q_air + Q_rad, Q_heat)
+    return net / p.C_eng, Q_exh, Q_air, Q_rad, T_com
 
 
 @njit(cache=True)
 def cabin_rate(p, T_cab, T_amb, Q_heat):
     """Eq. 10: returns (dT_cab/dt, Q_load)."""
-    Q_load = p.UA_cab * (T_amb - T_cab)
-    return (Q_heat + Q_load + p.Q_sun) / p.C_cab, Q_load
+    net, Q_load = cabin_heat_rate(p.UA_cab, p.Q_sun, T_cab, T_amb, Q_heat)
+    return net / p.C_cab, Q_load
 
 
 @njit(cache=True)

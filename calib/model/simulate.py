@@ -20,6 +20,27 @@ from calib import economy
 from calib.economy import GASOLINE_KG_PER_L, KM_PER_L_PER_MPG  # noqa: F401 - re-exported
 
 
+def fuel_equivalents_g(p, soc0, soc_final, T_cl0, T_cl_final, T_cab0, T_cab_final) -> dict:
+    """Fuel (g) equivalent to the change of stored electric and thermal energy from the initial to the
+    final states (each final state may be an array: the DP values whole grids with it).
+
+    Conversion (stated once, used everywhere: corrected fuel and the DP's ``valued`` terminal cost):
+    electric energy ``C_bat U_oc(SOC) dSOC`` (``U_oc`` at the mean SOC) is valued at the fuel the engine
+    would burn to put it there at its best efficiency through the generator
+    (``max eta_ool * eta_mech * eta_em``); coolant heat ``C_eng dT_cl`` and cabin heat ``C_cab dT_cab``
+    at the fuel an idling engine would burn to supply it (``LHV (1 - gamma_exh)`` per gram).
+    """
+    mid = 0.5 * (np.asarray(soc0, dtype=float) + np.asarray(soc_final, dtype=float))
+    U0 = np.reshape([battery_ocv_r(p, float(m), p.T_bat_ref)[0] for m in np.ravel(mid)], np.shape(mid))
+    eta_chain = float(np.max(p.eta_ool)) * p.eta_mech * p.eta_em
+    d_el = p.C_bat_As * U0 * (np.asarray(soc_final, dtype=float) - soc0)
+    heat = p.LHV * (1.0 - p.gamma_exh)
+    out = {"electric_g": d_el / (p.LHV * eta_chain),
+           "coolant_g": p.C_eng * (np.asarray(T_cl_final, dtype=float) - T_cl0) / heat,
+           "cabin_g": p.C_cab * (np.asarray(T_cab_final, dtype=float) - T_cab0) / heat}
+    return {k: (float(v) if np.ndim(v) == 0 else v) for k, v in out.items()}
+
+
 @dataclass
 class SimResult:
     """Time series of one simulated (or DP-optimised) drive.
@@ -111,21 +132,10 @@ class SimResult:
         }
 
     def fuel_equivalents(self) -> dict:
-        """Fuel (g) equivalent to the change of stored electric and thermal energy over the drive.
-
-        Conversion (stated once, used everywhere): electric energy ``C_bat U_oc(SOC) dSOC`` is valued at
-        the fuel the engine would burn to put it there at its best efficiency through the generator
-        (``max eta_ool * eta_mech * eta_em``); coolant heat ``C_eng dT_cl`` and cabin heat ``C_cab dT_cab``
-        at the fuel an idling engine would burn to supply it (``LHV (1 - gamma_exh)`` per gram).
-        """
-        p = self.mp
-        U0, _ = battery_ocv_r(p, 0.5 * (self.soc[0] + self.soc[-1]), p.T_bat_ref)
-        eta_chain = float(np.max(p.eta_ool)) * p.eta_mech * p.eta_em
-        d_el = p.C_bat_As * U0 * (self.soc[-1] - self.soc[0])
-        heat = p.LHV * (1.0 - p.gamma_exh)
-        return {"electric_g": d_el / (p.LHV * eta_chain),
-                "coolant_g": p.C_eng * (self.T_cl[-1] - self.T_cl[0]) / heat,
-                "cabin_g": p.C_cab * (self.T_cab[-1] - self.T_cab[0]) / heat}
+        """Fuel (g) equivalent to the change of stored electric and thermal energy over the drive
+        (:func:`fuel_equivalents_g`)."""
+        return fuel_equivalents_g(self.mp, self.soc[0], self.soc[-1], self.T_cl[0], self.T_cl[-1],
+                                  self.T_cab[0], self.T_cab[-1])
 
     def summary(self) -> dict:
         """Headline figures: fuel, economy, final states, starts, idle time, heater shortfall, balances."""

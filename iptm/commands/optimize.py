@@ -18,6 +18,10 @@ def register(sub):
     p.add_argument("--tcab0", type=float, default=None, metavar="DEGC", help="initial cabin temperature (20)")
     p.add_argument("--heater", type=float, default=None, metavar="W", help="heater demand of rule-based, "
                                                                             "Baseline and Thermal-DP (1500)")
+    p.add_argument("--terminal", choices=("free", "match", "valued"), default=None,
+                   help="terminal condition on coolant and cabin: valued (default; heat left in them valued as "
+                        "in the corrected fuel), match (at least the rule-based run's final values) or free "
+                        "(the paper's)")
     p.add_argument("--formulation", default="all",
                    help="rule, baseline, thermal, thermal_cabin, a comma list, or all (default)")
     p.add_argument("--grid", default=None, metavar="SPEC",
@@ -53,7 +57,7 @@ def _scenario(args):
             raise ScenarioError(f"{path}: not valid TOML/JSON ({exc})") from None
         d = d.get("scenario", d)
     for opt, name in (("cycle", "cycle"), ("duration", "duration_s"), ("ambient", "T_amb"), ("soc0", "soc0"),
-                      ("tcl0", "T_cl0"), ("tcab0", "T_cab0"), ("heater", "Q_heat")):
+                      ("tcl0", "T_cl0"), ("tcab0", "T_cab0"), ("heater", "Q_heat"), ("terminal", "terminal")):
         v = getattr(args, opt)
         if v is not None:
             d[name] = v
@@ -95,7 +99,8 @@ def run(args) -> int:
     cyc = scen.load_cycle()
     d = cyc.describe()
     print(f"\ncase study: {d['name']} ({d['duration_s']:.0f} s, {d['distance_km']:.2f} km), ambient "
-          f"{scen.T_amb:g} degC, SOC0 {scen.soc0}, T_cl0 {scen.T_cl0} degC, T_cab0 {scen.T_cab0} degC; grids "
+          f"{scen.T_amb:g} degC, SOC0 {scen.soc0}, T_cl0 {scen.T_cl0} degC, T_cab0 {scen.T_cab0} degC; terminal "
+          f"{scen.terminal}; grids "
           + ", ".join(f"{k}={v:g}" for k, v in grids.to_dict().items()))
     print(cs.format_table())
     tab = cs.table()
@@ -104,8 +109,9 @@ def run(args) -> int:
     print("charge-sustaining (SOC_N >= SOC0 - %g): %s" % (scen.soc_tol, ", ".join(
         f"{k}={'yes' if v else 'NO'}" for k, v in zip(tab["key"], tab["charge_sustaining"]))))
     if all(k in cs.sims for k in allf):
-        print("ordering rule > baseline-on-thermal > thermal > thermal-cabin: "
-              + ("yes" if cs.ordering_ok() else "NO (see the explanation in the report)"))
+        print(cs.ordering_statement())
+    if cs.outcomes:
+        print(cs.format_value_check())
     if cs.rule:
         print("tuned rule-based thresholds: " + ", ".join(f"{k}={v:g}" for k, v in cs.rule["thresholds"].items()))
     for k, o in cs.outcomes.items():

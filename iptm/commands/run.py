@@ -51,8 +51,10 @@ def run(args) -> int:
         eco = (f" ({v['L_per_100km']:.2f} L/100 km, {v['mpg']:.1f} mpg)"
                if v.get("L_per_100km") is not None and v.get("mpg") is not None else "")
         print(f"  {k:15s} fuel {v['fuel_g']:8.2f} g{eco}  corrected {v['fuel_corrected_g']:8.2f} g  SOC_N "
-              f"{v['soc_final']:.3f}" + (f"  saving vs rule-based {sav:5.2f} %" if sav is not None else ""))
-    print(f"ordering rule > baseline > thermal > thermal-cabin: {'holds' if s['ordering_ok'] else 'does not hold'}")
+              f"{v['soc_final']:.3f}" + (f"  saving vs rule-based {sav:5.2f} % corrected "
+                                         f"({v.get('raw_saving_vs_rule_pct', float('nan')):.2f} % raw)"
+                                         if sav is not None else ""))
+    print(s.get("ordering") or f"ordering in corrected fuel: {'holds' if s['ordering_ok'] else 'does not hold'}")
     print(f"report: {out.report_dir / 'index.html'}")
     if args.json:
         write_json(args.json, {**s, "report_dir": str(out.report_dir)})

@@ -39,19 +39,23 @@ Terminal costs and sets
 
 Boundary method: level sets (Elbert, Ebbesen & Guzzella, IEEE TCST 2013)
     With ``boundary="levelset"`` (and a terminal set) the engine carries a second function, the level
-    :math:`L_k(x) = \min_u L_{k+1}(f(x,u))` with :math:`L_N = \sum_d \max(lo_d - x_d, 0) + \max(x_d - hi_d,
-    0)` (in units of each dimension's grid spacing), i.e. how far the best reachable terminal state is
-    from the terminal set. At each state (backward) and at the true state (forward) the control is chosen
-    lexicographically: among controls whose interpolated level is <= ``level_tol`` (feasible ones) the
-    one of least cost; if none, the one of least level (its cost is stored, so :math:`V` stays finite and
-    smooth near the constraint boundary instead of being polluted by +inf corners). This makes hard
-    terminal constraints work on coarse grids, where the naive +inf terminal cost propagates through
-    interpolation and makes reachable states look infeasible. ``boundary="none"`` (default) uses the
-    plain +inf terminal cost. With "levelset" the terminal set must be given by ``terminal_bounds``; +inf
-    entries of ``terminal_cost`` then act as hard exclusions (level +inf) without the level-set benefit.
-    Interpolated levels are conservative (a grid state next to the set boundary may get a small positive
-    level although it can reach the set from its exact position); feasibility of the result is judged
-    on the forward trajectory's true final state (``DPResult.feasible``, ``terminal_level``). (The boundary-line method of Sundström et al. 2010 is not implemented; the
+    :math:`L_k(x) = \min_u L_{k+1}(f(x,u))` with the signed terminal level
+    :math:`L_N(x) = \max_d \max(lo_d - x_d,\, x_d - hi_d) / h_d` (in units of each bounded dimension's
+    grid spacing ``h_d``): negative inside the terminal box, zero on its boundary, positive outside, so
+    ``L_k(x) <= 0`` means "the terminal set is reachable from x". The true minimum is stored (negative
+    values included): a signed distance is (piecewise) linear in the state, so multilinear interpolation
+    carries it back exactly even where every control moves the state by less than one cell per step (a
+    level clipped to 0 inside the set would be mixed with positive neighbours there and drift above any
+    tolerance). At each state (backward) and at the true state (forward) the control is chosen
+    lexicographically: among controls whose interpolated level is <= ``level_tol`` (default 0) the one of
+    least cost; if none, the one of least level (its cost is stored, so :math:`V` stays finite and smooth
+    near the constraint boundary instead of being polluted by +inf corners). This makes hard terminal
+    constraints work on coarse grids, where the naive +inf terminal cost propagates through interpolation
+    and makes reachable states look infeasible. ``boundary="none"`` (default) uses the plain +inf terminal
+    cost. With "levelset" the terminal set must be given by ``terminal_bounds``; +inf entries of
+    ``terminal_cost`` then act as hard exclusions (level +inf) without the level-set benefit. Feasibility
+    of the result is judged on the forward trajectory's true final state (``DPResult.feasible``,
+    ``terminal_level``). (The boundary-line method of Sundstrom et al. 2010 is not implemented; the
     level-set method covers any number of states.)
 
 User functions (compile them with ``numba.njit(cache=True)`` at module level). Each distinct user function
@@ -237,7 +241,18 @@ class DPProblem:
             phi = np.asarray(self.terminal_cost, dtype=np.float64).reshape(-1)
         if phi.size != X.shape[0]:
             raise ValueError("terminal cost must have one value per grid state")
-        level = np.zeros(X.shape[0])
+        level = self.terminal_level(X)
+        level[~(phi < np.inf)] = np.inf
+        if self.boundary == "none":
+            phi = np.where(level > 0, np.inf, phi)
+        return phi, level
+
+    def terminal_level(self, X) -> np.ndarray:
+        """Signed terminal level of the states X (m, n_x): ``max_d max(lo_d - x_d, x_d - hi_d) / h_d`` in
+        grid steps (h_d: dimension d's mean spacing), negative inside the terminal box, 0 on its boundary,
+        positive outside; -1 everywhere without bounds."""
+        X = np.atleast_2d(np.asarray(X, dtype=np.float64))
+        level = np.full(X.shape[0], -np.inf)
         if self.terminal_bounds is not None:
             if len(self.terminal_bounds) != self.n_x:
                 raise ValueError("terminal_bounds needs one (lo, hi) per state")
@@ -245,13 +260,10 @@ class DPProblem:
                 g = self.grids[d]
                 h = (g[-1] - g[0]) / (g.size - 1)
                 if blo is not None:
-                    level += np.maximum(blo - X[:, d], 0.0) / h
+                    level = np.maximum(level, (blo - X[:, d]) / h)
                 if bhi is not None:
-                    level += np.maximum(X[:, d] - bhi, 0.0) / h
-        level[~(phi < np.inf)] = np.inf
-        if self.boundary == "none":
-            phi = np.where(level > 0, np.inf, phi)
-        return phi, level
+                    level = np.maximum(level, (X[:, d] - bhi) / h)
+        return np.where(np.isfinite(level), level, -1.0)
 
 
 @dataclass
@@ -389,15 +401,7 @@ def forward_pass(prob: DPProblem, vf: ValueFunctions, x0) -> DPResult:
     if done == N:
         xN = X_out[N][None, :]
         term = float(interpolate(prob, phi, xN)[0])
-        lvl = 0.0
-        if prob.terminal_bounds is not None:
-            for d, (blo, bhi) in enumerate(prob.terminal_bounds):
-                g = prob.grids[d]
-                h = (g[-1] - g[0]) / (g.size - 1)
-                if blo is not None:
-                    lvl += max(blo - X_out[N, d], 0.0) / h
-                if bhi is not None:
-                    lvl += max(X_out[N, d] - bhi, 0.0) / h
+        lvl = float(prob.terminal_level(xN)[0])
         cost = float(np.sum(stage) + term)
         feasible = bool(np.isfinite(cost) and lvl <= prob.level_tol + 1e-9)
     else:

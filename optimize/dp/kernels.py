@@ -138,6 +138,26 @@ def _interp(V, nx, strides, ib, tb):
     return _interp_slow(V, nx, strides, ib, tb)
 
 
+@njit(inline="always", cache=True)
+def level_needs_cost(lv, tol, feas, Lsel):
+    """Whether a control of interpolated level ``lv`` can still be chosen (so its cost is needed), given
+    the current choice (``feas``: it reaches the terminal set; ``Lsel``: its level)."""
+    if lv <= tol:
+        return True
+    return (not feas) and lv <= Lsel
+
+
+@njit(inline="always", cache=True)
+def level_better(lv, v, tol, feas, Lsel, best):
+    """The level-set choice rule: among controls reaching the terminal set (level <= tol) the one of least
+    cost; if none does, the one of least level (then least cost). Ties keep the earlier control."""
+    if lv <= tol:
+        return (not feas) or v < best
+    if feas:
+        return False
+    return lv < Lsel or (lv == Lsel and v < best)
+
+
 @njit(parallel=True, cache=False)  # no disk cache: kernels specialised on a user function never hit it
 def backward(transition, precompute, N, X, controls, w, p, tab, VT, LT, use_level, level_tol,
              lo, inv_dx, n, uniform, pts, strides, clip, policy, store_policy):
@@ -177,7 +197,9 @@ def backward(transition, precompute, N, X, controls, w, p, tab, VT, LT, use_leve
                     ix[d] = q
                     rem -= q * strides[d]
                 best = np.inf
-                bestL = np.inf
+                Lmin = np.inf
+                Lsel = np.inf
+                feas = False
                 bi = -1
                 for iu in range(nu):
                     cst = transition(k, x, controls[iu], wk, p, tab, iu, ix, xn)
@@ -190,19 +212,24 @@ def backward(transition, precompute, N, X, controls, w, p, tab, VT, LT, use_leve
                         lv = _interp(Ln, nx, strides, ib, tb)
                         if not (lv < np.inf):
                             continue
-                        if lv <= level_tol:
-                            lv = 0.0
-                        if lv > bestL:
+                        if lv < Lmin:
+                            Lmin = lv
+                        if not level_needs_cost(lv, level_tol, feas, Lsel):
                             continue
                     v = cst + _interp(Vn, nx, strides, ib, tb)
                     if not (v < np.inf):
                         continue
-                    if lv < bestL or v < best:
+                    if use_level:
+                        if level_better(lv, v, level_tol, feas, Lsel, best):
+                            best = v
+                            Lsel = lv
+                            feas = lv <= level_tol
+                            bi = iu
+                    elif v < best:
                         best = v
-                        bestL = lv
                         bi = iu
                 if use_level:
-                    Lk[s] = bestL
+                    Lk[s] = Lmin
                 Vk[s] = best
                 if store_policy:
                     policy[k, s] = bi
@@ -229,7 +256,8 @@ def forward(transition, precompute, N, x0, controls, w, p, tab, VT, LT, use_leve
         Vn = VT[k + 1]
         Ln = LT[k + 1]
         best = np.inf
-        bestL = np.inf
+        Lsel = np.inf
+        feas = False
         bi = -1
         for iu in range(nu):
             cst = transition(k, x, controls[iu], wk, p, tab, iu, ix, xn)
@@ -241,14 +269,15 @@ def forward(transition, precompute, N, x0, controls, w, p, tab, VT, LT, use_leve
                 lv = _interp(Ln, nx, strides, ib, tb)
                 if not (lv < np.inf):
                     continue
-                if lv <= level_tol:
-                    lv = 0.0
-                if lv > bestL:
+                if not level_needs_cost(lv, level_tol, feas, Lsel):
                     continue
                 v = cst + _interp(Vn, nx, strides, ib, tb)
-                if lv < bestL or v < best:
+                if not (v < np.inf):
+                    continue
+                if level_better(lv, v, level_tol, feas, Lsel, best):
                     best = v
-                    bestL = lv
+                    Lsel = lv
+                    feas = lv <= level_tol
                     bi = iu
             else:
                 v = cst + _interp(Vn, nx, strides, ib, tb)

@@ -31,26 +31,26 @@ limited by the coolant of the same drive under the (untuned) rule-based controll
 
 Common choices
     * Integrator: the model's explicit Euler step (Ts of the cycle, 1 s by default).
-    * Terminal set ``SOC_N >= SOC_0`` by the engine's level-set boundary method (Elbert 2013), with
-      ``level_tol`` = :data:`LEVEL_TOL` = 1e-3 grid steps (1e-5 in SOC). A tolerance of 0 does not work:
-      under multilinear interpolation the level of a node below SOC_0 decays geometrically (each step
-      moves a fraction of a cell) but never reaches exactly 0, so the forward pass would never let SOC
-      drop below the SOC_0 node and the battery would not be used as a buffer.
-    * Thermal-Cabin terminal condition ``T_cab_N >= T_cab,1500W(N)``: a terminal cost of
-      ``DPScenario.cab_terminal_g_per_K`` (default 10 g/K, 3.5 times the fuel equivalent of cabin heat used
-      by the corrected fuel, 2.8 g/K, so ending colder never pays) per degC below it, not a level set.
-      Why: the cabin moves ~0.005 degC per step on the paper's 1-degC grid, so under multilinear
-      interpolation a level (or a steep penalty) at the terminal kink decays only ~0.5 % per step
-      backwards and forbids any excursion below the terminal value. Even with this soft cost, the
-      kink's interpolation diffusion makes an excursion look more expensive than it is on the 1-degC
-      grid: on the paper grid Thermal-Cabin-DP keeps 1500 W; a finer cabin grid (``tcab=0.1``) lets it
-      shift heat, at a small gain in this warm-coolant scenario.
+    * Terminal set ``SOC_N >= SOC_0`` by the engine's level-set boundary method (Elbert 2013) with signed
+      levels, exact for this one-sided set under multilinear interpolation (``level_tol`` =
+      :data:`LEVEL_TOL` = 0).
+    * Terminal condition on coolant and cabin (``DPScenario.terminal``, named in every report):
+      ``valued`` (default) adds the terminal cost ``-(fuel equivalent of the heat gained by coolant and
+      cabin)``, the one valuation of the corrected fuel (:func:`calib.model.simulate.fuel_equivalents_g`);
+      with the charge held by ``SOC_N >= SOC_0`` each DP then minimises the corrected fuel of its own
+      trajectory up to the small credit for charge above SOC_0, which is not offered to the DP (the
+      engine's marginal efficiency beats the rate it assumes, so the DP would charge to the ceiling);
+      ``match`` adds the level-set terminal bounds ``T_cl_N >=`` (and ``T_cab_N >=``) the rule-based
+      run's final values; ``free`` is the paper's (coolant free; Thermal-Cabin-DP's
+      ``T_cab_N >= T_cab,1500W(N)`` as a soft cost of ``DPScenario.cab_terminal_g_per_K`` per kelvin).
     * Speed: :func:`build_tables` computes once, for every step and power control, feasibility, engine
       power, warm fuel rate, battery power and the next SOC at every SOC node (the battery square root
       leaves the inner loop); the engine's ``precompute`` hook copies step k's slice into ``tab``.
       ``f_cl``, engine-bay loss and radiator heat are tabulated per T_cl node. In the backward pass the
       transition uses the grid indices ``ix``; in the forward pass (``ix = -1``) it evaluates the same
-      equations at the true state.
+      equations at the true state. The transition and the fused kernels call the model's own compiled
+      equations (battery current, heater-core limit, radiator, engine-bay loss, coolant and cabin heat
+      rates of :mod:`calib.model.equations`, in their scalar forms; numba inlines them).
     * Parameters reach the compiled code as one flat float64 vector (:func:`pack_params`): the engine's
       parallel kernel cannot take the ``ModelParams`` namedtuple (numba's parfor lowering rejects a struct
       holding arrays: "scalar type ModelParams given for non scalar argument").
@@ -66,9 +66,11 @@ Common choices
       per event, until after ~40 braking events no SOC node is finite (the level-set method of the engine
       covers terminal sets only). Re-simulated results are checked to stay inside the boxes.
 """
-from .scenario import FORMULATIONS, DPGrids, DPScenario, parse_grid_spec
-from .solve import (DPOutcome, peak_rss_mb, replay, solve_baseline, solve_formulation, solve_thermal,
-                    solve_thermal_cabin)
+from optimize.formulations.scenario import FORMULATIONS, DPGrids, DPScenario, parse_grid_spec
+from optimize.formulations.scenario import TERMINALS
+from optimize.formulations.solve import (DPOutcome, dp_objective, peak_rss_mb, replay, solve_baseline, solve_formulation,
+                    solve_thermal, solve_thermal_cabin)
 
 __all__ = ["DPScenario", "DPGrids", "DPOutcome", "parse_grid_spec", "solve_baseline", "solve_thermal",
-           "solve_thermal_cabin", "solve_formulation", "FORMULATIONS", "replay", "peak_rss_mb"]
+           "solve_thermal_cabin", "solve_formulation", "FORMULATIONS", "TERMINALS", "replay", "peak_rss_mb",
+           "dp_objective"]

@@ -14,6 +14,8 @@ with the engine to rounding; cross-checked in tests/test_formulations.py) by exp
   (T_cab node, Q_heat): V and L are interpolated along T_cab once per (T_cab node, Q_heat) into 2-D slices
   (the engine's own trilinear formula, first stage), so the inner loop is bilinear; where the heater core
   limits the heat (cold coolant) the full trilinear interpolation is used.
+* levels are signed (negative inside the terminal set) and the true minimum is stored, with the engine's
+  choice rule (:func:`optimize.dp.kernels.level_better`).
 
 The forward pass is the engine's (:func:`optimize.dp.engine.forward_pass`) on the value functions produced here.
 """
@@ -25,7 +27,9 @@ from numba import njit, prange
 
 from optimize.formulations.layout import _C_CH, _C_CHI, _C_PEN, _C_SH, _C_SHI, _C_SLO, _C_TH, _C_THI, _C_TLO, _C_TS, _C_TAMB, _C_WBL, _CCAB, _CENG, _CP, _EPS, _GAMMA, _LHV, _MS0, _QSUN, _RECIRC, _T_OK, _T_PE, _T_SOC0, _T_WF, _UACAB, _A_FCLG, _A_LOSSG
 from optimize.dp.kernels import _interp_slow as _slow  # the engine's exact multilinear interpolation
+from optimize.dp.kernels import level_better, level_needs_cost  # the engine's level-set choice rule
 from optimize.dp.engine import ValueFunctions
+from calib.model.equations import cabin_heat_rate, coolant_heat_rate, heater_core_limit
 
 _SNAP = 1e-9
 
@@ -52,15 +56,6 @@ def _bilin(S, o, s0, t0, t1):
     return (1.0 - t0) * ((1.0 - t1) * S[o] + t1 * S[o + 1]) + t0 * ((1.0 - t1) * S[o + s0] + t1 * S[o + s0 + 1])
 
 
-@njit(cache=True)
-def _zero_cells(S, ns, nt, Z):
-    """Z[o] = 1 where the 4 corners of cell o (row-major ns x nt plane) are exactly 0."""
-    for a in range(ns - 1):
-        for b in range(nt - 1):
-            o = a * nt + b
-            Z[o] = S[o] == 0.0 and S[o + 1] == 0.0 and S[o + nt] == 0.0 and S[o + nt + 1] == 0.0
-
-
 @njit(parallel=True, cache=True)
 def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol):
     """Thermal-DP backward pass (states SOC x T_cl, one heater demand Q[0]); fills VT, LT[0..N-1]."""
@@ -79,22 +74,20 @@ def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol):
     TT = np.empty((np_, nt))
     PT = np.empty((np_, nt))
     C0 = np.empty((np_, nt))
-    Z = np.zeros(ns * nt, np.bool_)
     for k in range(N - 1, -1, -1):
         tab = big[k]
         Vn = VT[k + 1]
         Ln = LT[k + 1]
         T_cab = w[k, 1]
-        T_in = P[_MS0 + _RECIRC] * T_cab + (1.0 - P[_MS0 + _RECIRC]) * T_amb
         for j in range(nt):
-            q_lim = P[_MS0 + _EPS] * P[_C_WBL] * P[_MS0 + _CP] * (tclg[j] - T_in)
+            q_lim = heater_core_limit(P[_MS0 + _EPS], P[_C_WBL], P[_MS0 + _CP], P[_MS0 + _RECIRC], tclg[j], T_cab,
+                                      T_amb)
             q = Q[0]
             if q > q_lim:
                 q = q_lim
             if q < 0.0:
                 q = 0.0
             qv[j] = q
-        _zero_cells(Ln, ns, nt, Z)
         # next coolant state per (power control, T_cl node): independent of SOC
         for ip in prange(np_):
             if tab[ip, _T_OK] == 0.0:
@@ -104,8 +97,7 @@ def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol):
             for j in range(nt):
                 W_f = wf * fclg[j]
                 Q_fuel = P[_MS0 + _LHV] * W_f
-                Q_exh = P[_MS0 + _GAMMA] * (Q_fuel - P_e)
-                tn = tclg[j] + Ts * (Q_fuel - P_e - Q_exh - lossg[j] - qv[j]) / P[_MS0 + _CENG]
+                tn = tclg[j] + Ts * coolant_heat_rate(P[_MS0 + _GAMMA], Q_fuel, P_e, lossg[j], qv[j])[0] / P[_MS0 + _CENG]
                 pt = 0.0
                 if tn < P[_C_TLO]:
                     pt = (P[_C_TLO] - tn) / P[_C_TH]
@@ -118,7 +110,9 @@ def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol):
                 TT[ip, j] = tt
         for i in prange(ns):
             best = np.full(nt, np.inf)
-            bestL = np.full(nt, np.inf)
+            Lmin = np.full(nt, np.inf)
+            Lsel = np.full(nt, np.inf)
+            feas = np.zeros(nt, np.bool_)
             ib = np.empty(2, np.int64)
             tb = np.empty(2)
             for ip in range(np_):
@@ -137,21 +131,18 @@ def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol):
                 for j in range(nt):
                     tt = TT[ip, j]
                     o = oa + TB[ip, j]
-                    if Z[o]:
-                        lv = 0.0
-                    else:
-                        lv = _bilin(Ln, o, nt, ta, tt)
-                        if not np.isfinite(lv):
-                            ib[0] = a
-                            ib[1] = TB[ip, j]
-                            tb[0] = ta
-                            tb[1] = tt
-                            lv = _slow(Ln, 2, strides, ib, tb)
-                            if not (lv < np.inf):
-                                continue
-                        if lv <= level_tol:
-                            lv = 0.0
-                    if lv > bestL[j]:
+                    lv = _bilin(Ln, o, nt, ta, tt)
+                    if not np.isfinite(lv):
+                        ib[0] = a
+                        ib[1] = TB[ip, j]
+                        tb[0] = ta
+                        tb[1] = tt
+                        lv = _slow(Ln, 2, strides, ib, tb)
+                        if not (lv < np.inf):
+                            continue
+                    if lv < Lmin[j]:
+                        Lmin[j] = lv
+                    if not level_needs_cost(lv, level_tol, feas[j], Lsel[j]):
                         continue
                     vv = _bilin(Vn, o, nt, ta, tt)
                     if not np.isfinite(vv):
@@ -161,12 +152,15 @@ def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol):
                         tb[1] = tt
                         vv = _slow(Vn, 2, strides, ib, tb)
                     v = C0[ip, j] + PEN * (pen0 + PT[ip, j]) + vv
-                    if lv < bestL[j] or v < best[j]:
+                    if not (v < np.inf):
+                        continue
+                    if level_better(lv, v, level_tol, feas[j], Lsel[j], best[j]):
                         best[j] = v
-                        bestL[j] = lv
+                        Lsel[j] = lv
+                        feas[j] = lv <= level_tol
             for j in range(nt):
                 VT[k, i * nt + j] = best[j]
-                LT[k, i * nt + j] = bestL[j]
+                LT[k, i * nt + j] = Lmin[j]
 
 
 @njit(parallel=True, cache=True)
@@ -197,11 +191,10 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol):
     tu = np.empty((nc, nq))
     SV = np.empty((nc * nq, nplane))
     SL = np.empty((nc * nq, nplane))
-    ZL = np.zeros((nc * nq, nplane), np.bool_)
     TB = np.empty((np_, nt, nq), np.int64)
     TT = np.empty((np_, nt, nq))
     PT = np.empty((np_, nt, nq))
-    BASE = np.empty((np_, nt))
+    QFUEL = np.empty((np_, nt))
     C0 = np.empty((np_, nt))
     for k in range(N - 1, -1, -1):
         tab = big[k]
@@ -209,9 +202,9 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol):
         Ln = LT[k + 1]
         lb = w[k, 2]
         for m in range(nc):
-            T_in = P[_MS0 + _RECIRC] * cabg[m] + (1.0 - P[_MS0 + _RECIRC]) * T_amb
             for j in range(nt):
-                ql = P[_MS0 + _EPS] * P[_C_WBL] * P[_MS0 + _CP] * (tclg[j] - T_in)
+                ql = heater_core_limit(P[_MS0 + _EPS], P[_C_WBL], P[_MS0 + _CP], P[_MS0 + _RECIRC], tclg[j], cabg[m],
+                                       T_amb)
                 qlim[j, m] = ql
                 cnt = 0
                 for iq in range(nq):
@@ -219,7 +212,7 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol):
                         cnt += 1
                 nunl[j, m] = cnt
             for iq in range(nq):
-                tc = cabg[m] + Ts * (Q[iq] + P[_MS0 + _UACAB] * (T_amb - cabg[m]) + P[_MS0 + _QSUN]) / P[_MS0 + _CCAB]
+                tc = cabg[m] + Ts * cabin_heat_rate(P[_MS0 + _UACAB], P[_MS0 + _QSUN], cabg[m], T_amb, Q[iq])[0] / P[_MS0 + _CCAB]
                 pc = 0.0
                 if tc < lb:
                     pc = (lb - tc) / P[_C_CH]
@@ -238,7 +231,6 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol):
                 o = e * nc + c
                 SV[r, e] = (1.0 - t2) * Vn[o] + t2 * Vn[o + 1]
                 SL[r, e] = (1.0 - t2) * Ln[o] + t2 * Ln[o + 1]
-            _zero_cells(SL[r], ns, nt, ZL[r])
         for ip in prange(np_):
             if tab[ip, _T_OK] == 0.0:
                 continue
@@ -247,12 +239,10 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol):
             for j in range(nt):
                 W_f = wf * fclg[j]
                 Q_fuel = P[_MS0 + _LHV] * W_f
-                Q_exh = P[_MS0 + _GAMMA] * (Q_fuel - P_e)
-                base = Q_fuel - P_e - Q_exh - lossg[j]
-                BASE[ip, j] = base
+                QFUEL[ip, j] = Q_fuel
                 C0[ip, j] = W_f * Ts
                 for iq in range(nq):
-                    tn = tclg[j] + Ts * (base - Q[iq]) / P[_MS0 + _CENG]
+                    tn = tclg[j] + Ts * coolant_heat_rate(P[_MS0 + _GAMMA], Q_fuel, P_e, lossg[j], Q[iq])[0] / P[_MS0 + _CENG]
                     pt = 0.0
                     if tn < P[_C_TLO]:
                         pt = (P[_C_TLO] - tn) / P[_C_TH]
@@ -264,7 +254,9 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol):
                     TT[ip, j, iq] = tt
         for i in prange(ns):
             best = np.full(nt * nc, np.inf)
-            bestL = np.full(nt * nc, np.inf)
+            Lmin = np.full(nt * nc, np.inf)
+            Lsel = np.full(nt * nc, np.inf)
+            feas = np.zeros(nt * nc, np.bool_)
             ib = np.empty(3, np.int64)
             tb = np.empty(3)
             for ip in range(np_):
@@ -290,23 +282,20 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol):
                             rr = m * nq + iq
                             tt = TT[ip, j, iq]
                             o = oa + TB[ip, j, iq]
-                            if ZL[rr, o]:
-                                lv = 0.0
-                            else:
-                                lv = _bilin(SL[rr], o, nt, ta, tt)
-                                if not np.isfinite(lv):
-                                    ib[0] = a
-                                    ib[1] = TB[ip, j, iq]
-                                    ib[2] = cu[m, iq]
-                                    tb[0] = ta
-                                    tb[1] = tt
-                                    tb[2] = tu[m, iq]
-                                    lv = _slow(Ln, 3, strides, ib, tb)
-                                    if not (lv < np.inf):
-                                        continue
-                                if lv <= level_tol:
-                                    lv = 0.0
-                            if lv > bestL[sidx]:
+                            lv = _bilin(SL[rr], o, nt, ta, tt)
+                            if not np.isfinite(lv):
+                                ib[0] = a
+                                ib[1] = TB[ip, j, iq]
+                                ib[2] = cu[m, iq]
+                                tb[0] = ta
+                                tb[1] = tt
+                                tb[2] = tu[m, iq]
+                                lv = _slow(Ln, 3, strides, ib, tb)
+                                if not (lv < np.inf):
+                                    continue
+                            if lv < Lmin[sidx]:
+                                Lmin[sidx] = lv
+                            if not level_needs_cost(lv, level_tol, feas[sidx], Lsel[sidx]):
                                 continue
                             vv = _bilin(SV[rr], o, nt, ta, tt)
                             if not np.isfinite(vv):
@@ -318,22 +307,24 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol):
                                 tb[2] = tu[m, iq]
                                 vv = _slow(Vn, 3, strides, ib, tb)
                             v = c0 + PEN * ((pen0 + PT[ip, j, iq]) + pcu[m, iq]) + vv
-                            if lv < bestL[sidx] or v < best[sidx]:
+                            if not (v < np.inf):
+                                continue
+                            if level_better(lv, v, level_tol, feas[sidx], Lsel[sidx], best[sidx]):
                                 best[sidx] = v
-                                bestL[sidx] = lv
+                                Lsel[sidx] = lv
+                                feas[sidx] = lv <= level_tol
                         if nu_ == nq:
                             continue
                         # the first heater-limited control (the others repeat it)
                         q = qlim[j, m]
-                        if q < 0.0:
-                            q = 0.0
-                        tn = tclg[j] + Ts * (BASE[ip, j] - q) / P[_MS0 + _CENG]
+                        tn = tclg[j] + Ts * coolant_heat_rate(P[_MS0 + _GAMMA], QFUEL[ip, j], tab[ip, _T_PE], lossg[j],
+                                                              q)[0] / P[_MS0 + _CENG]
                         pen = pen0
                         if tn < P[_C_TLO]:
                             pen += (P[_C_TLO] - tn) / P[_C_TH]
                         elif tn > P[_C_THI]:
                             pen += (tn - P[_C_THI]) / P[_C_TH]
-                        tc = cabg[m] + Ts * (q + P[_MS0 + _UACAB] * (T_amb - cabg[m]) + P[_MS0 + _QSUN]) / P[_MS0 + _CCAB]
+                        tc = cabg[m] + Ts * cabin_heat_rate(P[_MS0 + _UACAB], P[_MS0 + _QSUN], cabg[m], T_amb, q)[0] / P[_MS0 + _CCAB]
                         if tc < lb:
                             pen += (lb - tc) / P[_C_CH]
                         elif tc > P[_C_CHI]:
@@ -352,20 +343,23 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol):
                             lv = _slow(Ln, 3, strides, ib, tb)
                         if not (lv < np.inf):
                             continue
-                        if lv <= level_tol:
-                            lv = 0.0
-                        if lv > bestL[sidx]:
+                        if lv < Lmin[sidx]:
+                            Lmin[sidx] = lv
+                        if not level_needs_cost(lv, level_tol, feas[sidx], Lsel[sidx]):
                             continue
                         vv = _tri(Vn, o, s0, s1, ta, tt, t2)
                         if not np.isfinite(vv):
                             vv = _slow(Vn, 3, strides, ib, tb)
                         v = c0 + PEN * pen + vv
-                        if lv < bestL[sidx] or v < best[sidx]:
+                        if not (v < np.inf):
+                            continue
+                        if level_better(lv, v, level_tol, feas[sidx], Lsel[sidx], best[sidx]):
                             best[sidx] = v
-                            bestL[sidx] = lv
+                            Lsel[sidx] = lv
+                            feas[sidx] = lv <= level_tol
             for e in range(nt * nc):
                 VT[k, i * nt * nc + e] = best[e]
-                LT[k, i * nt * nc + e] = bestL[e]
+                LT[k, i * nt * nc + e] = Lmin[e]
 
 
 @njit(inline="always", cache=True)

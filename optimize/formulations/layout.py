@@ -23,8 +23,8 @@ _HEADER = 64
 #: Penalty (g of fuel) per grid step of state-constraint violation (see :func:`hev_transition`), also the
 #: Thermal-Cabin terminal cost per grid step below the 1500-W final cabin temperature.
 PENALTY_G_PER_STEP = 1000.0
-#: Level-set tolerance (grid steps): levels at or below it count as "terminal set reachable".
-LEVEL_TOL = 1e-3
+#: Level-set tolerance (grid steps): signed levels at or below it count as "terminal set reachable".
+LEVEL_TOL = 0.0
 # model scalars (float64 array): the generic engine's parallel kernel cannot take the ModelParams namedtuple
 # (numba's parfor gufunc rejects a struct holding arrays), so the transition gets plain arrays.
 _MS = ("R_tc", "T_bat_ref", "C_bat_As", "kappa", "hA_eng", "T_open", "k_rad", "Q_rad_max", "eps_hc", "cp_air",

@@ -10,6 +10,8 @@ from calib.errors import ScenarioError
 from calib.model.cycles import Cycle, load_cycle
 
 FORMULATIONS = ("baseline", "thermal", "thermal_cabin")
+#: Terminal conditions on the thermal states (``DPScenario.terminal``).
+TERMINALS = ("free", "match", "valued")
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -22,6 +24,16 @@ class DPScenario:
     cycle: bundled cycle name or CSV path; ``duration_s`` truncates it (None: whole cycle).
     cab_lb_offset: the cabin lower bound is the 1500-W reference trajectory minus this (degC).
     soc_tol: tolerance of the charge-sustaining check on re-simulated results (``SOC_N >= SOC_0 - soc_tol``).
+    terminal: the terminal condition on coolant and cabin (every formulation keeps ``SOC_N >= SOC_0``):
+
+      * ``"valued"`` (default): a terminal cost equal to minus the fuel equivalent of the heat gained in
+        coolant (and cabin, where it is a state) over the drive (:func:`calib.model.simulate.fuel_equivalents_g`,
+        the valuation of the corrected fuel), so with ``SOC_N`` held at ``SOC_0`` the DP minimises the
+        corrected fuel of its trajectory;
+      * ``"match"``: final coolant (and, with the cabin as a state, cabin) at least the rule-based run's
+        (``T_cl_final_min`` / ``T_cab_final_min``; None: those of the untuned rule-based controller);
+      * ``"free"``: the paper's: final coolant free; Thermal-Cabin-DP's final cabin at least the 1500-W
+        reference's, as a soft cost of ``cab_terminal_g_per_K`` per kelvin below it.
     """
 
     cycle: str = "artemis_urban"
@@ -41,6 +53,13 @@ class DPScenario:
     duration_s: float | None = None
     soc_tol: float = 1e-3
     cab_terminal_g_per_K: float = 10.0
+    terminal: str = "valued"
+    T_cl_final_min: float | None = None
+    T_cab_final_min: float | None = None
+
+    def __post_init__(self):
+        if self.terminal not in TERMINALS:
+            raise ScenarioError(f"terminal {self.terminal!r}: choose one of {', '.join(TERMINALS)}")
 
     @classmethod
     def from_dict(cls, d: dict) -> "DPScenario":

@@ -13,14 +13,15 @@ import numpy as np
 
 from calib.model.cycles import Cycle
 from calib.errors import ScenarioError
-from calib.model.equations import IDLE, OFF, ON, f_cold, radiator, traction_power
+from calib.model.equations import IDLE, OFF, ON, engine_bay_loss, f_cold, radiator, traction_power
+from calib.model.simulate import fuel_equivalents_g
 
-from ..dp.engine import DPProblem, DPResult, backward_pass, forward_pass
-from .layout import (LEVEL_TOL, PENALTY_G_PER_STEP, _C_CH, _C_CHI, _C_NQ, _C_NX, _C_PEN, _C_SH, _C_SHI,
+from optimize.dp.engine import DPProblem, DPResult, backward_pass, forward_pass
+from optimize.formulations.layout import (LEVEL_TOL, PENALTY_G_PER_STEP, _C_CH, _C_CHI, _C_NQ, _C_NX, _C_PEN, _C_SH, _C_SHI,
                      _C_SLO, _C_TAMB, _C_TBAT, _C_TH, _C_THI, _C_TLO, _C_TS, _C_WBL, _MS, _T_SOC0,
                      pack_params)
-from .scenario import DPGrids, DPScenario, _grid
-from .transition import build_tables, hev_precompute, hev_transition
+from optimize.formulations.scenario import DPGrids, DPScenario, _grid
+from optimize.formulations.transition import build_tables, hev_precompute, hev_transition
 
 
 
@@ -107,13 +108,39 @@ def _mp(params):
     return params.model_params() if hasattr(params, "model_params") else params
 
 
-def reference_cabin(params, cycle: Cycle, scen: DPScenario) -> np.ndarray:
-    """Cabin trajectory (N+1,) under a constant ``Q_heat`` demand (heater-limited; rule-based coolant)."""
+def reference_run(params, cycle: Cycle, scen: DPScenario):
+    """The (untuned) rule-based controller under a constant ``Q_heat`` demand: its cabin trajectory is
+    the cabin reference, its final states the default targets of the ``match`` terminal condition."""
     from calib.model.simulate import simulate
 
-    res = simulate(params, cycle, T_amb=scen.T_amb, soc0=scen.soc0, T_cl0=scen.T_cl0, T_cab0=scen.T_cab0,
-                   Q_heat=scen.Q_heat)
-    return res.T_cab.copy()
+    return simulate(params, cycle, T_amb=scen.T_amb, soc0=scen.soc0, T_cl0=scen.T_cl0, T_cab0=scen.T_cab0,
+                    Q_heat=scen.Q_heat)
+
+
+def reference_cabin(params, cycle: Cycle, scen: DPScenario) -> np.ndarray:
+    """Cabin trajectory (N+1,) under a constant ``Q_heat`` demand (heater-limited; rule-based coolant)."""
+    return reference_run(params, cycle, scen).T_cab.copy()
+
+
+def _terminal_cost(mp, scen: DPScenario, nx: int, cab_soft=None):
+    """Terminal cost phi(X) on grid points X (n, nx) for the scenario's terminal condition."""
+    if scen.terminal == "valued":
+        if nx == 1:
+            return None
+
+        # Heat only: the charge is held by the terminal set SOC_N >= SOC_0. Crediting charge above SOC_0 at
+        # the corrected fuel's rate would be exploited: the engine's marginal efficiency exceeds the best
+        # average efficiency that rate assumes (measured: Thermal-DP then charges to the SOC ceiling and
+        # "saves" 50 g of corrected fuel).
+        def phi(X):
+            eq = fuel_equivalents_g(mp, scen.soc0, scen.soc0, scen.T_cl0, X[:, 1], scen.T_cab0,
+                                    X[:, 2] if nx == 3 else scen.T_cab0)
+            return -(eq["coolant_g"] + eq["cabin_g"]) * np.ones(X.shape[0])
+        return phi
+    if scen.terminal == "free" and cab_soft is not None:
+        T_term, rate = cab_soft
+        return lambda X: rate * np.maximum(T_term - X[:, 2], 0.0)  # noqa: E731
+    return None
 
 
 def _power_controls(mp, grids: DPGrids) -> np.ndarray:
@@ -130,9 +157,23 @@ def _traction(mp, cyc: Cycle) -> np.ndarray:
 
 def _t_cl_tables(mp, tclg, T_amb):
     fcl = np.array([f_cold(mp, t) for t in tclg])
-    T_com = T_amb + mp.kappa * (tclg - T_amb)
-    loss = mp.hA_eng * (tclg - T_com) + np.array([radiator(mp, t) for t in tclg])
+    loss = np.array([engine_bay_loss(mp.hA_eng, mp.kappa, t, T_amb)[0] + radiator(mp, t) for t in tclg])
     return fcl, loss
+
+
+def dp_objective(params, sim, scen: DPScenario, nx: int, T_cab_terminal_min: float | None = None) -> float:
+    """The objective a formulation with ``nx`` states minimises, evaluated on any simulated run ``sim``:
+    fuel plus the scenario's terminal cost at its final state (the ``match`` bounds and ``SOC_N >= SOC_0``
+    are constraints, not costs). Compares strategies on the DP's own terms: a DP whose feasible set
+    contains another strategy's run has an objective at most that run's, up to grid error."""
+    cab_soft = None
+    if nx == 3 and T_cab_terminal_min is not None:
+        cab_soft = (float(T_cab_terminal_min), float(scen.cab_terminal_g_per_K))
+    phi = _terminal_cost(_mp(params), scen, nx, cab_soft)
+    if phi is None:
+        return float(sim.fuel_g)
+    X = np.array([[sim.soc[-1], sim.T_cl[-1], sim.T_cab[-1]]])
+    return float(sim.fuel_g + phi(X)[0])
 
 
 @dataclass
@@ -162,7 +203,6 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
     extra = {}
     w = np.zeros((N, 3))
     w[:, 0] = P_trac
-    terminal = None
     grid_list = [socg]
     bounds = [(scen.soc0, None)]
     x0 = [scen.soc0]
@@ -173,10 +213,17 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
         bounds.append((None, None))
         x0.append(scen.T_cl0)
     if nx >= 2:
-        ref = reference_cabin(params, cyc, scen)
+        rref = reference_run(params, cyc, scen)
+        ref = rref.T_cab.copy()
         w[:, 1] = ref[:-1]
         extra["T_cab_ref_final"] = float(ref[-1])
         extra["T_cab_ref_mean"] = float(np.mean(ref))
+        if scen.terminal == "match":
+            t_cl = scen.T_cl_final_min if scen.T_cl_final_min is not None else float(rref.T_cl[-1])
+            t_cab = scen.T_cab_final_min if scen.T_cab_final_min is not None else float(rref.T_cab[-1])
+            bounds[1] = (t_cl, None)
+            extra.update(T_cl_final_min=t_cl, T_cab_final_min=t_cab)
+    cab_soft = None
     if nx == 3:
         lb = ref - scen.cab_lb_offset
         lb[0] = min(lb[0], scen.T_cab0)
@@ -189,17 +236,16 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
         if tcabg[-1] < hi - 1e-9:
             tcabg = np.append(tcabg, tcabg[-1] + grids.tcab)
         grid_list.append(tcabg)
-        bounds.append((None, None))
-        T_term = float(ref[-1])
-        h_cab = float(tcabg[1] - tcabg[0])
-        rate = float(scen.cab_terminal_g_per_K)
-        terminal = lambda X: rate * np.maximum(T_term - X[:, 2], 0.0)  # noqa: E731
+        bounds.append((t_cab, None) if scen.terminal == "match" else (None, None))
+        cab_soft = (float(ref[-1]), float(scen.cab_terminal_g_per_K))
         x0.append(scen.T_cab0)
         Q = _grid(scen.Q_heat_min, scen.Q_heat_max, grids.qheat)
         extra.update(T_cab_lb_min=float(np.min(lb)), T_cab_ub=float(tcabg[-1]),
                      T_cab_terminal_min=float(ref[-1]))
     else:
         Q = np.array([scen.Q_heat if heater is None else heater])
+    terminal = _terminal_cost(mp, scen, nx, cab_soft)
+    extra["terminal"] = scen.terminal
     nq = Q.size
     controls = np.column_stack([np.repeat(pc, nq, axis=0), np.tile(Q, pc.shape[0])])
     cfg = np.zeros(16)
@@ -224,7 +270,7 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
 
 def _solve(b: _Built, engine: str):
     if engine == "fused" and b.prob.n_x >= 2:
-        from .fused import backward_pass_fused
+        from optimize.formulations.fused import backward_pass_fused
 
         vf = backward_pass_fused(b.prob)
     else:

@@ -6,9 +6,10 @@ import math
 import numpy as np
 from numba import njit
 
-from calib.model.equations import IDLE, OFF, battery_ocv_r, fuel_map, power_split
+from calib.model.equations import (IDLE, OFF, battery_current, battery_ocv_r, cabin_heat_rate, coolant_heat_rate,
+                                   engine_bay_loss, fuel_map, heater_core_limit, power_split, radiator_heat)
 
-from .layout import (_A_BIG, _A_FCL, _A_FCLG, _A_LOSSG, _A_RINT, _A_SOCBP, _A_SOCBPR, _A_TFCL, _A_UOC, _CBAT,
+from optimize.formulations.layout import (_A_BIG, _A_FCL, _A_FCLG, _A_LOSSG, _A_RINT, _A_SOCBP, _A_SOCBPR, _A_TFCL, _A_UOC, _CBAT,
                      _CCAB, _CENG, _CP, _C_CH, _C_CHI, _C_NQ, _C_NX, _C_PEN, _C_SH, _C_SHI, _C_SLO, _C_TAMB,
                      _C_TBAT, _C_TH, _C_THI, _C_TLO, _C_TS, _C_WBL, _EPS, _GAMMA, _HA, _KAPPA, _KRAD, _LHV,
                      _MS0, _QRADMAX, _QSUN, _RECIRC, _R_TC, _TBREF, _TOPEN, _T_OK, _T_PBAT, _T_PE, _T_SOC0,
@@ -45,10 +46,9 @@ def build_tables(mp, pc, socg, P_trac, Ts, T_bat):  # pragma: no cover - compile
             for i in range(nsoc):
                 sn = np.nan
                 if ok:
-                    # calib.model.equations.battery's current, with U_oc and R_int of the node precomputed
-                    disc = Us[i] * Us[i] - 4.0 * Rs[i] * P_bat
-                    if disc >= 0.0:
-                        I = 2.0 * P_bat / (Us[i] + math.sqrt(disc))
+                    # U_oc and R_int of the node precomputed
+                    I = battery_current(Us[i], Rs[i], P_bat)
+                    if I == I:
                         sn = socg[i] - I * Ts / mp.C_bat_As
                 out[k, ip, _T_SOC0 + i] = sn
     return out
@@ -72,11 +72,7 @@ def _soc_next(p, soc, P_bat, Ts):
     """Off-grid SOC step (forward pass): calib.model.equations.battery with the tables of p; NaN if no real root."""
     U = np.interp(soc, _arr(p, _A_SOCBP), _arr(p, _A_UOC))
     R = np.interp(soc, _arr(p, _A_SOCBPR), _arr(p, _A_RINT)) * math.exp(-p[_MS0 + _R_TC] * (p[_C_TBAT] - p[_MS0 + _TBREF]))
-    disc = U * U - 4.0 * R * P_bat
-    if disc < 0.0:
-        return np.nan
-    I = 2.0 * P_bat / (U + math.sqrt(disc))
-    return soc - I * Ts / p[_MS0 + _CBAT]
+    return soc - battery_current(U, R, P_bat) * Ts / p[_MS0 + _CBAT]
 
 
 @njit(cache=True)
@@ -113,20 +109,14 @@ def hev_transition(k, x, u, w_k, p, tab, iu, ix, x_next):  # pragma: no cover - 
         loss = p[int(p[_A_LOSSG]) + ix[1]]
     else:
         fcl = np.interp(T_cl, _arr(p, _A_TFCL), _arr(p, _A_FCL))
-        T_com = T_amb + p[_MS0 + _KAPPA] * (T_cl - T_amb)
-        q_rad = 0.0
-        if T_cl > p[_MS0 + _TOPEN]:
-            q_rad = p[_MS0 + _KRAD] * (T_cl - p[_MS0 + _TOPEN])
-            if q_rad > p[_MS0 + _QRADMAX]:
-                q_rad = p[_MS0 + _QRADMAX]
-        loss = p[_MS0 + _HA] * (T_cl - T_com) + q_rad
+        q_air, _ = engine_bay_loss(p[_MS0 + _HA], p[_MS0 + _KAPPA], T_cl, T_amb)
+        loss = q_air + radiator_heat(p[_MS0 + _KRAD], p[_MS0 + _TOPEN], p[_MS0 + _QRADMAX], T_cl)
     W_f = wf * fcl
     if nx == 3:
         T_cab = x[2]
     else:
         T_cab = w_k[1]
-    T_in = p[_MS0 + _RECIRC] * T_cab + (1.0 - p[_MS0 + _RECIRC]) * T_amb
-    q_lim = p[_MS0 + _EPS] * p[_C_WBL] * p[_MS0 + _CP] * (T_cl - T_in)
+    q_lim = heater_core_limit(p[_MS0 + _EPS], p[_C_WBL], p[_MS0 + _CP], p[_MS0 + _RECIRC], T_cl, T_cab, T_amb)
     q = u[2]
     if q > q_lim:
         q = q_lim
@@ -134,15 +124,14 @@ def hev_transition(k, x, u, w_k, p, tab, iu, ix, x_next):  # pragma: no cover - 
         q = 0.0
     Q_fuel = p[_MS0 + _LHV] * W_f
     P_e = tab[ip, _T_PE]
-    Q_exh = p[_MS0 + _GAMMA] * (Q_fuel - P_e)
-    tn = T_cl + Ts * (Q_fuel - P_e - Q_exh - loss - q) / p[_MS0 + _CENG]
+    tn = T_cl + Ts * coolant_heat_rate(p[_MS0 + _GAMMA], Q_fuel, P_e, loss, q)[0] / p[_MS0 + _CENG]
     x_next[1] = tn
     if tn < p[_C_TLO]:
         pen += (p[_C_TLO] - tn) / p[_C_TH]
     elif tn > p[_C_THI]:
         pen += (tn - p[_C_THI]) / p[_C_TH]
     if nx == 3:
-        tc = T_cab + Ts * (q + p[_MS0 + _UACAB] * (T_amb - T_cab) + p[_MS0 + _QSUN]) / p[_MS0 + _CCAB]
+        tc = T_cab + Ts * cabin_heat_rate(p[_MS0 + _UACAB], p[_MS0 + _QSUN], T_cab, T_amb, q)[0] / p[_MS0 + _CCAB]
         x_next[2] = tc
         if tc < w_k[2]:
             pen += (w_k[2] - tc) / p[_C_CH]
