@@ -178,7 +178,9 @@ def default_parameters() -> "ParameterSet":
         _p("LHV_J_per_g", 42.6e3, "J/g", 40e3, 45e3, "gasoline, 42.6 MJ/kg", "lower heating value", vary=False),
         # engine coolant
         _p("C_eng_J_per_K", 80e3, "J/K", 20e3, 400e3, "spec/model.md s.5 (prior)", "engine+coolant heat capacity"),
-        _p("gamma_exh", 0.5, "dimensionless", 0.2, 0.8, "spec/model.md s.5 (prior)",
+        _p("gamma_exh", 0.35, "dimensionless", 0.2, 0.8,
+           "NREL ADVISOR fc_ex_pwr_frac 0.3-0.4 (waste heat to exhaust), mid value; checked against the EPA "
+           "warm and cold FTP (docs/cold_start.md)",
            "fraction of fuel heat (not work) leaving with the exhaust"),
         _p("hA_eng_W_per_K", 25.0, "W/K", 1.0, 300.0, "spec/model.md s.5 (prior)", "engine-to-compartment"),
         _p("kappa", 0.3, "dimensionless", 0.0, 0.9, "spec/model.md s.5 (prior)",
