@@ -69,7 +69,7 @@ def test_soak_cools_towards_ambient_without_heater():
 
 def test_cold_test_heater_waits_for_warm_coolant():
     mp = default_parameters().model_params()
-    c = ftp.ColdTestController(mp, RuleParams(Q_heat_W=1.0), T_amb=-6.7)
+    c = ftp.ColdTestController(mp, RuleParams(), T_amb=-6.7)
     assert c(0, 0.6, ftp.BLOWER_RAMP_DEGC[0] - 1.0, -6.7, 0.0)[2] == 0.0
     q_full = c(0, 0.6, 70.0, -6.7, 0.0)[2]
     assert q_full == pytest.approx(mp.eps_hc * ftp.BLOWER_MAX_KG_PER_S * mp.cp_air * 76.7)
@@ -87,3 +87,12 @@ def test_ftp_bags_match_the_udds_phases():
     w = ftp.run_ftp(default_parameters(), ftp.WARM_FTP)
     assert len(w.distance_m) == 4 and not np.any(w.runs[0].flows["Q_heat"] > 0)
     assert r.composite_mpg < w.composite_mpg
+
+
+def test_engine_on_rule_follows_the_actual_heat_request():
+    # a climate control that switches the heater off releases the engine
+    c = _ctrl(1500.0)
+    c.heat_request_W = 0.0
+    assert c(0, 0.6, 45.0, 10.0, 0.0)[0] == OFF
+    c.reset()  # back to the controller's own fixed demand
+    assert c(0, 0.6, 45.0, 10.0, 0.0)[0] == IDLE

@@ -42,6 +42,8 @@ BAG1_S = 505
 SOAK_S = 600
 #: Weights of the cold-start and hot-start halves.
 W_COLD, W_HOT = 0.43, 0.57
+#: Heat request of "maximum heat" (W): more than the core passes, so the core and blower limit it.
+HEATER_MAX_W = 8000.0
 #: Cabin set point of the automatic climate control in the cold test (72 degF).
 T_SET_DEGC = 22.2
 #: Blower air flow at the highest fan speed in defrost mode, outside air (kg/s; about 300 m^3/h).
@@ -160,10 +162,14 @@ class ColdTestController:
         return BLOWER_MAX_KG_PER_S * min(max((T_cl - lo) / (hi - lo), 0.0), 1.0)
 
     def __call__(self, k, soc, T_cl, T_cab, P_trac, Ts=1.0):
-        e, pb, _ = self.rule(k, soc, T_cl, T_cab, P_trac, Ts)
         p = self.mp
+        # maximum heat while the cabin is below the set point (the climate control, not the blower
+        # warm-up control, decides that heat is requested)
+        heat = T_cab < T_SET_DEGC
         T_in = p.recirc * T_cab + (1.0 - p.recirc) * self.T_amb
-        q = p.eps_hc * self.blower(T_cl) * p.cp_air * max(T_cl - T_in, 0.0) if T_cab < T_SET_DEGC else 0.0
+        q = p.eps_hc * self.blower(T_cl) * p.cp_air * max(T_cl - T_in, 0.0) if heat else 0.0
+        self.rule.heat_request_W = HEATER_MAX_W if heat else 0.0
+        e, pb, _ = self.rule(k, soc, T_cl, T_cab, P_trac, Ts)
         return e, pb, q
 
 
@@ -196,9 +202,7 @@ def run_ftp(params, conditions: FtpConditions = COLD_FTP, *, rule_params=None, s
     T = conditions.T_soak_degC
     rp = rule_params or RuleParams()
     if conditions.heater:
-        # the rule-based controller sees heat requested (its engine-on rule); the request itself comes
-        # from the climate control
-        ctrl = ColdTestController(mp, replace(rp, Q_heat_W=max(rp.Q_heat_W, 1.0)), T)
+        ctrl = ColdTestController(mp, rp, T)
         kw = dict(T_amb=T, T_bat=T, W_bl=BLOWER_MAX_KG_PER_S)
     else:
         ctrl = RuleBasedController(mp, replace(rp, Q_heat_W=0.0))

@@ -55,6 +55,9 @@ class RuleBasedController:
     def reset(self) -> None:
         self.on = False
         self.on_time = 0.0
+        # heat the climate control asks for this step; a wrapper that sets its own request (a cabin
+        # thermostat) assigns it before calling, so the engine-on rule sees the real request
+        self.heat_request_W = self.rp.Q_heat_W
 
     def describe(self) -> str:
         return "rule-based " + ", ".join(f"{k}={v:g}" for k, v in self.rp.to_dict().items())
@@ -88,4 +91,4 @@ class RuleBasedController:
     def keep_running(self, T_cl) -> bool:
         """Whether the thermal rules forbid stopping the engine at coolant temperature ``T_cl``."""
         r = self.rp
-        return T_cl < r.T_idle_degC or (r.Q_heat_W > 0.0 and T_cl < r.T_heat_on_degC)
+        return T_cl < r.T_idle_degC or (self.heat_request_W > 0.0 and T_cl < r.T_heat_on_degC)

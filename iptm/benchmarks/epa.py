@@ -52,9 +52,10 @@ def _causes(ps):
     f_steep = ps.with_values(f_cl=[2.0, 1.6, 1.2, 1.0])
     f_steep.param("f_cl").x = [-10.0, 20.0, 50.0, 70.0]
     cases = [
-        ("previous default: gamma_exh 0.5, engine may stop at 40 degC with heat on", ps.with_values(gamma_exh=0.5),
-         no_rule, None),
+        ("previous default: gamma_exh 0.5, Q_rad_max 30 kW, engine may stop at 40 degC with heat on",
+         ps.with_values(gamma_exh=0.5, Q_rad_max_W=30e3), no_rule, None),
         ("gamma_exh 0.5 with the engine-on rule", ps.with_values(gamma_exh=0.5), None, None),
+        ("gamma_exh 0.35 with the engine-on rule", ps.with_values(gamma_exh=0.35), None, None),
         ("default without the engine-on rule", ps, no_rule, None),
         ("default", ps, None, None),
         ("default, blower at full flow from the start (no warm-up control)", ps, None, (-274.0, -273.0)),
