@@ -1,10 +1,10 @@
 """The EPA Federal Test Procedure (FTP-75) driven by the model, warm (75 degF) and cold (20 degF).
 
 The FTP is the UDDS driven from a soaked start, split into bag 1 (the first 505 s, cold start) and bag 2
-(the remaining 867 s), followed by a 10-minute soak with the engine off and a hot start: bag 3 repeats the
-first 505 s; hybrids also drive bag 4 (the remaining 867 s again). Bag fuel ``Y_i`` and distance ``D_i``
-give the weighted fuel per distance (40 CFR 86.144 / 600.113 weighting of the cold- and hot-start
-halves, 0.43 and 0.57)::
+(the remaining 864 s of the bundled trace), followed by a 10-minute soak with the engine off and a hot
+start: bag 3 repeats the first 505 s; hybrids also drive bag 4 (the remaining 864 s again). Bag fuel
+``Y_i`` and distance ``D_i`` give the weighted fuel per distance (40 CFR 86.144 / 600.113 weighting of
+the cold- and hot-start halves, 0.43 and 0.57)::
 
     3 bags: 0.43 (Y1 + Y2) / (D1 + D2) + 0.57 (Y3 + Y2) / (D3 + D2)
     4 bags: 0.43 (Y1 + Y2) / (D1 + D2) + 0.57 (Y3 + Y4) / (D3 + D4)
@@ -16,9 +16,10 @@ three-bag FTP.
 Conditions (docs/cold_start.md gives the sources):
 
 - warm: everything soaked at 23.9 degC (75 degF; the FTP allows 68-86 degF), heater off;
-- cold: everything (coolant, cabin, battery) soaked at -6.7 degC, the heater and defroster on for the
-  whole test at maximum heat with the blower at maximum on outside air (40 CFR 86.230-11 and 1066.710(c));
-  the model's heater request is then the core's limit :data:`HEATER_MAX_W` at :data:`BLOWER_MAX_KG_PER_S`.
+- cold: everything (coolant, cabin, battery) soaked at -6.7 degC; heater and defroster on for the whole
+  test (40 CFR 86.230-11, 1066.710(c)): automatic climate control at 72 degF in defrost mode on outside
+  air, i.e. maximum heat while the cabin is below the set point, the blower held back by the system's
+  warm-up control while the coolant is cold (:class:`ColdTestController`).
 
 The car is driven by the rule-based controller (:mod:`calib.model.rulebased`) with its default thresholds,
 starting at SOC 0.6; each bag's fuel is corrected for the change of battery charge over that bag with the
@@ -175,7 +176,7 @@ class ColdTestController:
 
 def soak(mp, T_cl, T_cab, T_amb, seconds=SOAK_S, Ts=1.0):
     """Coolant and cabin temperatures after ``seconds`` parked with the engine and heater off."""
-    for _ in range(int(round(seconds / Ts))):
+    for _ in range(round(seconds / Ts)):
         dT_cl = coolant_flows(mp, T_cl, T_amb, 0.0, 0.0, 0.0)[0]
         dT_cab = cabin_rate(mp, T_cab, T_amb, 0.0)[0]
         T_cl, T_cab = T_cl + Ts * dT_cl, T_cab + Ts * dT_cab
@@ -203,10 +204,10 @@ def run_ftp(params, conditions: FtpConditions = COLD_FTP, *, rule_params=None, s
     rp = rule_params or RuleParams()
     if conditions.heater:
         ctrl = ColdTestController(mp, rp, T)
-        kw = dict(T_amb=T, T_bat=T, W_bl=BLOWER_MAX_KG_PER_S)
+        kw = {"T_amb": T, "T_bat": T, "W_bl": BLOWER_MAX_KG_PER_S}
     else:
         ctrl = RuleBasedController(mp, replace(rp, Q_heat_W=0.0))
-        kw = dict(T_amb=T, T_bat=T)
+        kw = {"T_amb": T, "T_bat": T}
 
     cold = simulate(params, udds, ctrl, soc0=soc0, T_cl0=T, T_cab0=T, **kw)
     T_cl, T_cab = soak(mp, cold.T_cl[-1], cold.T_cab[-1], T)
