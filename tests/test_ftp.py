@@ -96,3 +96,11 @@ def test_engine_on_rule_follows_the_actual_heat_request():
     assert c(0, 0.6, 45.0, 10.0, 0.0)[0] == OFF
     c.reset()  # back to the controller's own fixed demand
     assert c(0, 0.6, 45.0, 10.0, 0.0)[0] == IDLE
+
+
+def test_ftp_comparison_table_has_both_tests():
+    from calib.model import ftp_comparison
+
+    df = ftp_comparison(default_parameters())
+    assert list(df["test"]) == [ftp.WARM_FTP.name, ftp.COLD_FTP.name]
+    assert list(df["epa_mpg"]) == [78.0, 56.3]
