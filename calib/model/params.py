@@ -179,8 +179,8 @@ def default_parameters() -> "ParameterSet":
         # engine coolant
         _p("C_eng_J_per_K", 80e3, "J/K", 20e3, 400e3, "spec/model.md s.5 (prior)", "engine+coolant heat capacity"),
         _p("gamma_exh", 0.4, "dimensionless", 0.2, 0.8,
-           "NREL ADVISOR fc_ex_pwr_frac (waste heat to exhaust) 0.40 at low engine speed (0.30 at high); checked "
-           "against the EPA warm and cold FTP (docs/cold_start.md)",
+           "NREL ADVISOR FC_SI95.m fc_ex_pwr_frac (waste heat to exhaust) 0.40 at low engine speed (0.30 at high); "
+           "checked against the EPA warm and cold FTP (docs/cold_start.md)",
            "fraction of fuel heat (not work) leaving with the exhaust"),
         _p("hA_eng_W_per_K", 25.0, "W/K", 1.0, 300.0, "spec/model.md s.5 (prior)", "engine-to-compartment"),
         _p("kappa", 0.3, "dimensionless", 0.0, 0.9, "spec/model.md s.5 (prior)",
