@@ -63,10 +63,11 @@ class HvacController:
         return f"{self.rule.describe()}; cabin thermostat T_set={self.T_set:g} degC"
 
     def __call__(self, k, soc, T_cl, T_cab, P_trac, Ts=1.0):
-        e, pb, _ = self.rule(k, soc, T_cl, T_cab, P_trac, Ts)
         q = min(max(self.Q_base + self.K * (self.T_set - T_cab), 0.0), self.Q_max)
         if any(t0 <= k * Ts < t1 for t0, t1 in self.heater_off):
             q = 0.0
+        self.rule.heat_request_W = q
+        e, pb, _ = self.rule(k, soc, T_cl, T_cab, P_trac, Ts)
         return e, pb, q
 
 

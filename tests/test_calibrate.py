@@ -14,7 +14,8 @@ from calib.model.simulate import simulate
 from calib.synth import Scenario, draw_truth, synthesise
 from calib.fit.validate import plot_validation, replay
 
-FIT = [Scenario("fit_cold", "udds", -10.0, 0.60, -10.0, -10.0, T_bat=-5.0, with_bay_temp=True),
+FIT = [Scenario("fit_cold", "udds", -10.0, 0.60, -10.0, -10.0, T_bat=-5.0, with_bay_temp=True,
+                heater_off=[(800.0, 1100.0)]),  # identification protocol (logs/README.md)
        Scenario("fit_warm", "hwfet", -5.0, 0.55, 65.0, 15.0, T_bat=5.0),
        Scenario("fit_hot", "us06", -3.0, 0.60, 80.0, 18.0, T_bat=8.0)]
 HELD_OUT = Scenario("held_out", "nycc", -8.0, 0.58, 20.0, 5.0, T_bat=0.0)

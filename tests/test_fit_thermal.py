@@ -8,7 +8,8 @@ from calib.ingest import to_drivelog
 from calib.model.params import default_parameters
 from calib.synth import Scenario, draw_truth, synthesise
 
-FIT = [Scenario("cold", "udds", -10.0, 0.60, -10.0, -10.0, T_bat=-5.0, with_bay_temp=True),
+FIT = [Scenario("cold", "udds", -10.0, 0.60, -10.0, -10.0, T_bat=-5.0, with_bay_temp=True,
+                 heater_off=[(800.0, 1100.0)]),  # identification protocol (logs/README.md)
        Scenario("warm", "hwfet", -5.0, 0.55, 65.0, 15.0, T_bat=5.0),
        Scenario("hot", "us06", -3.0, 0.60, 80.0, 18.0, T_bat=8.0)]
 THERMAL = ("C_eng_J_per_K", "gamma_exh", "hA_eng_W_per_K", "kappa", "T_open_degC", "k_rad_W_per_K")

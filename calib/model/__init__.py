@@ -12,6 +12,7 @@ from calib.model.rulebased import RuleBasedController, RuleParams
 from calib.model.simulate import SimResult, fuel_equivalents_g, simulate
 from calib.model.fuelmap import FuelMap, apply_fuel_map, optimal_operating_line, read_fuel_map
 from calib.model.epa import epa_comparison, tune_fuel_scale
+from calib.model.ftp import COLD_FTP, WARM_FTP, FtpResult, ftp_comparison, run_ftp, weighted_fuel_per_distance
 
 __all__ = [
     "OFF", "IDLE", "ON", "OUTPUTS", "INFEASIBLE_REASONS",
@@ -23,4 +24,5 @@ __all__ = [
     "SimResult", "simulate", "fuel_equivalents_g",
     "FuelMap", "read_fuel_map", "optimal_operating_line", "apply_fuel_map",
     "epa_comparison", "tune_fuel_scale",
+    "WARM_FTP", "COLD_FTP", "FtpResult", "run_ftp", "ftp_comparison", "weighted_fuel_per_distance",
 ]

@@ -204,14 +204,18 @@ def default_parameters() -> "ParameterSet":
         _p("LHV_J_per_g", 42.6e3, "J/g", 40e3, 45e3, "gasoline, 42.6 MJ/kg", "lower heating value", vary=False),
         # engine coolant
         _p("C_eng_J_per_K", 80e3, "J/K", 20e3, 400e3, "docs/model.md s.5 (prior)", "engine+coolant heat capacity"),
-        _p("gamma_exh", 0.5, "dimensionless", 0.2, 0.8, "docs/model.md s.5 (prior)",
+        _p("gamma_exh", 0.4, "dimensionless", 0.2, 0.8,
+           "NREL ADVISOR FC_SI95.m fc_ex_pwr_frac (waste heat to exhaust) 0.40 at low engine speed (0.30 at high); "
+           "checked against the EPA warm and cold FTP (docs/cold_start.md)",
            "fraction of fuel heat (not work) leaving with the exhaust"),
         _p("hA_eng_W_per_K", 25.0, "W/K", 1.0, 300.0, "docs/model.md s.5 (prior)", "engine-to-compartment"),
         _p("kappa", 0.3, "dimensionless", 0.0, 0.9, "docs/model.md s.5 (prior)",
            "compartment temperature: T_com = T_amb + kappa (T_cl - T_amb)"),
         _p("T_open_degC", 88.0, "degC", 70.0, 105.0, "docs/model.md s.5 (prior)", "thermostat opening"),
         _p("k_rad_W_per_K", 1500.0, "W/K", 100.0, 20000.0, "docs/model.md s.5 (prior)", "radiator gain"),
-        _p("Q_rad_max_W", 30e3, "W", 1e3, 100e3, "docs/model.md s.5 (prior)", "radiator capacity"),
+        _p("Q_rad_max_W", 50e3, "W", 1e3, 100e3,
+           "iptm prior: sustained 30 kW engine power with gamma_exh 0.4 must not saturate the radiator "
+           "(docs/model.md s.5 prior 30 kW assumed gamma_exh 0.5)", "radiator capacity"),
         # heater core and cabin
         _p("eps_hc", 0.7, "dimensionless", 0.2, 1.0, "NREL ADVISOR heater effectiveness", "heater-core effectiveness"),
         _p("W_bl_kg_per_s", 0.06, "kg/s", 0.01, 0.3, "iptm prior (mid blower)", "blower air mass flow"),

@@ -3,8 +3,10 @@
 A load-levelling controller in the style of Liu & Peng (2005): the engine turns on above a wheel-power
 threshold, below a SOC threshold, or when the battery alone cannot meet the demand; when on it runs at
 demand plus a SOC-recovery term, never below a load-levelling minimum; it turns off below a lower threshold
-(hysteresis) once it has run a minimum time. Thermal rule (Tashiro 2016): below ``T_idle_degC`` the engine
-idles rather than stopping. The heater requests a fixed demand.
+(hysteresis) once it has run a minimum time. Thermal rules: below ``T_idle_degC`` the engine idles rather
+than stopping (Tashiro 2016), and while heat is requested it keeps running until the coolant reaches
+``T_heat_on_degC`` (the production Prius keeps its engine on while the coolant is cold and the heater or
+defroster is on; docs/cold_start.md). The heater requests a fixed demand.
 
 It lives in ``calib`` because it is also the plant's own controller when logs are synthesised; the
 per-scenario threshold tuning lives in :mod:`optimize.tuning`.
@@ -28,6 +30,7 @@ class RuleParams:
     P_e_min_W: float = 10000.0  # load levelling: engine never runs below this (W)
     t_min_on_s: float = 8.0  # minimum on-time
     T_idle_degC: float = 40.0  # thermal rule: idle instead of off below this coolant temperature
+    T_heat_on_degC: float = 55.0  # heat requested: the engine keeps running below this coolant temperature
     Q_heat_W: float = 1500.0  # heater demand
 
     def to_dict(self) -> dict:
@@ -54,6 +57,9 @@ class RuleBasedController:
         """Forget the engine state and timers (call before a new drive)."""
         self.on = False
         self.on_time = 0.0
+        # heat the climate control asks for this step; a wrapper that sets its own request (a cabin
+        # thermostat) assigns it before calling, so the engine-on rule sees the real request
+        self.heat_request_W = self.rp.Q_heat_W
 
     def describe(self) -> str:
         """The controller's name and thresholds, one line."""
@@ -83,4 +89,9 @@ class RuleBasedController:
                 return ON, P_bat_mg, r.Q_heat_W
             # hard braking while forced on: nothing left for the engine to do, so it idles
             return IDLE, 0.0, r.Q_heat_W
-        return (IDLE if T_cl < r.T_idle_degC else OFF), 0.0, r.Q_heat_W
+        return (IDLE if self.keep_running(T_cl) else OFF), 0.0, r.Q_heat_W
+
+    def keep_running(self, T_cl) -> bool:
+        """Whether the thermal rules forbid stopping the engine at coolant temperature ``T_cl``."""
+        r = self.rp
+        return T_cl < r.T_idle_degC or (self.heat_request_W > 0.0 and T_cl < r.T_heat_on_degC)

@@ -5,6 +5,7 @@ import importlib
 
 SUITES = {
     "sim": "iptm.benchmarks.sim",
+    "epa": "iptm.benchmarks.epa",
     "ingest": "iptm.benchmarks.ingest",
     "calib": "iptm.benchmarks.calib",
     "dp": "iptm.benchmarks.dp",
@@ -15,7 +16,8 @@ SUITES = {
 
 def register(sub):
     p = sub.add_parser("bench", help="run benchmarks and print time, memory and throughput",
-                       description="Benchmarks: sim (simulation speed, EPA table), ingest (30-min CAN dump), "
+                       description="Benchmarks: sim (simulation speed, EPA table), epa (default car against EPA: warm "
+                                   "cycles, warm and cold FTP), ingest (30-min CAN dump), "
                                    "calib (full calibration of bundled-size logs), dp (three DP formulations on "
                                    "paper grids), sweep (distributed study speed-up), fuzz (mutated inputs to every reader: read / recovered / "
                                    "clean error / escape counts, and random truncations of valid logs).")
