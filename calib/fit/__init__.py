@@ -8,7 +8,7 @@ Modules: :mod:`~calib.fit.toolkit` (result types, lmfit wrapper, uncertainty, id
 """
 from .toolkit import ParamEstimate, SubsystemFit
 from .driver import SUBSYSTEM_PARAMS, CalibrationResult, calibrate
-from .validate import Replay, plot_validation, replay, validate
+from .validate import Replay, diagnostics, plot_residuals, plot_validation, replay, validate
 
 __all__ = ["calibrate", "CalibrationResult", "SUBSYSTEM_PARAMS", "ParamEstimate", "SubsystemFit",
-           "replay", "validate", "Replay", "plot_validation"]
+           "replay", "validate", "Replay", "plot_validation", "diagnostics", "plot_residuals"]

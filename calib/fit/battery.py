@@ -18,7 +18,9 @@ import math
 
 import numpy as np
 
-from calib.fit.toolkit import U_OC_SE_MAX_V, ParamEstimate, SubsystemFit, inflation, judge, not_fitted, usable_logs
+from calib.fit.toolkit import (U_OC_SE_MAX_V, WEAK_INFORMED, ParamEstimate, SubsystemFit, combine_with_prior,
+                               inflation, judge, not_fitted, prior_only, usable_logs)
+from calib.model.params import prior_sd_of
 
 NEEDS = ("bat_current_A", "bat_voltage_V", "soc")
 PARAMS = ("U_oc_V", "R_int_ohm", "C_bat_Ah", "R_int_tc_per_K")
@@ -192,10 +194,27 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
     names = [n for n in PARAMS if n in allowed]
     if not names:
         return fit
-    if not use:
+    inferred = _inferred_current_rows(logs, use, base, fit) if "C_bat_Ah" in allowed else []
+    if not use and inferred:
+        fit.logs = [r["name"] for r in inferred]
+        keep = {}
+        for n in names:
+            if n != "C_bat_Ah":
+                p = base.param(n)
+                keep[n] = ParamEstimate(n, p.value, prior_sd_of(p), "prior", "not fitted: no log has battery current "
+                                        "and voltage (the tables need both)", prior=p.value, prior_sd=prior_sd_of(p),
+                                        informed=[0.0] * len(p.value) if p.is_table else 0.0)
+        fit.estimates.update(keep)
+        rows = []
+    if not use and not inferred:
         return not_fitted(fit, base, names, "no log has battery current, voltage and SOC ("
                           + "; ".join(f"{k}: {v}" for k, v in fit.skipped.items()) + ")")
-    fit.logs = [lg.label() for lg in use]
+    if not use:
+        _fit_capacity(fit, [], inferred, base)
+        return fit
+    fit.logs = [lg.label() for lg in use] + [r["name"] for r in inferred]
+    for lg in use:
+        fit.used[lg.label()] = {"current": "bat_current_A", "voltage": "bat_voltage_V", "soc": "soc"}
     T_ref = float(base["T_bat_ref_degC"])
     rows = _gather(use, T_ref)
     pU, pR = base.param("U_oc_V"), base.param("R_int_ohm")
@@ -223,15 +242,14 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
     T_all = np.concatenate([r["T"] for r in rows])
     T_span = float(np.nanmax(T_all) - np.nanmin(T_all)) if any(r["T_logged"] for r in rows) else 0.0
     tc_est = None
+    tc_sd = float(prior_sd_of(base.param("R_int_tc_per_K")))
     if "R_int_tc_per_K" in allowed:
         if not any(r["T_logged"] for r in rows):
-            fit.estimates["R_int_tc_per_K"] = ParamEstimate(
-                "R_int_tc_per_K", tc, None, "undetermined", "no battery temperature logged: tables fitted at "
-                f"T_ref assumed; coefficient left at prior", prior=tc)
+            fit.estimates["R_int_tc_per_K"] = prior_only(
+                "R_int_tc_per_K", tc, tc_sd, "no battery temperature logged: tables fitted at T_ref assumed")
         elif T_span < MIN_T_SPAN:
-            fit.estimates["R_int_tc_per_K"] = ParamEstimate(
-                "R_int_tc_per_K", tc, None, "undetermined",
-                f"battery temperature spans {T_span:.1f} K < {MIN_T_SPAN:g} K: left at prior", prior=tc)
+            fit.estimates["R_int_tc_per_K"] = prior_only(
+                "R_int_tc_per_K", tc, tc_sd, f"battery temperature spans {T_span:.1f} K < {MIN_T_SPAN:g} K")
         else:
             lo, hi = base.param("R_int_tc_per_K").bounds
             sse = lambda c: _table_fit(rows, bpU, bpR, U0, R0, c, T_ref, varyU, varyR)[4]  # noqa: E731
@@ -254,14 +272,10 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
             curv = (sse(c + h) - 2 * s0 + sse(c - h)) / h ** 2
             s2 = s0 / max(n0 - int(varyU.sum() + varyR.sum()) - 1, 1)
             se = math.sqrt(2 * s2 / curv) * inflation(segs_, 1) if curv > 0 else None
-            ok, why = judge("R_int_tc_per_K", c, se, (lo, hi))
-            if ok:
-                tc_est = c
-                fit.estimates["R_int_tc_per_K"] = ParamEstimate("R_int_tc_per_K", c, se, "estimated",
-                                                                f"battery temperature span {T_span:.0f} K", prior=tc)
-            else:
-                fit.estimates["R_int_tc_per_K"] = ParamEstimate("R_int_tc_per_K", tc, None, "undetermined",
-                                                                why, prior=tc)
+            e = combine_with_prior("R_int_tc_per_K", c, se, tc, tc_sd, f"battery temperature span {T_span:.0f} K")
+            fit.estimates["R_int_tc_per_K"] = e
+            if e.status == "estimated":
+                tc_est = float(e.value)
     tc_use = tc_est if tc_est is not None else tc
 
     # tables: every entry the data touches is an unknown (so a poorly covered neighbour left at its
@@ -316,16 +330,31 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
                        soc_min=float(socs.min()), soc_max=float(socs.max()), bat_temp_span_K=T_span)
 
     def table_est(name, vals, prior, se, vary, why, fill=None):
-        st = ["estimated" if v else "undetermined" for v in vary]
+        # per entry: the regression estimate combined with the entry's Gaussian prior (precision-weighted);
+        # entries the data does not reach are the prior (or the prior's shape joined to the estimates)
+        # with the prior sd
+        psd = np.array(prior_sd_of(base.param(name)), float)
         fill = prior if fill is None else fill
-        val = [float(v) if vary[j] else float(fill[j]) for j, v in enumerate(vals)]
-        ses = [float(s) if vary[j] else float("nan") for j, s in enumerate(se)]
-        status = "estimated" if any(vary) else "undetermined"
+        val, ses, inf, st = [], [], [], []
+        for j, v in enumerate(vals):
+            if vary[j] and np.isfinite(se[j]) and se[j] > 0:
+                w1, w0 = 1.0 / se[j] ** 2, 1.0 / psd[j] ** 2
+                val.append(float((w1 * v + w0 * prior[j]) / (w1 + w0)))
+                ses.append(float(math.sqrt(1.0 / (w1 + w0))))
+            else:
+                val.append(float(fill[j]))
+                ses.append(float(psd[j]))
+            inf.append(max(0.0, 1.0 - ses[-1] / psd[j]))
+            st.append("estimated" if inf[-1] >= WEAK_INFORMED else "weak")
+        if name == "U_oc_V":
+            val = list(np.maximum.accumulate(val))
+        status = "estimated" if "estimated" in st else "weak"
         keys = sorted(k for k in why if not isinstance(k, str))
         note = ("entries not determined: " + "; ".join(why[j] for j in keys)) if keys else ""
         if "shift" in why:
             note += ". " + why["shift"]
-        return ParamEstimate(name, val, ses, status, note, prior=list(map(float, prior)), entry_status=st)
+        return ParamEstimate(name, val, ses, status, note, prior=list(map(float, prior)), entry_status=st,
+                             prior_sd=list(map(float, psd)), informed=inf)
 
     if fitU:
         fit.estimates["U_oc_V"] = table_est("U_oc_V", U, U0, seU, varyU, whyU, fill=U_fill)
@@ -333,27 +362,49 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
         fit.estimates["R_int_ohm"] = table_est("R_int_ohm", R, R0, seR, varyR, whyR)
 
     if "C_bat_Ah" in allowed:
-        Cp = float(base["C_bat_Ah"])
-        b, sb, segs, fcap, n_cross = _capacity(rows)
-        span = max((np.nanmax(r["soc"]) - np.nanmin(r["soc"])) for r in rows)
-        if b is None or not (b > 0):
-            fit.estimates["C_bat_Ah"] = ParamEstimate("C_bat_Ah", Cp, None, "undetermined",
-                                                      "Coulomb counting gave no positive slope", prior=Cp)
-        else:
-            C = 1.0 / b
-            se = C * sb / b
-            ok, why = judge("C_bat_Ah", C, se, base.param("C_bat_Ah").bounds)
-            if ok and n_cross < 20:
-                ok, why = False, f"only {n_cross} SOC level crossings"
-            fit.metrics.update(capacity_soc_span=float(span), capacity_se_inflation=fcap,
-                               capacity_soc_crossings=n_cross)
-            if ok:
-                fit.estimates["C_bat_Ah"] = ParamEstimate("C_bat_Ah", C, se, "estimated",
-                                                          f"Coulomb counting over SOC span {span:.3f} "
-                                                          f"({n_cross} level crossings)", prior=Cp)
-            else:
-                fit.estimates["C_bat_Ah"] = ParamEstimate(
-                    "C_bat_Ah", Cp, None, "undetermined",
-                    f"Coulomb counting estimate {C:.3g} Ah not determined: {why} (SOC span {span:.3f} in 0.5 % "
-                    "steps is too short a window)", prior=Cp)
+        _fit_capacity(fit, rows, inferred, base)
     return fit
+
+
+def _fit_capacity(fit, rows, inferred, base):
+    """C_bat by Coulomb counting over the logs with current (and those with current inferred from power)."""
+    Cp = float(base["C_bat_Ah"])
+    b, sb, segs, fcap, n_cross = _capacity(rows + inferred)
+    span = max((np.nanmax(r["soc"]) - np.nanmin(r["soc"])) for r in rows + inferred)
+    Csd = float(prior_sd_of(base.param("C_bat_Ah")))
+    if b is None or not (b > 0):
+        fit.estimates["C_bat_Ah"] = prior_only("C_bat_Ah", Cp, Csd, "Coulomb counting gave no positive slope")
+    else:
+        C = 1.0 / b
+        se = C * sb / b
+        fit.metrics.update(capacity_soc_span=float(span), capacity_se_inflation=fcap,
+                           capacity_soc_crossings=n_cross)
+        src = "Coulomb counting" + (f" (current inferred from bat_power_W and the OCV/resistance tables in "
+                                    f"{len(inferred)} log(s))" if inferred else "")
+        fit.estimates["C_bat_Ah"] = combine_with_prior("C_bat_Ah", C, se, Cp, Csd,
+                                                       f"{src} over SOC span {span:.3f} ({n_cross} level crossings)")
+
+
+def _inferred_current_rows(logs, use, base, fit):
+    """Rows for Coulomb counting from logs with battery power and SOC but no current: the current is eq. 1
+    solved for I with the prior OCV/resistance tables (stated in ``fit.used``)."""
+    from calib.fit.replay import _fill, current_from_power, log_arrays
+
+    mp = base.model_params()
+    names = {lg.label() for lg in use}
+    out = []
+    for lg in logs:
+        if lg.label() in names or not lg.has("soc") or lg.has("bat_current_A"):
+            continue
+        la = log_arrays(lg, mp, cabin_balance=False)
+        if not la.battery_source:
+            continue
+        T = _fill(la.ch["bat_temp_degC"], mp.T_bat_ref)
+        I = current_from_power(mp, _fill(la.ch["soc"], 0.6), _fill(la.P_bat, 0.0), T)
+        I[~np.isfinite(la.P_bat)] = np.nan
+        out.append(dict(name=lg.label(), I=I, V=np.full(I.size, np.nan), soc=la.ch["soc"], T=T, T_logged=False,
+                        dt=lg.dt))
+        fit.used[lg.label()] = {"current": f"inferred from {la.battery_source} and the OCV/resistance tables "
+                                           "(capacity only)", "soc": "soc"}
+        fit.skipped.pop(lg.label(), None)
+    return out

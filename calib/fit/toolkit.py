@@ -41,6 +41,8 @@ class ParamEstimate:
     note: str = ""
     prior: object = None
     entry_status: list | None = None
+    prior_sd: object = None
+    informed: object = None
 
 
 @dataclass
@@ -57,10 +59,13 @@ class SubsystemFit:
     skipped: dict = field(default_factory=dict)  # log label -> why not used
     message: str = ""  # why nothing was fitted
     nuisance: dict = field(default_factory=dict)  # per-log initial states etc.
+    used: dict = field(default_factory=dict)  # log label -> what the fit used (logged or inferred inputs)
+    confounded: list = field(default_factory=list)  # [(a, b, r)] posterior |r| > CONFOUNDED
+    advice: list = field(default_factory=list)  # what drive would inform what the data did not
 
     @property
     def fitted(self) -> bool:
-        return any(e.status == "estimated" for e in self.estimates.values())
+        return any(e.status in ("estimated", "weak") for e in self.estimates.values()) and bool(self.logs)
 
 
 def usable_logs(logs, needs, subsystem, any_of=()):
@@ -105,7 +110,11 @@ def not_fitted(fit: SubsystemFit, base, names, reason):
     fit.message = reason
     for n in names:
         p = base.param(n)
-        fit.estimates[n] = ParamEstimate(n, p.value, None, "prior", f"not fitted: {reason}", prior=p.value)
+        from calib.model.params import prior_sd_of
+
+        sd = prior_sd_of(p)
+        fit.estimates[n] = ParamEstimate(n, p.value, sd, "prior", f"not fitted: {reason}", prior=p.value,
+                                         prior_sd=sd, informed=[0.0] * len(p.value) if p.is_table else 0.0)
     return fit
 
 
@@ -334,3 +343,176 @@ def lmfit_identify(make_params, residual, candidates, *, bounds, segments, conf_
             conf["_error"] = f"conf_interval failed: {str(exc)[:120]}"
     return {"result": res, "stderr": stderr, "values": values, "correl": correl, "undetermined": und,
             "factor": factor, "conf": conf, "n": n_tot, "n_eff": float(ne), "vary": est}
+
+
+# ------------------------------------------------------------------------------------------------
+# maximum a posteriori estimation
+# ------------------------------------------------------------------------------------------------
+#: A parameter whose posterior sd is not at least this fraction below its prior sd is *weakly informed*
+#: by the data: its value is still the posterior (mostly the prior), flagged ``weak``.
+WEAK_INFORMED = 0.3
+#: Posterior correlation above which two parameters are reported as confounded (the data determine a
+#: combination of them better than each one).
+CONFOUNDED = 0.9
+
+
+def prior_residual(values, prior, prior_sd):
+    """The prior penalty as residuals ``(p - prior) / prior_sd`` (their squares sum to -2 log prior)."""
+    return np.array([(values[n] - prior[n]) / prior_sd[n] for n in prior], float)
+
+
+def map_fit(make_params, data_segments, cand, *, prior, prior_sd, noise_sd, extra=None, perturbed=(),
+            floor=None, loss="linear"):
+    """Maximum a posteriori fit with lmfit: data misfit plus prior penalty.
+
+    The objective is ``sum (r_data / s)^2 + sum ((p - prior) / prior_sd)^2 (+ extra^2)``: the data residuals
+    are divided by their noise sd ``s`` so that both terms are in units of standard deviations. ``s`` is
+    first ``noise_sd`` (a priori, e.g. the sensor's noise), then re-estimated from the fit's residuals as
+    ``rms * sqrt(n / n_eff)``: autocorrelated residuals (a slow model-structure error) carry fewer
+    independent samples, and dividing by the inflated sd gives the data exactly the weight of ``n_eff``
+    independent samples. The fit is repeated once with that ``s``.
+
+    Parameters
+    ----------
+    make_params : callable() -> lmfit.Parameters
+        Every parameter of ``cand`` (at its prior, bounded) plus nuisance parameters (initial states),
+        all varied.
+    data_segments : callable(params) -> list of ndarray
+        Per-log data residuals (model - measured) in the channel's unit.
+    cand : list of str
+        The model parameters reported (values, posterior sd, correlations).
+    prior, prior_sd : dict name -> float
+        Gaussian prior of the parameters that have one directly (others, e.g. increments of a table,
+        get theirs through ``extra``).
+    extra : callable(params) -> ndarray, optional
+        Further prior residuals (e.g. smoothness of a table), already in sd units.
+    perturbed : sequence of callable(params) -> list of ndarray
+        Data residuals with one logged input moved by one sd of its calibration uncertainty; the
+        linearised shift of the MAP estimate is added in quadrature to the posterior sd.
+    floor : float, optional
+        Smallest ``s`` (the resolution of the measurement).
+    loss : str
+        ``linear`` (least squares) or a robust loss of scipy's ``least_squares`` (``soft_l1``, residuals
+        beyond 3 sd weigh less): for a first look that finds outliers; the posterior sd assume squares.
+
+    Returns
+    -------
+    dict: ``values``, ``post_sd``, ``prior_sd``, ``informed`` (``1 - post_sd / prior_sd``), ``correl``
+    ("a|b" -> r over ``cand``), ``params`` (lmfit Parameters at the MAP, nuisance included), ``noise_sd``,
+    ``rmse``, ``n``, ``n_eff``, ``at_bound`` {name: text}.
+    """
+    import lmfit
+
+    extra = extra or (lambda ps: np.zeros(0))
+
+    def total(ps, s):
+        segs = data_segments(ps)
+        r = np.concatenate(segs) / s if segs else np.zeros(0)
+        v = ps.valuesdict()
+        return np.concatenate([r, prior_residual(v, prior, prior_sd), extra(ps)])
+
+    s = float(noise_sd)
+    params = make_params()
+    res = None
+    for _ in range(2):
+        mini = lmfit.Minimizer(total, params, fcn_args=(s,))
+        if loss == "linear":
+            res = mini.minimize(method="leastsq")
+        else:  # robust first look (outliers weigh less); the caller drops them and refits with squares
+            res = mini.minimize(method="least_squares", loss=loss, f_scale=3.0)
+        params = res.params
+        segs = data_segments(params)
+        n, ne = neff(segs)
+        allr = np.concatenate(segs) if segs else np.zeros(0)
+        allr = allr[np.isfinite(allr)]
+        rms = float(np.sqrt(np.mean(allr ** 2))) if allr.size else s
+        s_new = max(rms * math.sqrt(max(n, 1) / max(ne, 1.0)), floor or 0.0, 1e-12)
+        if abs(s_new / s - 1.0) < 0.05:
+            s = s_new
+            break
+        s = s_new
+    # posterior covariance: Gauss-Newton (J^T J)^-1 of the scaled objective at the MAP, by forward differences
+    names = [k for k in params if params[k].vary]
+    x0 = np.array([params[k].value for k in names])
+    r0 = total(params, s)
+    J = np.empty((r0.size, len(names)))
+    for j, k in enumerate(names):
+        h = 1e-3 * (prior_sd[k] if k in prior_sd else max(abs(x0[j]), 1e-3) * 1e-1 + 1e-3)
+        p1 = params.copy()
+        p1[k].set(value=x0[j] + h, min=-np.inf, max=np.inf)
+        J[:, j] = (total(p1, s) - r0) / h
+    H = J.T @ J
+    cov = np.linalg.pinv(H)
+    idx = {k: j for j, k in enumerate(names)}
+    var = {k: max(float(cov[idx[k], idx[k]]), 0.0) for k in cand}
+    # calibration uncertainty of the inputs: linearised shift of the estimate, added in quadrature
+    for rfun in perturbed:
+        segs1 = rfun(params)
+        d = np.concatenate([np.concatenate(segs1) / s, r0[sum(x.size for x in segs):]]) - r0 if segs1 else None
+        if d is None or d.size != r0.size:
+            continue
+        dx = -cov @ (J.T @ d)
+        for k in cand:
+            var[k] += float(dx[idx[k]]) ** 2
+    values = {k: float(params[k].value) for k in cand}
+    post = {k: math.sqrt(var[k]) for k in cand}
+    informed = {k: float(max(0.0, 1.0 - post[k] / prior_sd[k])) for k in cand if k in prior_sd}
+    correl = {}
+    for i, a in enumerate(cand):
+        for b in cand[i + 1:]:
+            den = math.sqrt(cov[idx[a], idx[a]] * cov[idx[b], idx[b]])
+            if den > 0:
+                correl[f"{a}|{b}"] = float(cov[idx[a], idx[b]] / den)
+    at_bound = {}
+    for k in cand:
+        lo, hi = params[k].min, params[k].max
+        span = hi - lo
+        if np.isfinite(span) and span > 0 and (values[k] - lo < 1e-4 * span or hi - values[k] < 1e-4 * span):
+            at_bound[k] = f"posterior mode {values[k]:.6g} at its bound [{lo:g}, {hi:g}]"
+    n, ne = neff(data_segments(params))
+    return {"values": values, "post_sd": post, "prior_sd": {k: float(prior_sd[k]) for k in cand if k in prior_sd},
+            "informed": informed, "correl": correl, "params": params, "noise_sd": s,
+            "rmse": rms, "n": n, "n_eff": float(ne), "at_bound": at_bound, "cov": cov, "cov_names": names}
+
+
+def posterior_estimate(name, out, note, prior_value):
+    """A :class:`ParamEstimate` from a :func:`map_fit` result: the posterior, flagged ``weak`` when the
+    data narrowed the prior by less than :data:`WEAK_INFORMED`."""
+    inf = out["informed"][name]
+    st = "estimated" if inf >= WEAK_INFORMED else "weak"
+    txt = f"data informed {100 * inf:.0f} % (prior sd {out['prior_sd'][name]:.3g}, posterior sd {out['post_sd'][name]:.3g})"
+    if st == "weak":
+        txt += "; weakly informed: the value is mostly the prior"
+    if name in out.get("at_bound", {}):
+        txt += "; " + out["at_bound"][name]
+    return ParamEstimate(name, out["values"][name], out["post_sd"][name], st, f"{note}; {txt}" if note else txt,
+                         prior=prior_value, prior_sd=out["prior_sd"][name], informed=inf)
+
+
+def prior_only(name, prior_value, prior_sd, why):
+    """Estimate of a parameter no data reaches: the prior, with the prior sd (status ``weak``)."""
+    return ParamEstimate(name, prior_value, prior_sd, "weak", f"{why}; the value and sd are the prior's",
+                         prior=prior_value, prior_sd=prior_sd, informed=0.0)
+
+
+def confounded_pairs(correl, limit=CONFOUNDED):
+    """[(a, b, r)] with ``|r| > limit``, strongest first."""
+    out = []
+    for k, r in correl.items():
+        if abs(r) > limit:
+            a, b = k.split("|")
+            out.append((a, b, float(r)))
+    return sorted(out, key=lambda t: -abs(t[2]))
+
+
+def combine_with_prior(name, est, se, prior_value, prior_sd, note):
+    """Posterior of a parameter estimated in closed form (a linear regression with standard error ``se``)
+    under its Gaussian prior: precision-weighted mean, ``1/post^2 = 1/se^2 + 1/prior_sd^2``."""
+    if se is None or not np.isfinite(se) or se <= 0 or not np.isfinite(est):
+        return prior_only(name, prior_value, prior_sd, note + "; the data gave no usable estimate")
+    w1, w0 = 1.0 / se ** 2, 1.0 / prior_sd ** 2
+    v = (w1 * est + w0 * prior_value) / (w1 + w0)
+    post = math.sqrt(1.0 / (w1 + w0))
+    out = {"values": {name: v}, "post_sd": {name: post}, "prior_sd": {name: prior_sd},
+           "informed": {name: max(0.0, 1.0 - post / prior_sd)}}
+    return posterior_estimate(name, out, note, prior_value)

@@ -21,6 +21,8 @@ _BASE = {
     "bat_current": "bat_current_A", "battery_current": "bat_current_A", "current": "bat_current_A",
     "bat_voltage": "bat_voltage_V", "battery_voltage": "bat_voltage_V", "voltage": "bat_voltage_V",
     "soc": "soc", "state_of_charge": "soc",
+    "bat_power": "bat_power_W", "battery_power": "bat_power_W", "hv_battery_power": "bat_power_W",
+    "engine_power": "engine_power_W", "eng_power": "engine_power_W", "engine_brake_power": "engine_power_W",
     "bat_temp": "bat_temp_degC", "battery_temp": "bat_temp_degC", "battery_temperature": "bat_temp_degC",
     "engine_speed": "engine_speed_rpm", "rpm": "engine_speed_rpm", "engine_rpm": "engine_speed_rpm",
     "engine_torque": "engine_torque_Nm", "torque": "engine_torque_Nm",
@@ -46,6 +48,7 @@ HUMAN_NAME: dict[str, str] = {
     "ambient_temp_degC": "ambient_temp", "cabin_temp_degC": "cabin_temp", "heater_power_W": "heater_power",
     "vent_temp_degC": "vent_temp", "blower_flow_kg_per_s": "blower_flow",
     "hvac_setpoint_degC": "hvac_setpoint", "grade_rad": "grade",
+    "bat_power_W": "bat_power", "engine_power_W": "engine_power",
 }
 
 _SPEC_RE = re.compile(r"^\s*(?P<name>[^\[\]()]*?)\s*(?:[\[(](?P<unit>[^\[\]()]*)[\])])?\s*$")

@@ -35,6 +35,7 @@ CSV_UNITS = {
     "coolant_temp_degC": "degC", "bay_temp_degC": "degC", "ambient_temp_degC": "degC",
     "cabin_temp_degC": "degC", "heater_power_W": "W", "vent_temp_degC": "degC",
     "blower_flow_kg_per_s": "kg/s", "hvac_setpoint_degC": "degC", "grade_rad": "rad",
+    "bat_power_W": "kW", "engine_power_W": "kW",
 }
 
 WRITE_FORMATS = ("csv", "mcap", "candump", "blf", "asc")
