@@ -106,7 +106,8 @@ def fit_cabin(logs, base, *, allowed=None) -> SubsystemFit:
         if e is None:
             miss = sorted({c for lg in logs for c in lg.missing(NEEDS_EPS)})
             if miss and not any(lg.has(*NEEDS_EPS) for lg in logs):
-                fit.estimates["eps_hc"] = prior_only("eps_hc", p0, sd0, f"not fitted: missing channel(s) {', '.join(miss)}")
+                fit.estimates["eps_hc"] = prior_only("eps_hc", p0, sd0, f"not fitted: missing channel(s) {', '.join(miss)}",
+                                                        status="prior")
             else:
                 fit.estimates["eps_hc"] = prior_only("eps_hc", p0, sd0, why)
         else:

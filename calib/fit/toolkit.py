@@ -489,9 +489,10 @@ def posterior_estimate(name, out, note, prior_value):
                          prior=prior_value, prior_sd=out["prior_sd"][name], informed=inf)
 
 
-def prior_only(name, prior_value, prior_sd, why):
-    """Estimate of a parameter no data reaches: the prior, with the prior sd (status ``weak``)."""
-    return ParamEstimate(name, prior_value, prior_sd, "weak", f"{why}; the value and sd are the prior's",
+def prior_only(name, prior_value, prior_sd, why, status="weak"):
+    """Estimate of a parameter no data reaches: the prior, with the prior sd (status ``weak``, or ``prior``
+    when the fit could not run for lack of channels)."""
+    return ParamEstimate(name, prior_value, prior_sd, status, f"{why}; the value and sd are the prior's",
                          prior=prior_value, prior_sd=prior_sd, informed=0.0)
 
 
