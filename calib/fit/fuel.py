@@ -48,7 +48,7 @@ OOL_TOL = 0.005
 T_SD = 0.5  # degC, calibration uncertainty of the coolant temperature sensor
 NOISE_G_PER_S = 0.02  # a priori noise sd of a fuel-flow reading in a 1 s bin
 SMOOTH_SD = 0.05  # second difference of log(eta / eta_prior) per breakpoint
-F_SLOPE_SD = 0.01  # change of the f_cl slope (1/K) between adjacent intervals
+F_SLOPE_SD = 0.03  # change of the f_cl slope (1/K) between adjacent intervals
 RPM = 2.0 * np.pi / 60.0
 
 
@@ -198,7 +198,7 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
             lo, hi = bnd[nm]
             ps.add(nm, value=prior[nm], min=lo, max=hi)
         for j, nm in enumerate(d_names):
-            ps.add(nm, value=max(float(d0[j]), 1e-4), min=0.0, max=2.0)
+            ps.add(nm, value=max(float(d0[j]), 1e-4), min=0.0, max=5.0)
         return ps
 
     def tables(v):
@@ -227,22 +227,11 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
             out.append(np.diff(slope) / F_SLOPE_SD)
         return np.concatenate(out) if out else np.zeros(0)
 
-    keep = np.ones(W.size, bool)
-
     def segments(ps, **kw):
-        r = model_of(ps, **kw) - W
-        return [x[k] for x, k in zip(np.split(r, bounds_idx), np.split(keep, bounds_idx))]
+        return np.split(model_of(ps, **kw) - W, bounds_idx)
 
     perturbed = [lambda ps: segments(ps, sP=1.0 + INPUT_REL_SD), lambda ps: segments(ps, dT=T_SD)]
     out = map_fit(make_params, segments, cand, prior=prior, prior_sd=psd, noise_sd=NOISE_G_PER_S, extra=extra,
-                  perturbed=(), floor=0.002)
-    # bins the model cannot explain at all (a start or a transient the stability tests let through) would
-    # pull the sparsely covered entries: drop residuals beyond 6 robust sd and refit
-    r = model_of(out["params"]) - W
-    sig = 1.4826 * float(np.median(np.abs(r - np.median(r))))
-    keep = np.abs(r) <= 6.0 * max(sig, 0.002)
-    fit.metrics["outlier_bins_dropped"] = int((~keep).sum())
-    out = map_fit(make_params, segments, cand, prior=prior, prior_sd=psd, noise_sd=out["noise_sd"], extra=extra,
                   perturbed=perturbed, floor=0.002)
     fit.metrics.update(rmse_g_per_s=out["rmse"], n_eff=out["n_eff"], noise_sd_g_per_s=out["noise_sd"])
     fit.correlations = {k: v for k, v in out["correl"].items()}
@@ -254,7 +243,7 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
         v = out["values"]
         eta, _ = tables({**{nm: v[nm] for nm in eta_names}, **{nm: v[nm] for nm in d_names}})
         post = np.concatenate([[float(eta_sd[0])], [out["post_sd"][nm] for nm in eta_names]])
-        inf = np.maximum(0.0, 1.0 - post / eta_sd)
+        inf = np.concatenate([[0.0], [out["informed"][nm] for nm in eta_names]])
         st = ["estimated" if x >= WEAK_INFORMED else "weak" for x in inf]
         st[0] = "prior"
         covered = [f"{Pbp[j] / 1e3:g}" for j in range(len(Pbp)) if coverP[j] >= MIN_COVER]
@@ -278,7 +267,9 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
         idx = [ix[nm] for nm in d_names]
         C = cov[np.ix_(idx, idx)]
         post = np.sqrt(np.maximum(np.diag(A @ C @ A.T), 0.0))
-        inf = np.maximum(0.0, 1.0 - post / np.maximum(f_sd[:-1], 1e-12))
+        jd = [cand.index(nm) for nm in d_names]
+        ref = np.sqrt(np.maximum(np.diag(A @ out["prior_cov"][np.ix_(jd, jd)] @ A.T), 0.0))
+        inf = np.where(ref > 0, np.maximum(0.0, 1.0 - post / np.maximum(ref, 1e-12)), 0.0)
         st = ["estimated" if x >= WEAK_INFORMED else "weak" for x in inf] + ["fixed"]
         reach = [f"{Tbp[j]:g}" for j in range(m) if coverT[j] >= MIN_COVER]
         note = (f"monotone (non-increasing increments), smooth; entry at {Tbp[-1]:g} degC is the warm reference "

@@ -397,7 +397,8 @@ def map_fit(make_params, data_segments, cand, *, prior, prior_sd, noise_sd, extr
 
     Returns
     -------
-    dict: ``values``, ``post_sd``, ``prior_sd``, ``informed`` (``1 - post_sd / prior_sd``), ``correl``
+    dict: ``values``, ``post_sd``, ``prior_sd``, ``informed`` (``1 - post_sd / sd under the prior alone``,
+    the latter including the couplings of ``extra``), ``correl``
     ("a|b" -> r over ``cand``), ``params`` (lmfit Parameters at the MAP, nuisance included), ``noise_sd``,
     ``rmse``, ``n``, ``n_eff``, ``at_bound`` {name: text}.
     """
@@ -456,7 +457,14 @@ def map_fit(make_params, data_segments, cand, *, prior, prior_sd, noise_sd, extr
             var[k] += float(dx[idx[k]]) ** 2
     values = {k: float(params[k].value) for k in cand}
     post = {k: math.sqrt(var[k]) for k in cand}
-    informed = {k: float(max(0.0, 1.0 - post[k] / prior_sd[k])) for k in cand if k in prior_sd}
+    # what the prior alone (its own sd plus the couplings of `extra`, e.g. smoothness) gives: the data
+    # informed a parameter only as far as its posterior sd is below *that*
+    nd = sum(x.size for x in segs)
+    ci = [idx[k] for k in cand]
+    Jp = J[nd:][:, ci]
+    prior_cov = np.linalg.pinv(Jp.T @ Jp)
+    ref = {k: math.sqrt(max(float(prior_cov[i, i]), 0.0)) for i, k in enumerate(cand)}
+    informed = {k: float(max(0.0, 1.0 - post[k] / ref[k])) if ref[k] > 0 else 0.0 for k in cand}
     correl = {}
     for i, a in enumerate(cand):
         for b in cand[i + 1:]:
@@ -472,7 +480,8 @@ def map_fit(make_params, data_segments, cand, *, prior, prior_sd, noise_sd, extr
     n, ne = neff(data_segments(params))
     return {"values": values, "post_sd": post, "prior_sd": {k: float(prior_sd[k]) for k in cand if k in prior_sd},
             "informed": informed, "correl": correl, "params": params, "noise_sd": s,
-            "rmse": rms, "n": n, "n_eff": float(ne), "at_bound": at_bound, "cov": cov, "cov_names": names}
+            "rmse": rms, "n": n, "n_eff": float(ne), "at_bound": at_bound, "cov": cov, "cov_names": names,
+            "prior_cov": prior_cov}
 
 
 def posterior_estimate(name, out, note, prior_value):

@@ -189,7 +189,7 @@ def default_parameters() -> "ParameterSet":
            "tuned to EPA warm UDDS/HWFET/US06 with the rule-based controller (calib.model.epa.tune_fuel_scale)",
            "warm fuel-map scale"),
         _p("W_idle_g_per_s", 0.10, "g/s", 0.02, 0.5, "spec/model.md s.4", "idle fuel rate, warm"),
-        _p("f_cl", [1.5, 1.2, 1.05, 1.0], "dimensionless", 1.0, 3.0, "spec/model.md s.4 (prior shape)",
+        _p("f_cl", [1.5, 1.2, 1.05, 1.0], "dimensionless", 1.0, 6.0, "spec/model.md s.4 (prior shape)",
            "cold-coolant fuel factor", x=[-10.0, 20.0, 60.0, 80.0], x_name="T_cl", x_unit="degC"),
         _p("LHV_J_per_g", 42.6e3, "J/g", 40e3, 45e3, "gasoline, 42.6 MJ/kg", "lower heating value", vary=False),
         # engine coolant
@@ -232,7 +232,7 @@ PRIOR_SD = {
     "eta_ool": lambda v: 0.20 * v,  # another engine, or this one with a biased fuel meter
     "fuel_scale": lambda v: 0.15,
     "W_idle_g_per_s": lambda v: 0.04,
-    "f_cl": lambda v: 0.02 + 0.5 * (v - 1.0),
+    "f_cl": lambda v: 0.05 + 1.0 * (v - 1.0),  # engines differ most when cold (x2-x5 at -7 degC seen)
     "C_eng_J_per_K": lambda v: 0.3 * v,
     "gamma_exh": lambda v: 0.1,
     "hA_eng_W_per_K": lambda v: 0.5 * v,
