@@ -45,11 +45,14 @@ PARAMS = ("eta_ool", "fuel_scale", "W_idle_g_per_s", "f_cl")
 WARM_DEGC = 80.0
 MIN_COVER = 30.0
 OOL_TOL = 0.005
-T_SD = 0.5  # degC, calibration uncertainty of the coolant temperature sensor
+T_SD = 1.0  # degC: sensor calibration (0.5 K) plus what smoothing a 1 degC-quantised reading leaves
 NOISE_G_PER_S = 0.02  # a priori noise sd of a fuel-flow reading in a 1 s bin
 SMOOTH_SD = 0.05  # second difference of log(eta / eta_prior) per breakpoint
 F_SLOPE_SD = 0.03  # change of the f_cl slope (1/K) between adjacent intervals
 RPM = 2.0 * np.pi / 60.0
+#: The stable bins are operating points, not a time series: their residuals' autocorrelation (a warm-up
+#: the model follows imperfectly) counts at most this many bins as one independent sample.
+MAX_TAU = 10.0
 
 
 def smooth(x, n=21):
@@ -232,7 +235,7 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
 
     perturbed = [lambda ps: segments(ps, sP=1.0 + INPUT_REL_SD), lambda ps: segments(ps, dT=T_SD)]
     out = map_fit(make_params, segments, cand, prior=prior, prior_sd=psd, noise_sd=NOISE_G_PER_S, extra=extra,
-                  perturbed=perturbed, floor=0.002)
+                  perturbed=perturbed, floor=0.002, max_tau=MAX_TAU)
     fit.metrics.update(rmse_g_per_s=out["rmse"], n_eff=out["n_eff"], noise_sd_g_per_s=out["noise_sd"])
     fit.correlations = {k: v for k, v in out["correl"].items()}
     fit.confounded = confounded_pairs(out["correl"])

@@ -362,7 +362,7 @@ def prior_residual(values, prior, prior_sd):
 
 
 def map_fit(make_params, data_segments, cand, *, prior, prior_sd, noise_sd, extra=None, perturbed=(),
-            floor=None, loss="linear"):
+            floor=None, loss="linear", max_tau=None):
     """Maximum a posteriori fit with lmfit: data misfit plus prior penalty.
 
     The objective is ``sum (r_data / s)^2 + sum ((p - prior) / prior_sd)^2 (+ extra^2)``: the data residuals
@@ -391,6 +391,9 @@ def map_fit(make_params, data_segments, cand, *, prior, prior_sd, noise_sd, extr
         linearised shift of the MAP estimate is added in quadrature to the posterior sd.
     floor : float, optional
         Smallest ``s`` (the resolution of the measurement).
+    max_tau : float, optional
+        Cap on the autocorrelation time used for ``s`` (for residuals that are not a time series, such as
+        selected operating points, where slow drifts of the selection are not lost information).
     loss : str
         ``linear`` (least squares) or a robust loss of scipy's ``least_squares`` (``soft_l1``, residuals
         beyond 3 sd weigh less): for a first look that finds outliers; the posterior sd assume squares.
@@ -427,7 +430,10 @@ def map_fit(make_params, data_segments, cand, *, prior, prior_sd, noise_sd, extr
         allr = np.concatenate(segs) if segs else np.zeros(0)
         allr = allr[np.isfinite(allr)]
         rms = float(np.sqrt(np.mean(allr ** 2))) if allr.size else s
-        s_new = max(rms * math.sqrt(max(n, 1) / max(ne, 1.0)), floor or 0.0, 1e-12)
+        tau = max(n, 1) / max(ne, 1.0)
+        if max_tau is not None:
+            tau = min(tau, max_tau)
+        s_new = max(rms * math.sqrt(tau), floor or 0.0, 1e-12)
         if abs(s_new / s - 1.0) < 0.05:
             s = s_new
             break
@@ -443,18 +449,19 @@ def map_fit(make_params, data_segments, cand, *, prior, prior_sd, noise_sd, extr
         p1[k].set(value=x0[j] + h, min=-np.inf, max=np.inf)
         J[:, j] = (total(p1, s) - r0) / h
     H = J.T @ J
-    cov = np.linalg.pinv(H)
+    cov0 = np.linalg.pinv(H)
+    cov = cov0.copy()
     idx = {k: j for j, k in enumerate(names)}
-    var = {k: max(float(cov[idx[k], idx[k]]), 0.0) for k in cand}
-    # calibration uncertainty of the inputs: linearised shift of the estimate, added in quadrature
+    # calibration uncertainty of the inputs: linearised shift of the estimate, added (as a rank-one
+    # covariance term, so that functions of several parameters get it too)
     for rfun in perturbed:
         segs1 = rfun(params)
         d = np.concatenate([np.concatenate(segs1) / s, r0[sum(x.size for x in segs):]]) - r0 if segs1 else None
         if d is None or d.size != r0.size:
             continue
-        dx = -cov @ (J.T @ d)
-        for k in cand:
-            var[k] += float(dx[idx[k]]) ** 2
+        dx = -cov0 @ (J.T @ d)
+        cov += np.outer(dx, dx)
+    var = {k: max(float(cov[idx[k], idx[k]]), 0.0) for k in cand}
     values = {k: float(params[k].value) for k in cand}
     post = {k: math.sqrt(var[k]) for k in cand}
     # what the prior alone (its own sd plus the couplings of `extra`, e.g. smoothness) gives: the data
