@@ -270,8 +270,8 @@ def _fmt(v, digits=5):
 def parameter_table(params, names=None) -> pd.DataFrame:
     """Parameter table for display: value, standard error, relative error, status and identifiability.
 
-    ``identifiable`` is ``yes`` for an estimated parameter, ``NO`` for an undetermined one (left at its
-    prior; the note says which criterion failed), ``-`` for fixed / not attempted ones.
+    ``identifiable`` is ``yes`` for an estimated parameter, ``weak`` for one the logs informed little (the
+    posterior is mostly the prior; the note says how much), ``-`` for fixed / not attempted ones.
     """
     names = list(names or calibratable_parameters())
     rows = []
@@ -281,7 +281,7 @@ def parameter_table(params, names=None) -> pd.DataFrame:
         if not p.is_table and isinstance(p.stderr, (int, float)) and p.value:
             rel = f"{100 * abs(float(p.stderr) / float(p.value)):.2g} %"
         status = p.status or "prior"
-        flag = {"estimated": "yes", "undetermined": "NO"}.get(status, "-")
+        flag = {"estimated": "yes", "weak": "weak"}.get(status, "-")
         rows.append({"parameter": n, "subsystem": subsystem_of(n), "value": _fmt(p.value), "unit": p.unit,
                      "stderr": _fmt(p.stderr), "rel. stderr": rel, "status": status, "identifiable": flag,
                      "note": p.note or ""})

@@ -93,9 +93,10 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
     # --- calibration
     shutil.copyfile(artifact, out / "calibration.toml")
     cal = Section("calibration", "Calibration")
-    cal.p("Parameters with status 'estimated' were determined by the logs (standard error given); "
-          "'undetermined' ones were tried but the data could not determine them, so they stay at their prior; "
-          "'prior' ones were not fitted (see the note). The artifact calibration.toml loads as a parameter set.")
+    cal.p("Values are maximum a posteriori estimates (data misfit plus a prior penalty) with their posterior "
+          "standard deviation. 'estimated': the logs narrowed the prior by at least 30 %; 'weak': they narrowed "
+          "it less, the value is mostly the prior; 'prior': not fitted (see the note). The artifact "
+          "calibration.toml loads as a parameter set.")
     ptab = []
     for n in params:
         p = params.param(n)
@@ -163,14 +164,14 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
                                                   "saving_vs_baseline_pct", "charge_sustaining")}
     statuses = [params.param(n).status for n in params]
     summary = {"run_id": run_id, "synthetic_data": synthetic, "strategies": strat, "ordering_ok": ok,
-               "n_estimated": statuses.count("estimated"), "n_undetermined": statuses.count("undetermined"),
+               "n_estimated": statuses.count("estimated"), "n_weak": statuses.count("weak"),
                "wall_s": wall_s}
     lines = [f"{k}: {v['fuel_g']:.1f} g" + (f" ({v['saving_vs_rule_pct']:.2f} % below rule-based)"
                                               if v.get("saving_vs_rule_pct") not in (None, 0.0) else "")
              for k, v in strat.items()]
     summ.p("Fuel over the scenario: " + "; ".join(lines) + ".")
-    summ.p(f"Calibration: {summary['n_estimated']} parameters estimated, {summary['n_undetermined']} undetermined "
-           f"(left at their priors).")
+    summ.p(f"Calibration: {summary['n_estimated']} parameters estimated, {summary['n_weak']} weakly informed "
+           f"(posterior mostly the prior).")
 
     banner = ("SYNTHETIC DATA: the logs in this report were simulated by the workbench from known truth "
               "parameters; they are not measurements.") if synthetic else ""

@@ -180,12 +180,9 @@ def test_cli_calibrate(tmp_path, capsys):
 @pytest.mark.slow
 def test_full_size_bundled_calibration():
     """Full size (the three bundled scenarios, ~80 min): recovery (its time: ``iptm bench calib``)."""
-    import time
-
     from calib.synth import BUNDLED
 
     truth = draw_truth(11)
     logs = [to_drivelog(*synthesise(sc, truth, seed=11 + i)[1:]) for i, sc in enumerate(BUNDLED)]
-    t0 = time.perf_counter()
     res = calibrate(logs, progress=False)
     assert failures(res.params, truth) == []

@@ -4,8 +4,10 @@
   table values given SOC, current and temperature. With the piecewise-linear (hat-function) basis
   ``h_j(SOC)`` of the breakpoints, ``V = sum_j h_j U_j - sum_j h_j g I R_j`` is solved by direct linear
   least squares over all logs. Only breakpoints the data covers (sum of hat weights >= 30 samples, and
-  for R also a current spread) are unknowns; the others stay at the prior and are flagged undetermined.
-- Capacity: Coulomb counting. The logged SOC (0.5 % steps) is regressed on the integrated current,
+  for R also a current spread) are unknowns; each estimate is combined with the entry's prior (precision
+  weighting); the others are the prior, with the prior sd, flagged weak.
+- Capacity: Coulomb counting (with the current inferred from ``bat_power_W`` and the prior OCV/resistance
+  tables, eq. 1 solved for I, for logs that have power but no current). The logged SOC (0.5 % steps) is regressed on the integrated current,
   ``SOC(t) = SOC0_log - Q(t) / (3600 C_bat)``, one intercept per log and one common slope, over every
   sample of the whole log (the quantisation averages out over long windows; the standard error is
   inflated for the autocorrelated quantisation error).
@@ -18,8 +20,8 @@ import math
 
 import numpy as np
 
-from calib.fit.toolkit import (U_OC_SE_MAX_V, WEAK_INFORMED, ParamEstimate, SubsystemFit, combine_with_prior,
-                               inflation, judge, not_fitted, prior_only, usable_logs)
+from calib.fit.toolkit import (WEAK_INFORMED, ParamEstimate, SubsystemFit, combine_with_prior, inflation, not_fitted,
+                               prior_only, usable_logs)
 from calib.model.params import prior_sd_of
 
 NEEDS = ("bat_current_A", "bat_voltage_V", "soc")
@@ -180,7 +182,7 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
     ----------
     logs : list of DriveLog
     base : ParameterSet
-        Priors (values kept where undetermined).
+        Priors (values and ``prior_sd``).
     allowed : set of str, optional
         Parameters that may be estimated (default all of :data:`PARAMS`).
 
@@ -295,22 +297,16 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
         seU = np.sqrt(seU ** 2 + ((U2 - U) / h * se_tc) ** 2)
         seR = np.sqrt(seR ** 2 + ((R2 - R) / h * se_tc) ** 2)
     estU, estR = varyU.copy(), varyR.copy()
+    # entries the data barely touch (hat weight < MIN_COVER samples) keep the prior: a regression on a
+    # handful of samples has an unreliable standard error; the others are combined with their prior
     for j in np.flatnonzero(varyU):
-        ok, why = judge("U_oc_V", U[j], seU[j], pU.bounds)
-        if ok and seU[j] > U_OC_SE_MAX_V:
-            ok, why = False, f"standard error {seU[j]:.2g} V > {U_OC_SE_MAX_V} V"
-        if ok and coverU[j] < MIN_COVER:
-            ok, why = False, f"hat weight {coverU[j]:.1f} < {MIN_COVER:g} samples"
-        if not ok:
+        if coverU[j] < MIN_COVER or not np.isfinite(seU[j]):
             estU[j] = False
-            whyU[j] = f"SOC {bpU[j]:g}: {why}"
+            whyU[j] = f"SOC {bpU[j]:g}: hat weight {coverU[j]:.1f} < {MIN_COVER:g} samples"
     for j in np.flatnonzero(varyR):
-        ok, why = judge("R_int_ohm", R[j], seR[j], pR.bounds)
-        if ok and coverR[j] < MIN_COVER:
-            ok, why = False, f"hat weight {coverR[j]:.1f} < {MIN_COVER:g} samples"
-        if not ok:
+        if coverR[j] < MIN_COVER or not np.isfinite(seR[j]):
             estR[j] = False
-            whyR[j] = f"SOC {bpR[j]:g}: {why}"
+            whyR[j] = f"SOC {bpR[j]:g}: hat weight {coverR[j]:.1f} < {MIN_COVER:g} samples"
     for _ in range(len(bpU)):  # estimated U_oc entries must not decrease: revert the less certain one
         e = np.flatnonzero(estU)
         bad = [(e[i], e[i + 1]) for i in range(e.size - 1) if U[e[i + 1]] < U[e[i]]]

@@ -1,6 +1,7 @@
 """Cabin and heater-core fit (spec/model.md s.6 and s.8).
 
-- ``C_cab``, ``UA_cab``, ``Q_sun``: output error. The cabin temperature is simulated from the logged heater
+- ``C_cab``, ``UA_cab``, ``Q_sun``: output error, maximum a posteriori (:func:`calib.fit.toolkit.map_fit`).
+  The cabin temperature is simulated from the logged heater
   heat and ambient temperature by eq. 10 in a compiled loop (:func:`calib.fit.validate.cabin_replay`, which
   calls :func:`calib.model.equations.cabin_rate`) and matched to the logged cabin temperature with lmfit (one
   residual vector across logs, one initial cabin temperature per log as a nuisance parameter). Standard
@@ -12,7 +13,9 @@
   ``r``: starting from its 90th percentile, samples within 3 noise sd (1 degC quantisation of both
   temperatures) below the current estimate are taken as binding and ``eps_hc`` re-estimated by least
   squares through the origin, until it settles. At least 60 binding samples with ``T_cl - T_in >= 10 K``
-  are needed. The standard error includes a 0.5 K offset uncertainty of the coolant and vent sensors.
+  are needed. The standard error includes a 0.5 K offset uncertainty of the coolant and vent sensors; the
+  estimate is combined with the prior (precision weighting). A heater heat inferred from the cabin
+  balance is never used here (it would be circular).
 """
 from __future__ import annotations
 

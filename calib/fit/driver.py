@@ -77,8 +77,8 @@ class CalibrationResult:
     Attributes
     ----------
     params : ParameterSet
-        Calibrated set: estimated values with ``stderr``, ``status``, ``note`` and ``logs`` filled;
-        undetermined parameters at their prior.
+        Calibrated set: posterior values with ``stderr`` (posterior sd), ``prior_value``, ``prior_sd``,
+        ``informed``, ``status``, ``note`` and ``logs`` filled.
     fits : dict subsystem -> SubsystemFit
     validation : dict log label -> channel -> metrics (RMSE, max_abs, bias; cumulative fuel error %)
     logs : list of dict (name, sha256, source, synthetic, duration_s, channels)

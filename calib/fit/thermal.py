@@ -1,16 +1,20 @@
-"""Engine thermal fit (spec/model.md s.5 and s.8) by output error.
+"""Engine thermal fit (spec/model.md s.5 and s.8) by output error, maximum a posteriori.
 
 - ``kappa``: when a log carries the engine-bay (compartment) temperature, directly from eq. 8,
   ``T_com - T_amb = kappa (T_cl - T_amb)`` (linear least squares through the origin over samples with the
-  coolant at least 10 K above ambient). Otherwise fixed: it enters eq. 3 only as ``hA_eng (1 - kappa)``.
-- ``C_eng``, ``gamma_exh``, ``hA_eng`` (and ``T_open``, ``k_rad`` when the coolant spent >= 120 s above
-  the thermostat): lmfit least squares on the coolant temperature *simulated* from the logged inputs
-  (fuel rate -> ``Q_fuel``, engine speed x torque -> ``P_e``, heater power, ambient) by eq. 3 in a compiled
-  loop (:func:`calib.fit.validate.coolant_replay`, which calls :func:`calib.model.equations.coolant_flows`), against the
-  logged coolant temperature; one residual vector across logs, one initial temperature per log as a
-  nuisance parameter. Samples where the coolant was not logged (long gaps) are left out of the residual.
-  Standard errors include the calibration uncertainty of the inputs (fuel rate, engine power, heater power:
-  1 % each) and of the coolant sensor (0.5 K offset).
+  coolant at least 10 K above ambient), combined with its prior. Otherwise its prior: it enters eq. 3 only
+  as ``hA_eng (1 - kappa)``.
+- ``C_eng``, ``gamma_exh``, ``hA_eng``, ``T_open``, ``k_rad``: :func:`calib.fit.toolkit.map_fit` on the
+  coolant temperature *simulated* from the logged inputs (fuel rate -> ``Q_fuel``; engine power from speed x
+  torque, the logged engine power or the power balance; heater heat logged, from vent temperature and
+  blower flow, or from the cabin balance: :func:`calib.fit.replay.log_arrays`; ambient) by eq. 3 in a
+  compiled loop (:func:`calib.fit.replay.coolant_replay`, which calls
+  :func:`calib.model.equations.coolant_flows`), against the logged coolant temperature; one residual vector
+  across logs, one initial temperature per log as a nuisance parameter. Samples where the coolant was not
+  logged are left out. A log whose coolant never nears the thermostat leaves ``T_open`` and ``k_rad`` at
+  their prior (the posterior equals it), and the note says so. The posterior sd includes the calibration
+  uncertainty of the inputs (fuel rate, engine power, heater power: 1 % each) and of the coolant sensor
+  (0.5 K offset).
 """
 from __future__ import annotations
 

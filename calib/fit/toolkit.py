@@ -1,25 +1,15 @@
-"""Identification toolkit shared by the subsystem fitters: result types, lmfit wrapper, effective sample
-size, identifiability judgement. The criteria and the uncertainty model are described in
+"""Identification toolkit shared by the subsystem fitters: result types, the maximum a posteriori fit
+(lmfit, prior as extra residuals), effective sample size. The method is described in
 :mod:`calib.fit.driver`."""
 import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
-REL_SE_MAX = 1.0 / 30.0
-CORR_MAX = 0.999
-#: Prior uncertainty (1 sd) of parameters left at their prior, propagated into the others' standard
-#: errors: relative to the value, except where an absolute value (unit of the parameter) is given.
-PRIOR_REL_SD = 0.25
 #: Calibration uncertainty (1 sd, relative) of logged inputs of the output-error fits: heater power,
 #: fuel rate, engine power (speed x torque, resampled to 1 s bins). Propagated into the standard errors.
 INPUT_REL_SD = 0.01
-PRIOR_ABS_SD = {"T_open_degC": 4.0, "kappa": 0.1, "Q_sun_W": 100.0}
-U_OC_SE_MAX_V = 0.5
 MIN_SAMPLES = 60
-
-#: Parameters whose lmfit confidence intervals are computed (when fitted).
-KEY_PARAMETERS = ("C_eng_J_per_K", "gamma_exh", "hA_eng_W_per_K", "C_cab_J_per_K", "UA_cab_W_per_K")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -29,9 +19,10 @@ KEY_PARAMETERS = ("C_eng_J_per_K", "gamma_exh", "hA_eng_W_per_K", "C_cab_J_per_K
 class ParamEstimate:
     """Outcome for one parameter (scalar or table).
 
-    ``status`` is ``estimated``, ``undetermined`` (left at ``prior``), ``fixed`` or ``prior`` (not
-    attempted). For tables ``value``/``stderr`` are lists and ``entry_status`` gives each entry's status
-    (``stderr`` is NaN for entries not estimated).
+    ``value`` is the posterior (maximum a posteriori), ``stderr`` its sd, ``prior``/``prior_sd`` the prior,
+    ``informed`` how much the data narrowed it. ``status`` is ``estimated``, ``weak`` (informed below
+    :data:`WEAK_INFORMED`: mostly the prior), ``fixed`` or ``prior`` (the fit could not run). For tables
+    these are lists and ``entry_status`` gives each entry's status.
     """
 
     name: str
@@ -168,181 +159,6 @@ def inflation(residual_segments, nvarys=0) -> float:
     if n == 0:
         return 1.0
     return float(math.sqrt(max(n - nvarys, 1) / max(ne - nvarys, 1.0)))
-
-
-def judge(name, value, se, bounds, rel_max=REL_SE_MAX):
-    """(ok, reason) for criteria 2, 3 and 5 of the module docstring."""
-    if se is None or not np.isfinite(se) or se <= 0:
-        return False, "no finite standard error (the data is not sensitive to it / singular covariance)"
-    rel = se / abs(value) if value != 0 else math.inf
-    if rel > rel_max:
-        return False, f"relative standard error {100 * rel:.3g} % > {100 * rel_max:.3g} %"
-    lo, hi = bounds
-    span = hi - lo
-    if span > 0 and (value - lo < 1e-4 * span or hi - value < 1e-4 * span):
-        return False, f"estimate {value:.6g} stuck at its bound [{lo:g}, {hi:g}]"
-    return True, ""
-
-
-def collinear(names, stderr, values, correl):
-    """Names flagged by criterion 4: {name: reason}."""
-    flagged = {}
-    for i, a in enumerate(names):
-        for b in names[i + 1:]:
-            r = correl.get(f"{a}|{b}")
-            if r is None or abs(r) <= CORR_MAX:
-                continue
-            ra = stderr[a] / abs(values[a]) if values[a] else math.inf
-            rb = stderr[b] / abs(values[b]) if values[b] else math.inf
-            worse, other, rw = (a, b, ra) if ra >= rb else (b, a, rb)
-            if rw > REL_SE_MAX / 2:
-                flagged[worse] = f"correlation {r:+.3f} with {other} (relative se {100 * rw:.3g} %)"
-    return flagged
-
-
-def lmfit_identify(make_params, residual, candidates, *, bounds, segments, conf_keys=(), fixed_reason=None,
-                   perturbed=()):
-    """Fit with lmfit and judge every candidate parameter (criteria of the module docstring).
-
-    Parameters
-    ----------
-    make_params : callable(vary: set) -> lmfit.Parameters
-        Builds the parameters (at their priors) with ``vary`` True exactly for the names given (plus
-        nuisance parameters such as initial states, always varied).
-    residual : callable(params) -> ndarray
-        Residual vector over all logs.
-    candidates : list of str
-        Model parameters that may be estimated.
-    bounds : dict name -> (lo, hi)
-    segments : callable(params) -> list of ndarray
-        Per-log residuals (for the autocorrelation inflation).
-    conf_keys : names whose lmfit confidence intervals are wanted (when estimated).
-    fixed_reason : dict name -> reason
-        Parameters known beforehand to be undetermined (no data in their regime): held at the prior,
-        whose uncertainty is propagated into the others' standard errors.
-    perturbed : sequence of callable(params) -> ndarray
-        Residual functions with one logged input scaled by one standard deviation of its calibration
-        uncertainty (:data:`INPUT_REL_SD`); the shift of the estimates when refitted is added in
-        quadrature to their standard errors (errors in the inputs, not only in the output).
-
-    Notes
-    -----
-    Parameters that the data reaches but does not determine (large relative standard error, near
-    collinearity) stay *free* in the fit, as nuisance parameters, so that the estimates of the others
-    are not biased by a wrong prior and their standard errors include the correlation; they are then
-    reported undetermined at their prior. A parameter with no sensitivity at all (singular covariance)
-    or stuck at a bound is instead held at its prior and the fit repeated.
-
-    Returns
-    -------
-    dict with ``result`` (lmfit MinimizerResult), ``stderr``, ``values``, ``correl`` (inflated se,
-    pairwise correlations of the free model parameters), ``undetermined`` {name: reason}, ``vary``
-    (estimated names), ``factor``, ``conf`` {name: {sigma: [lo, hi]}}, ``n``, ``n_eff``.
-    """
-    import lmfit
-
-    fixed = dict(fixed_reason or {})
-    free = [c for c in candidates if c not in fixed]
-    res = mini = None
-    stderr, values, correl, factor, segs = {}, {}, {}, 1.0, []
-    for _ in range(len(candidates) + 1):
-        params = make_params(set(free))
-        mini = lmfit.Minimizer(residual, params)
-        res = mini.minimize(method="leastsq")
-        segs = segments(res.params)
-        factor = inflation(segs, res.nvarys)
-        values = {n: float(res.params[n].value) for n in free}
-        stderr = {}
-        for n in free:
-            se = res.params[n].stderr
-            stderr[n] = float(se) * factor if se is not None and np.isfinite(se) else None
-        # no sensitivity / at a bound: hold at the prior and refit
-        drop = {}
-        for n in free:
-            lo, hi = bounds[n]
-            span = hi - lo
-            if span > 0 and (values[n] - lo < 1e-4 * span or hi - values[n] < 1e-4 * span):
-                drop[n] = f"estimate {values[n]:.6g} stuck at its bound [{lo:g}, {hi:g}]"
-        if not drop and any(stderr[n] is None for n in free):
-            # covariance singular: drop the candidate with the largest relative step to explain it
-            n = next(n for n in free if stderr[n] is None) if all(stderr[m] is None for m in free) else \
-                next(n for n in free if stderr[n] is None)
-            drop[n] = "no finite standard error (the data is not sensitive to it / singular covariance)"
-        if not drop:
-            break
-        fixed.update(drop)
-        free = [c for c in free if c not in drop]
-        if not free:
-            break
-    correl = {}
-    for i, a in enumerate(free):
-        ca = res.params[a].correl or {}
-        for b in free[i + 1:]:
-            if b in ca:
-                correl[f"{a}|{b}"] = float(ca[b])
-    # prior uncertainty of the parameters held at their prior
-    if fixed and free:
-        shift = {n: 0.0 for n in free}
-        for u in fixed:
-            if u not in bounds:
-                continue
-            p0 = make_params(set(free))
-            if u not in p0:
-                continue
-            v0 = float(p0[u].value)
-            sd = PRIOR_ABS_SD.get(u, PRIOR_REL_SD * abs(v0))
-            lo, hi = bounds[u]
-            v1 = v0 + sd if v0 + sd <= hi else v0 - sd
-            if sd == 0 or not lo <= v1 <= hi:
-                continue
-            p0[u].set(value=v1)
-            for n in res.params:
-                if res.params[n].vary and n in p0:
-                    p0[n].set(value=res.params[n].value)
-            r1 = lmfit.Minimizer(residual, p0).minimize(method="leastsq")
-            for n in free:
-                shift[n] += (float(r1.params[n].value) - values[n]) ** 2
-        for n in free:
-            if stderr[n] is not None and shift[n] > 0:
-                stderr[n] = math.sqrt(stderr[n] ** 2 + shift[n])
-    # calibration uncertainty of the logged inputs
-    for rfun in perturbed:
-        if not free:
-            break
-        p0 = make_params(set(free))
-        for n in res.params:
-            if res.params[n].vary and n in p0:
-                p0[n].set(value=res.params[n].value)
-        r1 = lmfit.Minimizer(rfun, p0).minimize(method="leastsq")
-        for n in free:
-            if stderr[n] is not None:
-                stderr[n] = math.sqrt(stderr[n] ** 2 + (float(r1.params[n].value) - values[n]) ** 2)
-    und = dict(fixed)
-    for n in free:
-        ok, why = judge(n, values[n], stderr[n], bounds[n])
-        if not ok:
-            und[n] = why
-    okse = {n: stderr[n] for n in free if n not in und}
-    und.update(collinear(list(okse), okse, values, correl))
-    est = [n for n in free if n not in und]
-    n_tot, ne = neff(segs)
-    conf = {}
-    keys = [k for k in conf_keys if k in est]
-    if keys:
-        try:
-            res.nfree = max(int(ne) - res.nvarys, 1)
-            ci = lmfit.conf_interval(mini, res, p_names=keys, sigmas=[1, 2])
-            for k, rows in ci.items():
-                d = {}
-                for prob, val in rows:
-                    d.setdefault(round(prob, 4), []).append(float(val))
-                conf[k] = {f"{lev}sigma": [min(d[p]), max(d[p])] for lev, p in
-                           ((1, 0.6827), (2, 0.9545)) if p in d}
-                conf[k]["best"] = float(res.params[k].value)
-        except Exception as exc:  # noqa: BLE001 - lmfit raises plain exceptions on degenerate profiles
-            conf["_error"] = f"conf_interval failed: {str(exc)[:120]}"
-    return {"result": res, "stderr": stderr, "values": values, "correl": correl, "undetermined": und,
-            "factor": factor, "conf": conf, "n": n_tot, "n_eff": float(ne), "vary": est}
 
 
 # ------------------------------------------------------------------------------------------------

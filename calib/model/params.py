@@ -60,8 +60,8 @@ class Parameter:
     stderr : float or list, optional
         Standard error after a calibration.
     status : str
-        ``prior`` (not estimated), ``estimated``, ``undetermined`` (fit tried, data did not determine it:
-        left at the prior), ``fixed``.
+        ``prior`` (not estimated), ``estimated`` (maximum a posteriori, the data narrowed the prior),
+        ``weak`` (posterior, but the data narrowed the prior little: mostly the prior), ``fixed``.
     note : str
         Why (for example which channels were missing).
     prior_sd : float or list, optional
