@@ -11,6 +11,8 @@
   ``SOC(t) = SOC0_log - Q(t) / (3600 C_bat)``, one intercept per log and one common slope, over every
   sample of the whole log (the quantisation averages out over long windows; the standard error is
   inflated for the autocorrelated quantisation error).
+- Sensor calibration (voltage 0.1 %, current 0.5 %, 1 sd) is added to the table and capacity sd: a bias
+  that more data does not average out.
 - ``R_int_tc_per_K``: only when the logged battery temperatures span >= 10 K; profile of the table fit's
   residual sum of squares over the coefficient (golden section), standard error from its curvature.
 """
@@ -28,6 +30,8 @@ NEEDS = ("bat_current_A", "bat_voltage_V", "soc")
 PARAMS = ("U_oc_V", "R_int_ohm", "C_bat_Ah", "R_int_tc_per_K")
 MIN_COVER = 30.0  # sum of hat weights for a breakpoint to be an unknown
 MIN_T_SPAN = 10.0  # K, for the temperature coefficient
+V_CAL_REL_SD = 0.001  # calibration uncertainty (1 sd, relative) of the pack voltage sensor
+I_CAL_REL_SD = 0.005  # ... of the current sensor (a gain error scales the Coulomb count)
 
 
 def hat_basis(x, bp):
@@ -296,6 +300,10 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
         U2, R2 = _table_fit(rows, bpU, bpR, U0, R0, tc_use + h, T_ref, varyU, varyR)[:2]
         seU = np.sqrt(seU ** 2 + ((U2 - U) / h * se_tc) ** 2)
         seR = np.sqrt(seR ** 2 + ((R2 - R) / h * se_tc) ** 2)
+    # calibration of the voltage and current sensors (V_CAL_REL_SD, I_CAL_REL_SD): a bias the amount of
+    # data does not average out
+    seU = np.sqrt(seU ** 2 + (V_CAL_REL_SD * U) ** 2)
+    seR = np.sqrt(seR ** 2 + (np.hypot(V_CAL_REL_SD, I_CAL_REL_SD) * R) ** 2)
     estU, estR = varyU.copy(), varyR.copy()
     # entries the data barely touch (hat weight < MIN_COVER samples) keep the prior: a regression on a
     # handful of samples has an unreliable standard error; the others are combined with their prior
@@ -372,7 +380,7 @@ def _fit_capacity(fit, rows, inferred, base):
         fit.estimates["C_bat_Ah"] = prior_only("C_bat_Ah", Cp, Csd, "Coulomb counting gave no positive slope")
     else:
         C = 1.0 / b
-        se = C * sb / b
+        se = math.hypot(C * sb / b, I_CAL_REL_SD * C)
         fit.metrics.update(capacity_soc_span=float(span), capacity_se_inflation=fcap,
                            capacity_soc_crossings=n_cross)
         src = "Coulomb counting" + (f" (current inferred from bat_power_W and the OCV/resistance tables in "
