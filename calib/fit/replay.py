@@ -296,6 +296,9 @@ def log_arrays(log, mp, cabin_balance=True) -> LogArrays:
             if la.engine_source == "engine_power_W":
                 on = P > P_ON_MIN_W
                 idle = ~on & (np.nan_to_num(W) > FUEL_RUNNING_G_PER_S) if fuel else np.zeros(t.size, bool)
+                la.inferred["engine mode"] = (f"on where engine_power_W > {P_ON_MIN_W:g} W; " +
+                                              (f"idle where the fuel rate exceeds {FUEL_RUNNING_G_PER_S:g} g/s below it"
+                                               if fuel else "idle cannot be told from off (no fuel rate logged)"))
             elif fuel:  # the inferred power is a balance of noisy terms: the fuel flow says whether it runs
                 run = np.nan_to_num(W) > FUEL_RUNNING_G_PER_S
                 on = run & (P > P_ON_MIN_W)
