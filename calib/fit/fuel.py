@@ -21,8 +21,8 @@ within 3 % of both neighbours; when the engine follows the optimal operating lin
 off the line by > 0.5 % mix two operating points and are dropped. The coolant temperature is smoothed
 over 21 s (its 1 degC quantisation).
 
-The posterior sd includes the calibration uncertainty of the inputs (engine power 1 %, coolant
-temperature 0.5 K), propagated linearly.
+The posterior sd includes the calibration uncertainty of the inputs (engine power 1 %, fuel meter 2 %,
+coolant temperature 1 K and a coolant sensor response time of 20 s), propagated linearly.
 
 Every evaluation calls :func:`calib.model.equations.fuel_rate` in a compiled loop
 (:func:`calib.fit.replay.fuel_replay`).
@@ -46,6 +46,11 @@ WARM_DEGC = 80.0
 MIN_COVER = 30.0
 OOL_TOL = 0.005
 T_SD = 1.0  # degC: sensor calibration (0.5 K) plus what smoothing a 1 degC-quantised reading leaves
+#: Calibration uncertainty of a fuel-flow meter (1 sd, relative) and the response time of a coolant
+#: temperature sensor (s): both propagated into the posterior sd (a biased meter or a slow sensor moves
+#: the estimates by about this much, whatever the amount of data).
+FUEL_METER_REL_SD = 0.02
+SENSOR_LAG_S = 20.0
 NOISE_G_PER_S = 0.02  # a priori noise sd of a fuel-flow reading in a 1 s bin
 SMOOTH_SD = 0.05  # second difference of log(eta / eta_prior) per breakpoint
 F_SLOPE_SD = 0.03  # change of the f_cl slope (1/K) between adjacent intervals
@@ -84,7 +89,7 @@ def f_cl_from_increments(d):
 
 
 def _gather(use, mp0, fit):
-    mode, P, T, W, seg = [], [], [], [], []
+    mode, P, T, W, seg, TL = [], [], [], [], [], []
     for lg in use:
         la = log_arrays(lg, mp0)
         used = {"engine power": la.engine_source, "fuel": "fuel_rate_g_per_s", "coolant": "coolant_temp_degC"}
@@ -106,10 +111,14 @@ def _gather(use, mp0, fit):
         mode.append(la.mode[ok])
         P.append(np.nan_to_num(la.P_e[ok]))
         T.append(T_cl[ok])
+        # the coolant as a sensor lagging by SENSOR_LAG_S would have read it: the reading leads by that much
+        tt = la.t
+        okT = np.isfinite(T_cl)
+        TL.append(np.interp(tt + SENSOR_LAG_S, tt[okT], T_cl[okT])[ok] if okT.sum() > 1 else T_cl[ok])
         W.append(la.ch["fuel_rate_g_per_s"][ok])
         seg.append(int(ok.sum()))
     return (np.concatenate(mode).astype(np.int64), np.concatenate(P), np.concatenate(T), np.concatenate(W),
-            np.cumsum(seg)[:-1])
+            np.cumsum(seg)[:-1], np.concatenate(TL))
 
 
 def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
@@ -148,7 +157,7 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
         return not_fitted(fit, base, names, "no log has fuel rate, coolant temperature and an engine operating point ("
                           + "; ".join(f"{k}: {v}" for k, v in fit.skipped.items()) + ")")
     fit.logs = [lg.label() for lg in use]
-    mode, P, T, W, bounds_idx = _gather(use, mp0, fit)
+    mode, P, T, W, bounds_idx, TL = _gather(use, mp0, fit)
     on, idle = mode == ON, mode == IDLE
     warm_on = int(np.sum(on & (T >= WARM_DEGC)))
     n_idle = int(np.sum(idle))
@@ -174,7 +183,7 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
             fit.metrics["sparse_power_bins_dropped"] = int(sparse.sum())
             sizes = np.diff(np.concatenate([[0], bounds_idx, [mode.size]]))
             seg_id = np.repeat(np.arange(sizes.size), sizes)
-            mode, P, T, W = mode[keep0], P[keep0], T[keep0], W[keep0]
+            mode, P, T, W, TL = mode[keep0], P[keep0], T[keep0], W[keep0], TL[keep0]
             seg_id = seg_id[keep0]
             bounds_idx = np.cumsum(np.bincount(seg_id, minlength=sizes.size))[:-1]
             on, idle = mode == ON, mode == IDLE
@@ -211,11 +220,11 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
         f = f_cl_from_increments([v[nm] for nm in d_names]) if d_names else f0
         return eta, f
 
-    def model_of(ps, sP=1.0, dT=0.0):
+    def model_of(ps, sP=1.0, dT=0.0, lag=False):
         v = ps.valuesdict()
         eta, f = tables(v)
         mp = mp0._replace(eta_ool=eta, W_idle=float(v.get("W_idle_g_per_s", mp0.W_idle)), f_cl=f)
-        return fuel_replay(mp, mode, sP * P, T + dT)
+        return fuel_replay(mp, mode, sP * P, (TL if lag else T) + dT)
 
     def extra(ps):
         v = ps.valuesdict()
@@ -230,10 +239,11 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
             out.append(np.diff(slope) / F_SLOPE_SD)
         return np.concatenate(out) if out else np.zeros(0)
 
-    def segments(ps, **kw):
-        return np.split(model_of(ps, **kw) - W, bounds_idx)
+    def segments(ps, sW=1.0, **kw):
+        return np.split(model_of(ps, **kw) - sW * W, bounds_idx)
 
-    perturbed = [lambda ps: segments(ps, sP=1.0 + INPUT_REL_SD), lambda ps: segments(ps, dT=T_SD)]
+    perturbed = [lambda ps: segments(ps, sP=1.0 + INPUT_REL_SD), lambda ps: segments(ps, dT=T_SD),
+                 lambda ps: segments(ps, sW=1.0 + FUEL_METER_REL_SD), lambda ps: segments(ps, lag=True)]
     out = map_fit(make_params, segments, cand, prior=prior, prior_sd=psd, noise_sd=NOISE_G_PER_S, extra=extra,
                   perturbed=perturbed, floor=0.002, max_tau=MAX_TAU)
     fit.metrics.update(rmse_g_per_s=out["rmse"], n_eff=out["n_eff"], noise_sd_g_per_s=out["noise_sd"])
