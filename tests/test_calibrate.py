@@ -100,6 +100,9 @@ def test_artifact_round_trip_and_simulation(tmp_path):
         assert ps.param(n).status == res.params.param(n).status
         v0, v1 = res.params[n], ps[n]
         assert np.allclose(v0, v1)
+        for key in ("prior_sd", "prior_value", "informed"):
+            a, b = getattr(res.params.param(n), key), getattr(ps.param(n), key)
+            assert (a is None) == (b is None) and (a is None or np.allclose(a, b)), (n, key)
     import tomllib
 
     d = tomllib.loads(text)
