@@ -191,3 +191,14 @@ def test_advice_names_the_drive():
     assert any("thermostat" in a and "T_open" in a for a in res.advice)
     assert "Advice" in res.report()
     assert res.to_dict()["calibration"]["advice"] == res.advice
+
+
+def test_power_only_log_uses_the_tables_fitted_on_a_full_log():
+    from calib.fit.battery import fit_battery
+
+    truth, full = _log()
+    _, power = _log(drop=("engine_speed_rpm", "engine_torque_Nm", "bat_current_A", "bat_voltage_V"), power=True)
+    power = type(power)(power.data, type(power.meta)(**{**power.meta.__dict__, "source": "power_only.csv"}))
+    fit = fit_battery([full, power], truth)
+    assert "fitted OCV/resistance" in fit.used[power.label()]["current"]
+    assert fit.estimates["U_oc_V"].status == "estimated"

@@ -366,6 +366,9 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
         fit.estimates["R_int_ohm"] = table_est("R_int_ohm", R, R0, seR, varyR, whyR)
 
     if "C_bat_Ah" in allowed:
+        if inferred:  # logs with power only: their current from the tables just fitted
+            fitted = {n: fit.estimates[n].value for n in ("U_oc_V", "R_int_ohm") if n in fit.estimates}
+            inferred = _inferred_current_rows(logs, use, base.with_values(**fitted), fit, "fitted")
         _fit_capacity(fit, rows, inferred, base)
     return fit
 
@@ -389,9 +392,10 @@ def _fit_capacity(fit, rows, inferred, base):
                                                        f"{src} over SOC span {span:.3f} ({n_cross} level crossings)")
 
 
-def _inferred_current_rows(logs, use, base, fit):
+def _inferred_current_rows(logs, use, base, fit, which="prior"):
     """Rows for Coulomb counting from logs with battery power and SOC but no current: the current is eq. 1
-    solved for I with the prior OCV/resistance tables (stated in ``fit.used``)."""
+    solved for I with the OCV/resistance tables of ``base`` (``which``: prior or fitted; stated in
+    ``fit.used``)."""
     from calib.fit.replay import _fill, current_from_power, log_arrays
 
     mp = base.model_params()
@@ -408,7 +412,7 @@ def _inferred_current_rows(logs, use, base, fit):
         I[~np.isfinite(la.P_bat)] = np.nan
         out.append(dict(name=lg.label(), I=I, V=np.full(I.size, np.nan), soc=la.ch["soc"], T=T, T_logged=False,
                         dt=lg.dt))
-        fit.used[lg.label()] = {"current": f"inferred from {la.battery_source} and the OCV/resistance tables "
-                                           "(capacity only)", "soc": "soc"}
+        fit.used[lg.label()] = {"current": f"inferred from {la.battery_source} and the {which} OCV/resistance "
+                                           "tables (capacity only)", "soc": "soc"}
         fit.skipped.pop(lg.label(), None)
     return out
