@@ -285,7 +285,9 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
         inf = np.where(ref > 0, np.maximum(0.0, 1.0 - post / np.maximum(ref, 1e-12)), 0.0)
         st = ["estimated" if x >= WEAK_INFORMED else "weak" for x in inf] + ["fixed"]
         reach = [f"{Tbp[j]:g}" for j in range(m) if coverT[j] >= MIN_COVER]
-        note = (f"monotone (non-increasing increments), smooth; entry at {Tbp[-1]:g} degC is the warm reference "
+        moved = float(np.max(np.abs((f[:-1] - f0[:-1]) / f_sd[:-1])))
+        note = (f"posterior up to {moved:.1f} prior sd from the prior; "
+                f"monotone (non-increasing increments), smooth; entry at {Tbp[-1]:g} degC is the warm reference "
                 f"(1); breakpoints with >= {MIN_COVER:g} cold samples: {', '.join(reach) or 'none'} degC")
         fit.estimates["f_cl"] = ParamEstimate(
             "f_cl", [float(x) for x in f], [float(x) for x in post] + [0.0],

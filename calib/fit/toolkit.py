@@ -313,8 +313,12 @@ def posterior_estimate(name, out, note, prior_value):
     inf = out["informed"][name]
     st = "estimated" if inf >= WEAK_INFORMED else "weak"
     txt = f"data informed {100 * inf:.0f} % (prior sd {out['prior_sd'][name]:.3g}, posterior sd {out['post_sd'][name]:.3g})"
+    shift = (out["values"][name] - prior_value) / out["prior_sd"][name] if out["prior_sd"][name] > 0 else 0.0
+    if abs(shift) >= 0.5:
+        txt += f"; moved {shift:+.1f} prior sd from the prior"
     if st == "weak":
-        txt += "; weakly informed: the value is mostly the prior"
+        txt += ("; weakly informed: the value is mostly the prior" if abs(shift) < 1.0 else
+                "; weakly informed: the data moved it, but its sd is still close to the prior's")
     if name in out.get("at_bound", {}):
         txt += "; " + out["at_bound"][name]
     return ParamEstimate(name, out["values"][name], out["post_sd"][name], st, f"{note}; {txt}" if note else txt,
