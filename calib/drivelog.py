@@ -21,10 +21,12 @@ CHANNELS: dict[str, tuple[str, str]] = {
     "speed_mps": ("m/s", "vehicle speed"),
     "bat_current_A": ("A", "HV battery current, + = discharge"),
     "bat_voltage_V": ("V", "HV battery terminal voltage"),
+    "bat_power_W": ("W", "HV battery terminal power, + = discharge (where current and voltage are not logged)"),
     "soc": ("dimensionless", "battery state of charge, fraction 0..1"),
     "bat_temp_degC": ("degC", "battery temperature"),
     "engine_speed_rpm": ("rpm", "engine speed"),
     "engine_torque_Nm": ("N*m", "engine brake torque"),
+    "engine_power_W": ("W", "engine brake power (where speed and torque are not logged)"),
     "fuel_rate_g_per_s": ("g/s", "fuel mass flow"),
     "coolant_temp_degC": ("degC", "engine coolant temperature"),
     "bay_temp_degC": ("degC", "engine-bay (compartment) temperature"),
@@ -35,6 +37,12 @@ CHANNELS: dict[str, tuple[str, str]] = {
     "blower_flow_kg_per_s": ("kg/s", "blower air mass flow"),
     "hvac_setpoint_degC": ("degC", "HVAC set point"),
     "grade_rad": ("rad", "road grade"),
+}
+
+#: Power channels and the channels they follow from when those are logged instead (P = omega tau, P = V I).
+DERIVABLE: dict[str, tuple[str, ...]] = {
+    "engine_power_W": ("engine_speed_rpm", "engine_torque_Nm"),
+    "bat_power_W": ("bat_current_A", "bat_voltage_V"),
 }
 
 Streams = dict  # dict[str, pd.Series]: channel -> irregular samples (index: time_s)

@@ -272,8 +272,8 @@ def _fmt(v, digits=5):
 def parameter_table(params, names=None) -> pd.DataFrame:
     """Parameter table for display: value, standard error, relative error, status and identifiability.
 
-    ``identifiable`` is ``yes`` for an estimated parameter, ``NO`` for an undetermined one (left at its
-    prior; the note says which criterion failed), ``-`` for fixed / not attempted ones.
+    ``identifiable`` is ``yes`` for an estimated parameter, ``weak`` for one the logs informed little (the
+    posterior is mostly the prior; the note says how much), ``-`` for fixed / not attempted ones.
     """
     names = list(names or calibratable_parameters())
     rows = []
@@ -283,7 +283,7 @@ def parameter_table(params, names=None) -> pd.DataFrame:
         if not p.is_table and isinstance(p.stderr, (int, float)) and p.value:
             rel = f"{100 * abs(float(p.stderr) / float(p.value)):.2g} %"
         status = p.status or "prior"
-        flag = {"estimated": "yes", "undetermined": "NO"}.get(status, "-")
+        flag = {"estimated": "yes", "weak": "weak"}.get(status, "-")
         n_est = p.n_entries_estimated()
         if n_est and status == "estimated" and n_est[0] < n_est[1]:
             flag = f"{n_est[0]} of {n_est[1]} entries"

@@ -154,9 +154,10 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
     # --- calibration
     shutil.copyfile(artifact, out / "calibration.toml")
     cal = Section("calibration", "Calibration")
-    cal.p("Parameters with status 'estimated' were determined by the logs (standard error given); "
-          "'undetermined' ones were tried but the data could not determine them, so they stay at their prior; "
-          "'prior' ones were not fitted (see the note). The artifact calibration.toml loads as a parameter set.")
+    cal.p("Values are maximum a posteriori estimates (data misfit plus a prior penalty) with their posterior "
+          "standard deviation. 'estimated': the logs narrowed the prior by at least 30 %; 'weak': they narrowed "
+          "it less, the value is mostly the prior; 'prior': not fitted (see the note). The artifact "
+          "calibration.toml loads as a parameter set.")
     ptab = []
     for n in params:
         p = params.param(n)
@@ -248,7 +249,7 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
     statuses = [params.param(n).status for n in params]
     summary = {"run_id": run_id, "synthetic_data": synthetic, "strategies": strat, "ordering_ok": ok,
                "ordering": ordering, "terminal": scenario.terminal,
-               "n_estimated": statuses.count("estimated"), "n_undetermined": statuses.count("undetermined"),
+               "n_estimated": statuses.count("estimated"), "n_weak": statuses.count("weak"),
                "wall_s": wall_s}
     summ.p(f"Fuel over the scenario. Terminal condition on coolant and cabin: {scenario.terminal}; corrected fuel "
            "values each strategy's final SOC, coolant and cabin heat in grams of fuel, so strategies that end in "
@@ -259,8 +260,8 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
                "entries estimated" for n in params
                if params.param(n).status == "estimated" and params.param(n).n_entries_estimated()
                and params.param(n).n_entries_estimated()[0] < params.param(n).n_entries_estimated()[1]]
-    summ.p(f"Calibration: {summary['n_estimated']} parameters estimated, {summary['n_undetermined']} undetermined "
-           f"(left at their priors)" + (f"; tables only partly determined: {'; '.join(partial)}" if partial else "")
+    summ.p(f"Calibration: {summary['n_estimated']} parameters estimated, {summary['n_weak']} weakly informed "
+           f"(posterior mostly the prior)" + (f"; tables only partly determined: {'; '.join(partial)}" if partial else "")
            + ".")
     for w in drive_warnings:
         summ.raw(f"<p class='warn'>Warning: {html_escape(w)}</p>")

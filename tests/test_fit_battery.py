@@ -53,18 +53,20 @@ def test_battery_recovers_truth(seed):
     assert fit.estimates["C_bat_Ah"].status == "estimated"
     assert fit.estimates["R_int_ohm"].status == "estimated"
     assert recovery_failures(fit, truth) == []
-    # table entries outside the SOC range of the data are not determined
+    # table entries outside the SOC range of the data are weakly informed: the prior with the prior sd
     for name in ("U_oc_V", "R_int_ohm"):
         e = fit.estimates[name]
         x = default_parameters().param(name).x
-        for xi, st in zip(x, e.entry_status):
+        for xi, st, inf in zip(x, e.entry_status, e.informed):
             if xi <= 0.4 or xi >= 0.8:
-                assert st == "undetermined", (name, xi)
-    prior = default_parameters()["R_int_ohm"]
+                assert st == "weak" and inf < 0.3, (name, xi)
+    p0 = default_parameters().param("R_int_ohm")
     e = fit.estimates["R_int_ohm"]
-    for v, p, st in zip(e.value, prior, e.entry_status):
-        if st == "undetermined":
-            assert v == p  # left at the prior
+    for v, p, s, sd, st in zip(e.value, p0.value, e.stderr, p0.prior_sd, e.entry_status):
+        if st == "weak":
+            assert v == p and s == pytest.approx(sd)
+        else:
+            assert s < 0.7 * sd
     assert "not determined" in e.note
 
 

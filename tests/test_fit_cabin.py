@@ -32,12 +32,9 @@ def test_cabin_recovers_truth(seed):
         tv = truth[n]
         assert abs(e.value - tv) <= 3 * e.stderr, (n, e.value, e.stderr, tv)
         assert abs(e.value - tv) <= 0.1 * abs(tv), (n, e.value, tv)
-    # truth Q_sun is 0: no relative precision is possible, it must not be reported as known
+    # truth Q_sun is 0: the posterior holds it within its (posterior) uncertainty
     q = fit.estimates["Q_sun_W"]
-    assert q.status == "undetermined" and q.value == 0.0
-    assert "C_cab_J_per_K" in fit.conf_intervals
-    lo, hi = fit.conf_intervals["C_cab_J_per_K"]["2sigma"]
-    assert lo < fit.estimates["C_cab_J_per_K"].value < hi
+    assert abs(q.value) <= 3 * q.stderr and q.stderr < q.prior_sd
 
 
 def test_cabin_without_cabin_temperature_is_not_fitted():

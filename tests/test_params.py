@@ -82,14 +82,14 @@ def test_table_status_is_per_entry(tmp_path):
 
     ps = default_parameters()
     n = len(ps.param("U_oc_V").value)
-    st = ["undetermined"] * n
+    st = ["weak"] * n
     st[3] = st[4] = "estimated"
     val = list(ps.param("U_oc_V").value)
     est = ParamEstimate("U_oc_V", val, [None] * n, "estimated", "", prior=val, entry_status=st)
     _merge(ps, SimpleNamespace(estimates={"U_oc_V": est}, logs=["a.csv"]), {"U_oc_V"}, set())
     p = ps.param("U_oc_V")
     assert p.status == "estimated" and p.n_entries_estimated() == (2, n)
-    assert p.status_text() == f"estimated: 2 of {n} entries ({n - 2} undetermined)"
+    assert p.status_text() == f"estimated: 2 of {n} entries ({n - 2} weak or at the prior)"
     ps.save(tmp_path / "c.toml")
     back = ParameterSet.load(tmp_path / "c.toml").param("U_oc_V")
     assert back.entry_status == st and back.status_text() == p.status_text()

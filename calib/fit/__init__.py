@@ -6,9 +6,9 @@ Modules: :mod:`~calib.fit.toolkit` (result types, lmfit wrapper, uncertainty, id
 :mod:`~calib.fit.thermal`, :mod:`~calib.fit.cabin` (the subsystem fitters), :mod:`~calib.fit.driver`
 (:func:`calibrate`), :mod:`~calib.fit.validate` (replay of a log, metrics, plots).
 """
-from .toolkit import ParamEstimate, SubsystemFit
-from .driver import SUBSYSTEM_PARAMS, CalibrationResult, calibrate
-from .validate import Replay, plot_validation, replay, validate
+from calib.fit.toolkit import ParamEstimate, SubsystemFit
+from calib.fit.driver import SUBSYSTEM_PARAMS, CalibrationResult, calibrate
+from calib.fit.validate import Replay, diagnostics, plot_residuals, plot_validation, replay, validate
 
 __all__ = ["calibrate", "CalibrationResult", "SUBSYSTEM_PARAMS", "ParamEstimate", "SubsystemFit",
-           "replay", "validate", "Replay", "plot_validation"]
+           "replay", "validate", "Replay", "plot_validation", "diagnostics", "plot_residuals"]

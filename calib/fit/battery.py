@@ -4,11 +4,15 @@
   table values given SOC, current and temperature. With the piecewise-linear (hat-function) basis
   ``h_j(SOC)`` of the breakpoints, ``V = sum_j h_j U_j - sum_j h_j g I R_j`` is solved by direct linear
   least squares over all logs. Only breakpoints the data covers (sum of hat weights >= 30 samples, and
-  for R also a current spread) are unknowns; the others stay at the prior and are flagged undetermined.
-- Capacity: Coulomb counting. The logged SOC (0.5 % steps) is regressed on the integrated current,
+  for R also a current spread) are unknowns; each estimate is combined with the entry's prior (precision
+  weighting); the others are the prior, with the prior sd, flagged weak.
+- Capacity: Coulomb counting (with the current inferred from ``bat_power_W`` and the prior OCV/resistance
+  tables, eq. 1 solved for I, for logs that have power but no current). The logged SOC (0.5 % steps) is regressed on the integrated current,
   ``SOC(t) = SOC0_log - Q(t) / (3600 C_bat)``, one intercept per log and one common slope, over every
   sample of the whole log (the quantisation averages out over long windows; the standard error is
   inflated for the autocorrelated quantisation error).
+- Sensor calibration (voltage 0.1 %, current 0.5 %, 1 sd) is added to the table and capacity sd: a bias
+  that more data does not average out.
 - ``R_int_tc_per_K``: only when the logged battery temperatures span >= 10 K; profile of the table fit's
   residual sum of squares over the coefficient (scipy's bounded scalar minimiser), standard error from its curvature.
 """
@@ -19,12 +23,16 @@ import math
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from calib.fit.toolkit import U_OC_SE_MAX_V, ParamEstimate, SubsystemFit, inflation, judge, not_fitted, usable_logs
+from calib.fit.toolkit import (WEAK_INFORMED, ParamEstimate, SubsystemFit, combine_with_prior, inflation, not_fitted,
+                               prior_only, usable_logs)
+from calib.model.params import prior_sd_of
 
 NEEDS = ("bat_current_A", "bat_voltage_V", "soc")
 PARAMS = ("U_oc_V", "R_int_ohm", "C_bat_Ah", "R_int_tc_per_K")
 MIN_COVER = 30.0  # sum of hat weights for a breakpoint to be an unknown
 MIN_T_SPAN = 10.0  # K, for the temperature coefficient
+V_CAL_REL_SD = 0.001  # calibration uncertainty (1 sd, relative) of the pack voltage sensor
+I_CAL_REL_SD = 0.005  # ... of the current sensor (a gain error scales the Coulomb count)
 
 
 def hat_basis(x, bp):
@@ -179,7 +187,7 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
     ----------
     logs : list of DriveLog
     base : ParameterSet
-        Priors (values kept where undetermined).
+        Priors (values and ``prior_sd``).
     allowed : set of str, optional
         Parameters that may be estimated (default all of :data:`PARAMS`).
 
@@ -193,10 +201,27 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
     names = [n for n in PARAMS if n in allowed]
     if not names:
         return fit
-    if not use:
+    inferred = _inferred_current_rows(logs, use, base, fit) if "C_bat_Ah" in allowed else []
+    if not use and inferred:
+        fit.logs = [r["name"] for r in inferred]
+        keep = {}
+        for n in names:
+            if n != "C_bat_Ah":
+                p = base.param(n)
+                keep[n] = ParamEstimate(n, p.value, prior_sd_of(p), "prior", "not fitted: no log has battery current "
+                                        "and voltage (the tables need both)", prior=p.value, prior_sd=prior_sd_of(p),
+                                        informed=[0.0] * len(p.value) if p.is_table else 0.0)
+        fit.estimates.update(keep)
+        rows = []
+    if not use and not inferred:
         return not_fitted(fit, base, names, "no log has battery current, voltage and SOC ("
                           + "; ".join(f"{k}: {v}" for k, v in fit.skipped.items()) + ")")
-    fit.logs = [lg.label() for lg in use]
+    if not use:
+        _fit_capacity(fit, [], inferred, base)
+        return fit
+    fit.logs = [lg.label() for lg in use] + [r["name"] for r in inferred]
+    for lg in use:
+        fit.used[lg.label()] = {"current": "bat_current_A", "voltage": "bat_voltage_V", "soc": "soc"}
     T_ref = float(base["T_bat_ref_degC"])
     rows = _gather(use, T_ref)
     pU, pR = base.param("U_oc_V"), base.param("R_int_ohm")
@@ -224,15 +249,14 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
     T_all = np.concatenate([r["T"] for r in rows])
     T_span = float(np.nanmax(T_all) - np.nanmin(T_all)) if any(r["T_logged"] for r in rows) else 0.0
     tc_est = None
+    tc_sd = float(prior_sd_of(base.param("R_int_tc_per_K")))
     if "R_int_tc_per_K" in allowed:
         if not any(r["T_logged"] for r in rows):
-            fit.estimates["R_int_tc_per_K"] = ParamEstimate(
-                "R_int_tc_per_K", tc, None, "undetermined", "no battery temperature logged: tables fitted at "
-                "T_ref assumed; coefficient left at prior", prior=tc)
+            fit.estimates["R_int_tc_per_K"] = prior_only(
+                "R_int_tc_per_K", tc, tc_sd, "no battery temperature logged: tables fitted at T_ref assumed")
         elif T_span < MIN_T_SPAN:
-            fit.estimates["R_int_tc_per_K"] = ParamEstimate(
-                "R_int_tc_per_K", tc, None, "undetermined",
-                f"battery temperature spans {T_span:.1f} K < {MIN_T_SPAN:g} K: left at prior", prior=tc)
+            fit.estimates["R_int_tc_per_K"] = prior_only(
+                "R_int_tc_per_K", tc, tc_sd, f"battery temperature spans {T_span:.1f} K < {MIN_T_SPAN:g} K")
         else:
             lo, hi = base.param("R_int_tc_per_K").bounds
             sse = lambda c: _table_fit(rows, bpU, bpR, U0, R0, c, T_ref, varyU, varyR)[4]  # noqa: E731
@@ -243,14 +267,10 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
             curv = (sse(c + h) - 2 * s0 + sse(c - h)) / h ** 2
             s2 = s0 / max(n0 - int(varyU.sum() + varyR.sum()) - 1, 1)
             se = math.sqrt(2 * s2 / curv) * inflation(segs_, 1) if curv > 0 else None
-            ok, why = judge("R_int_tc_per_K", c, se, (lo, hi))
-            if ok:
-                tc_est = c
-                fit.estimates["R_int_tc_per_K"] = ParamEstimate("R_int_tc_per_K", c, se, "estimated",
-                                                                f"battery temperature span {T_span:.0f} K", prior=tc)
-            else:
-                fit.estimates["R_int_tc_per_K"] = ParamEstimate("R_int_tc_per_K", tc, None, "undetermined",
-                                                                why, prior=tc)
+            e = combine_with_prior("R_int_tc_per_K", c, se, tc, tc_sd, f"battery temperature span {T_span:.0f} K")
+            fit.estimates["R_int_tc_per_K"] = e
+            if e.status == "estimated":
+                tc_est = float(e.value)
     tc_use = tc_est if tc_est is not None else tc
 
     # tables: every entry the data touches is an unknown (so a poorly covered neighbour left at its
@@ -269,23 +289,21 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
         U2, R2 = _table_fit(rows, bpU, bpR, U0, R0, tc_use + h, T_ref, varyU, varyR)[:2]
         seU = np.sqrt(seU ** 2 + ((U2 - U) / h * se_tc) ** 2)
         seR = np.sqrt(seR ** 2 + ((R2 - R) / h * se_tc) ** 2)
+    # calibration of the voltage and current sensors (V_CAL_REL_SD, I_CAL_REL_SD): a bias the amount of
+    # data does not average out
+    seU = np.sqrt(seU ** 2 + (V_CAL_REL_SD * U) ** 2)
+    seR = np.sqrt(seR ** 2 + (np.hypot(V_CAL_REL_SD, I_CAL_REL_SD) * R) ** 2)
     estU, estR = varyU.copy(), varyR.copy()
+    # entries the data barely touch (hat weight < MIN_COVER samples) keep the prior: a regression on a
+    # handful of samples has an unreliable standard error; the others are combined with their prior
     for j in np.flatnonzero(varyU):
-        ok, why = judge("U_oc_V", U[j], seU[j], pU.bounds)
-        if ok and seU[j] > U_OC_SE_MAX_V:
-            ok, why = False, f"standard error {seU[j]:.2g} V > {U_OC_SE_MAX_V} V"
-        if ok and coverU[j] < MIN_COVER:
-            ok, why = False, f"hat weight {coverU[j]:.1f} < {MIN_COVER:g} samples"
-        if not ok:
+        if coverU[j] < MIN_COVER or not np.isfinite(seU[j]):
             estU[j] = False
-            whyU[j] = f"SOC {bpU[j]:g}: {why}"
+            whyU[j] = f"SOC {bpU[j]:g}: hat weight {coverU[j]:.1f} < {MIN_COVER:g} samples"
     for j in np.flatnonzero(varyR):
-        ok, why = judge("R_int_ohm", R[j], seR[j], pR.bounds)
-        if ok and coverR[j] < MIN_COVER:
-            ok, why = False, f"hat weight {coverR[j]:.1f} < {MIN_COVER:g} samples"
-        if not ok:
+        if coverR[j] < MIN_COVER or not np.isfinite(seR[j]):
             estR[j] = False
-            whyR[j] = f"SOC {bpR[j]:g}: {why}"
+            whyR[j] = f"SOC {bpR[j]:g}: hat weight {coverR[j]:.1f} < {MIN_COVER:g} samples"
     for _ in range(len(bpU)):  # estimated U_oc entries must not decrease: revert the less certain one
         e = np.flatnonzero(estU)
         bad = [(e[i], e[i + 1]) for i in range(e.size - 1) if U[e[i + 1]] < U[e[i]]]
@@ -305,16 +323,31 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
                        soc_min=float(socs.min()), soc_max=float(socs.max()), bat_temp_span_K=T_span)
 
     def table_est(name, vals, prior, se, vary, why, fill=None):
-        st = ["estimated" if v else "undetermined" for v in vary]
+        # per entry: the regression estimate combined with the entry's Gaussian prior (precision-weighted);
+        # entries the data does not reach are the prior (or the prior's shape joined to the estimates)
+        # with the prior sd
+        psd = np.array(prior_sd_of(base.param(name)), float)
         fill = prior if fill is None else fill
-        val = [float(v) if vary[j] else float(fill[j]) for j, v in enumerate(vals)]
-        ses = [float(s) if vary[j] else float("nan") for j, s in enumerate(se)]
-        status = "estimated" if any(vary) else "undetermined"
+        val, ses, inf, st = [], [], [], []
+        for j, v in enumerate(vals):
+            if vary[j] and np.isfinite(se[j]) and se[j] > 0:
+                w1, w0 = 1.0 / se[j] ** 2, 1.0 / psd[j] ** 2
+                val.append(float((w1 * v + w0 * prior[j]) / (w1 + w0)))
+                ses.append(float(math.sqrt(1.0 / (w1 + w0))))
+            else:
+                val.append(float(fill[j]))
+                ses.append(float(psd[j]))
+            inf.append(max(0.0, 1.0 - ses[-1] / psd[j]))
+            st.append("estimated" if inf[-1] >= WEAK_INFORMED else "weak")
+        if name == "U_oc_V":
+            val = list(np.maximum.accumulate(val))
+        status = "estimated" if "estimated" in st else "weak"
         keys = sorted(k for k in why if not isinstance(k, str))
         note = ("entries not determined: " + "; ".join(why[j] for j in keys)) if keys else ""
         if "shift" in why:
             note += ". " + why["shift"]
-        return ParamEstimate(name, val, ses, status, note, prior=list(map(float, prior)), entry_status=st)
+        return ParamEstimate(name, val, ses, status, note, prior=list(map(float, prior)), entry_status=st,
+                             prior_sd=list(map(float, psd)), informed=inf)
 
     if fitU:
         fit.estimates["U_oc_V"] = table_est("U_oc_V", U, U0, seU, varyU, whyU, fill=U_fill)
@@ -322,27 +355,53 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
         fit.estimates["R_int_ohm"] = table_est("R_int_ohm", R, R0, seR, varyR, whyR)
 
     if "C_bat_Ah" in allowed:
-        Cp = float(base["C_bat_Ah"])
-        b, sb, segs, fcap, n_cross = _capacity(rows)
-        span = max((np.nanmax(r["soc"]) - np.nanmin(r["soc"])) for r in rows)
-        if b is None or not (b > 0):
-            fit.estimates["C_bat_Ah"] = ParamEstimate("C_bat_Ah", Cp, None, "undetermined",
-                                                      "Coulomb counting gave no positive slope", prior=Cp)
-        else:
-            C = 1.0 / b
-            se = C * sb / b
-            ok, why = judge("C_bat_Ah", C, se, base.param("C_bat_Ah").bounds)
-            if ok and n_cross < 20:
-                ok, why = False, f"only {n_cross} SOC level crossings"
-            fit.metrics.update(capacity_soc_span=float(span), capacity_se_inflation=fcap,
-                               capacity_soc_crossings=n_cross)
-            if ok:
-                fit.estimates["C_bat_Ah"] = ParamEstimate("C_bat_Ah", C, se, "estimated",
-                                                          f"Coulomb counting over SOC span {span:.3f} "
-                                                          f"({n_cross} level crossings)", prior=Cp)
-            else:
-                fit.estimates["C_bat_Ah"] = ParamEstimate(
-                    "C_bat_Ah", Cp, None, "undetermined",
-                    f"Coulomb counting estimate {C:.3g} Ah not determined: {why} (SOC span {span:.3f} in 0.5 % "
-                    "steps is too short a window)", prior=Cp)
+        if inferred:  # logs with power only: their current from the tables just fitted
+            fitted = {n: fit.estimates[n].value for n in ("U_oc_V", "R_int_ohm") if n in fit.estimates}
+            inferred = _inferred_current_rows(logs, use, base.with_values(**fitted), fit, "fitted")
+        _fit_capacity(fit, rows, inferred, base)
     return fit
+
+
+def _fit_capacity(fit, rows, inferred, base):
+    """C_bat by Coulomb counting over the logs with current (and those with current inferred from power)."""
+    Cp = float(base["C_bat_Ah"])
+    b, sb, segs, fcap, n_cross = _capacity(rows + inferred)
+    span = max((np.nanmax(r["soc"]) - np.nanmin(r["soc"])) for r in rows + inferred)
+    Csd = float(prior_sd_of(base.param("C_bat_Ah")))
+    if b is None or not (b > 0):
+        fit.estimates["C_bat_Ah"] = prior_only("C_bat_Ah", Cp, Csd, "Coulomb counting gave no positive slope")
+    else:
+        C = 1.0 / b
+        se = math.hypot(C * sb / b, I_CAL_REL_SD * C)
+        fit.metrics.update(capacity_soc_span=float(span), capacity_se_inflation=fcap,
+                           capacity_soc_crossings=n_cross)
+        src = "Coulomb counting" + (f" (current inferred from bat_power_W and the OCV/resistance tables in "
+                                    f"{len(inferred)} log(s))" if inferred else "")
+        fit.estimates["C_bat_Ah"] = combine_with_prior("C_bat_Ah", C, se, Cp, Csd,
+                                                       f"{src} over SOC span {span:.3f} ({n_cross} level crossings)")
+
+
+def _inferred_current_rows(logs, use, base, fit, which="prior"):
+    """Rows for Coulomb counting from logs with battery power and SOC but no current: the current is eq. 1
+    solved for I with the OCV/resistance tables of ``base`` (``which``: prior or fitted; stated in
+    ``fit.used``)."""
+    from calib.fit.replay import _fill, current_from_power, log_arrays
+
+    mp = base.model_params()
+    names = {lg.label() for lg in use}
+    out = []
+    for lg in logs:
+        if lg.label() in names or not lg.has("soc") or lg.has("bat_current_A"):
+            continue
+        la = log_arrays(lg, mp, cabin_balance=False)
+        if not la.battery_source:
+            continue
+        T = _fill(la.ch["bat_temp_degC"], mp.T_bat_ref)
+        I = current_from_power(mp, _fill(la.ch["soc"], 0.6), _fill(la.P_bat, 0.0), T)
+        I[~np.isfinite(la.P_bat)] = np.nan
+        out.append(dict(name=lg.label(), I=I, V=np.full(I.size, np.nan), soc=la.ch["soc"], T=T, T_logged=False,
+                        dt=lg.dt))
+        fit.used[lg.label()] = {"current": f"inferred from {la.battery_source} and the {which} OCV/resistance "
+                                           "tables (capacity only)", "soc": "soc"}
+        fit.skipped.pop(lg.label(), None)
+    return out

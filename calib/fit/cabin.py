@@ -1,6 +1,7 @@
 """Cabin and heater-core fit (docs/model.md s.6 and s.8).
 
-- ``C_cab``, ``UA_cab``, ``Q_sun``: output error. The cabin temperature is simulated from the logged heater
+- ``C_cab``, ``UA_cab``, ``Q_sun``: output error, maximum a posteriori (:func:`calib.fit.toolkit.map_fit`).
+  The cabin temperature is simulated from the logged heater
   heat and ambient temperature by eq. 10 in a compiled loop (:func:`calib.fit.validate.cabin_replay`, which
   calls :func:`calib.model.equations.cabin_rate`) and matched to the logged cabin temperature with lmfit (one
   residual vector across logs, one initial cabin temperature per log as a nuisance parameter). Standard
@@ -12,13 +13,17 @@
   ``r``: starting from its 90th percentile, samples within 3 noise sd (1 degC quantisation of both
   temperatures) below the current estimate are taken as binding and ``eps_hc`` re-estimated by least
   squares through the origin, until it settles. At least 60 binding samples with ``T_cl - T_in >= 10 K``
-  are needed. The standard error includes a 0.5 K offset uncertainty of the coolant and vent sensors.
+  are needed. The standard error includes a 0.5 K offset uncertainty of the coolant and vent sensors; the
+  estimate is combined with the prior (precision weighting). A heater heat inferred from the cabin
+  balance is never used here (it would be circular).
 """
 from __future__ import annotations
 
 import numpy as np
 
-from calib.fit.toolkit import T_SENSOR_SD, output_error_params, usable_logs, INPUT_REL_SD, KEY_PARAMETERS, MIN_SAMPLES, ParamEstimate, SubsystemFit, inflation, judge, lmfit_identify, not_fitted
+from calib.fit.toolkit import (T_SENSOR_SD, INPUT_REL_SD, MIN_SAMPLES, SubsystemFit, combine_with_prior, confounded_pairs, inflation,
+                               map_fit, not_fitted, output_error_params, posterior_estimate, prior_only, usable_logs)
+from calib.model.params import prior_sd_of
 from calib.fit.replay import _fill, cabin_replay, first_valid_mean, log_arrays
 
 NEEDS = ("cabin_temp_degC", "ambient_temp_degC")  # + heater_power_W or vent_temp_degC + blower_flow_kg_per_s
@@ -99,19 +104,18 @@ def fit_cabin(logs, base, *, allowed=None) -> SubsystemFit:
     if "eps_hc" in allowed:
         e, why = _eps(logs, base, fit)
         p0 = float(base["eps_hc"])
+        sd0 = float(prior_sd_of(base.param("eps_hc")))
         if e is None:
             miss = sorted({c for lg in logs for c in lg.missing(NEEDS_EPS)})
             if miss and not any(lg.has(*NEEDS_EPS) for lg in logs):
-                fit.estimates["eps_hc"] = ParamEstimate("eps_hc", p0, None, "prior",
-                                                        f"not fitted: missing channel(s) {', '.join(miss)}", prior=p0)
+                fit.estimates["eps_hc"] = prior_only("eps_hc", p0, sd0, f"not fitted: missing channel(s) {', '.join(miss)}",
+                                                        status="prior")
             else:
-                fit.estimates["eps_hc"] = ParamEstimate("eps_hc", p0, None, "undetermined", why, prior=p0)
+                fit.estimates["eps_hc"] = prior_only("eps_hc", p0, sd0, why)
         else:
             eps, se, nb = e
-            ok, why = judge("eps_hc", eps, se, base.param("eps_hc").bounds)
-            fit.estimates["eps_hc"] = (ParamEstimate("eps_hc", eps, se, "estimated",
-                                                     f"{nb} samples where the heater-core limit binds", prior=p0)
-                                       if ok else ParamEstimate("eps_hc", p0, None, "undetermined", why, prior=p0))
+            fit.estimates["eps_hc"] = combine_with_prior("eps_hc", eps, se, p0, sd0,
+                                                         f"{nb} samples where the heater-core limit binds")
     cand = [n for n in ("C_cab_J_per_K", "UA_cab_W_per_K", "Q_sun_W") if n in allowed]
     if not cand:
         return fit
@@ -126,15 +130,17 @@ def fit_cabin(logs, base, *, allowed=None) -> SubsystemFit:
     mp0 = base.model_params()
     data = []
     for i, lg in enumerate(use):
-        la = log_arrays(lg, mp0)
+        la = log_arrays(lg, mp0, cabin_balance=False)
+        fit.used[lg.label()] = {"heater heat": la.heater_source}
         c = la.ch
         T = c["cabin_temp_degC"]
         data.append(dict(T=T, ok=np.isfinite(T), dt=la.dt, T_amb=_fill(c["ambient_temp_degC"], 0.0),
                          Q=np.maximum(_fill(la.Q_heat, 0.0), 0.0), T0=first_valid_mean(T, 5, 0.0), name=f"Tc0_{i}"))
     bnd = {n: base.param(n).bounds for n in cand}
     prior = {n: float(base[n]) for n in cand}
+    psd = {n: float(prior_sd_of(base.param(n))) for n in cand}
 
-    make_params = output_error_params(cand, bnd, prior, data)
+    make = output_error_params(cand, bnd, prior, data)
 
     def segments(ps, q_scale=1.0, dT=0.0):
         v = ps.valuesdict()
@@ -143,26 +149,15 @@ def fit_cabin(logs, base, *, allowed=None) -> SubsystemFit:
         return [(cabin_replay(mp, float(v[d["name"]]), d["dt"], d["T_amb"], q_scale * d["Q"]) - d["T"] - dT)[d["ok"]]
                 for d in data]
 
-    def residual(ps):
-        return np.concatenate(segments(ps))
-
-    perturbed = [lambda ps: np.concatenate(segments(ps, 1.0 + INPUT_REL_SD)),
-                 lambda ps: np.concatenate(segments(ps, dT=0.5))]
-    out = lmfit_identify(make_params, residual, cand, bounds=bnd, segments=segments, conf_keys=KEY_PARAMETERS,
-                         perturbed=perturbed)
-    res = out["result"]
-    r = residual(res.params)
-    fit.metrics.update(rmse_degC=float(np.sqrt(np.mean(r ** 2))), samples=int(r.size), n_eff=out["n_eff"],
-                       se_inflation=out["factor"])
+    perturbed = [lambda ps: segments(ps, 1.0 + INPUT_REL_SD), lambda ps: segments(ps, dT=T_SENSOR_SD)]
+    out = map_fit(lambda: make(set(cand)), segments, cand, prior=prior, prior_sd=psd, noise_sd=T_SENSOR_SD,
+                  perturbed=perturbed, floor=0.05)
+    res = out["params"]
+    fit.metrics.update(rmse_degC=out["rmse"], samples=int(out["n"]), n_eff=out["n_eff"], noise_sd_degC=out["noise_sd"])
     fit.correlations = out["correl"]
-    fit.conf_intervals = out["conf"]
-    fit.nuisance = {d["name"]: float(res.params[d["name"]].value) for d in data}
+    fit.confounded = confounded_pairs(out["correl"])
+    fit.nuisance = {d["name"]: float(res[d["name"]].value) for d in data}
     for n in cand:
-        if n in out["vary"]:
-            fit.estimates[n] = ParamEstimate(n, out["values"][n], out["stderr"][n], "estimated",
-                                             f"output-error fit of the cabin temperature over {len(use)} log(s)",
-                                             prior=prior[n])
-        else:
-            fit.estimates[n] = ParamEstimate(n, prior[n], None, "undetermined", out["undetermined"].get(n, ""),
-                                             prior=prior[n])
+        fit.estimates[n] = posterior_estimate(n, out, f"MAP fit of the cabin temperature over {len(use)} log(s)",
+                                              prior[n])
     return fit

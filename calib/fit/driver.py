@@ -1,69 +1,56 @@
 """Calibration: identify the model of docs/model.md from drive logs, with uncertainty and validation.
 
-:func:`calibrate` runs one fitter per subsystem over all logs that carry the channels it declares in
-``NEEDS`` (one residual vector across logs), merges the estimates into a
-:class:`calib.model.params.ParameterSet` and validates the result on held-out logs (:mod:`calib.fit.validate`):
+:func:`calibrate` runs one fitter per subsystem over all logs that carry what it needs (one residual
+vector across logs), merges the estimates into a :class:`calib.model.params.ParameterSet`, replays the
+fitted and the held-out logs (:mod:`calib.fit.validate`) and says which drives would inform what the logs
+did not (:mod:`calib.fit.advice`):
 
 ========================  ==========================================================================
-:mod:`calib.fit.battery`  ``U_oc_V``, ``R_int_ohm`` tables (direct linear least squares on the table
-                          values, hat-function basis), ``C_bat_Ah`` (Coulomb counting against logged
-                          SOC), ``R_int_tc_per_K`` (profile over the coefficient, when the battery
-                          temperature spans >= 10 K)
-:mod:`calib.fit.fuel`     ``fuel_scale``, ``W_idle_g_per_s``, ``f_cl`` (lmfit on stable 1 s bins)
+:mod:`calib.fit.battery`  ``U_oc_V``, ``R_int_ohm`` tables (linear least squares on the table values,
+                          hat-function basis), ``C_bat_Ah`` (Coulomb counting against logged SOC; the
+                          current inferred from battery power where only power is logged),
+                          ``R_int_tc_per_K`` (profile, when the battery temperature spans >= 10 K)
+:mod:`calib.fit.fuel`     ``eta_ool`` (the warm fuel rate along the operating line), ``W_idle_g_per_s``,
+                          ``f_cl`` (monotone, smooth), on stable 1 s bins
 :mod:`calib.fit.thermal`  ``kappa`` (bay temperature, linear), ``C_eng_J_per_K``, ``gamma_exh``,
                           ``hA_eng_W_per_K``, ``T_open_degC``, ``k_rad_W_per_K`` (output error)
 :mod:`calib.fit.cabin`    ``C_cab_J_per_K``, ``UA_cab_W_per_K``, ``Q_sun_W`` (output error),
                           ``eps_hc`` (vent temperature where the heater-core limit binds)
 ========================  ==========================================================================
 
-Uncertainty
------------
-Standard errors come from the fit's covariance (lmfit ``leastsq``: ``s^2 (J^T J)^-1``), and then:
+What a log has
+--------------
+Inputs come in several forms (:func:`calib.fit.replay.log_arrays`): the engine operating point from
+speed x torque, or the logged engine power, or inferred from the power balance (traction demand minus the
+motor's share of the battery power); the battery power logged or as voltage x current; the heater heat
+logged, from vent temperature and blower flow, or inferred from the cabin balance. Each fit states in
+``SubsystemFit.used`` what it used per log, and what it inferred.
 
-- **inflated for correlated residuals**: output-error and quantised residuals are strongly
-  autocorrelated, so the number of independent samples is ``n_eff = sum_logs n / tau`` with ``tau`` the
-  larger of the integrated autocorrelation time and a batch-means estimate (:func:`neff`); every standard
-  error is multiplied by ``sqrt(n / n_eff)``;
-- **plus the calibration uncertainty of the logged inputs** (heater power, fuel rate, engine power:
-  :data:`INPUT_REL_SD` = 1 %; temperature sensors: 0.5 K offset): each input is moved by one sd, the fit
-  repeated, and the shift of every estimate added in quadrature;
-- **plus the prior uncertainty of parameters held at their prior** (:data:`PRIOR_REL_SD` = 25 % of the
-  value, or the absolute :data:`PRIOR_ABS_SD`), propagated the same way, so that an estimate leaning on a
-  doubtful prior is judged with that doubt.
+Estimation: maximum a posteriori
+--------------------------------
+Every parameter has a prior value and a prior sd (``Parameter.prior_sd``, defaults in
+:data:`calib.model.params.PRIOR_SD`). Each fit minimises the data misfit plus the prior penalty,
+``sum (r / s)^2 + sum ((p - p_prior) / sd_prior)^2`` (in lmfit, the prior as extra residuals;
+:func:`calib.fit.toolkit.map_fit`), where ``s`` is the data's noise sd re-estimated from the residuals and
+inflated by ``sqrt(n / n_eff)`` for their autocorrelation, so the data count as ``n_eff`` independent
+samples. Closed-form fits (tables, capacity, ``kappa``, ``eps_hc``) combine their regression estimate
+with the prior by precision weighting. Every parameter then moves as far as its data justify, and its
+value *is the posterior*, whatever the data say about it:
 
-Confidence intervals (lmfit ``conf_interval``, F-test on the profile) of the key thermal and cabin
-parameters (:data:`KEY_PARAMETERS`) use the same ``n_eff`` (``nfree`` is set to ``n_eff - nvarys``).
+- the posterior sd (Gauss-Newton, plus the calibration uncertainty of the logged inputs, 1 % of fuel,
+  engine and heater power and 0.5 K of temperature sensors, propagated linearly) is the ``stderr``;
+- ``informed = 1 - posterior sd / prior sd`` says how much the data narrowed the prior; below
+  :data:`calib.fit.toolkit.WEAK_INFORMED` the status is ``weak`` (the value is mostly the prior), else
+  ``estimated``; a parameter no data reaches returns its prior with the prior sd;
+- pairs with posterior ``|r| >`` :data:`calib.fit.toolkit.CONFOUNDED` are reported as confounded (the
+  logs determine a combination), and :func:`calib.fit.advice.advise` names a drive that would separate them.
 
-Identifiability criteria (a parameter is *determined* only if all hold)
------------------------------------------------------------------------
-1. Enough data in its regime: e.g. >= 60 warm engine-on samples for ``fuel_scale``, >= 30 sample-weights
-   (sum of the hat-function weights) for a table breakpoint, coolant above the fitted thermostat
-   temperature for >= 120 s for ``T_open``/``k_rad``, a battery temperature span >= 10 K for the
-   resistance temperature coefficient, a log with the engine-bay temperature for ``kappa``.
-2. A finite standard error (non-singular covariance: the data is sensitive to it).
-3. Relative standard error <= :data:`REL_SE_MAX` = 1/30, i.e. the 3-sigma interval lies within +-10 %
-   of the value (the accuracy the issue asks of an identified parameter). Table entries of ``U_oc_V``
-   must in addition have a standard error <= :data:`U_OC_SE_MAX_V` (the whole table spans only ~20 V).
-   A parameter whose true value is near zero (``Q_sun_W``) therefore cannot be reported as determined.
-4. Not nearly collinear with another fitted parameter: ``|corr| > CORR_MAX = 0.999`` flags the less
-   precise of the two unless its relative standard error is below ``REL_SE_MAX / 2`` (the standard errors
-   already account for correlation; this catches fits where only a combination is determined).
-5. Not stuck at a bound.
-
-A parameter failing any of these is *undetermined*: it keeps its prior value, its status is
-``undetermined``, it has no standard error, and its note says which criterion failed. In the
-output-error and fuel fits it stays free in the fit as a nuisance parameter (so a wrong prior cannot bias
-the others, and their standard errors include the correlation with it); a parameter with no sensitivity
-at all, stuck at a bound, or without data in its regime (criterion 1) is held at its prior instead (with
-its prior uncertainty propagated, above). Note the consequence: the calibrated set then combines
-estimates with priors, and a held-out log that exercises an undetermined parameter is predicted with
-its prior (the validation metrics show it). Parameters of a subsystem whose channels no log carries keep
-status ``prior`` with a note naming the missing channels. Fixed parameters (``fix=``) keep status
-``fixed``.
+Statuses: ``estimated``, ``weak`` (posterior, mostly the prior), ``prior`` (the fit could not run: its
+channels are missing; value and sd are the prior's), ``fixed`` (``fix=``).
 
 ``hA_eng_W_per_K`` and ``kappa`` enter the coolant equation only as ``hA_eng (1 - kappa)`` unless a log
-carries the engine-bay temperature. Without it, ``kappa`` stays at its prior and ``hA_eng`` is reported
-as the value that, *with that kappa*, reproduces the identified product; its note says so.
+carries the engine-bay temperature. Without it, ``kappa`` is its prior and ``hA_eng`` is reported as the
+value that, *with that kappa*, reproduces the identified product; its note says so.
 """
 from __future__ import annotations
 
@@ -74,7 +61,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calib.fit import battery as _battery, cabin as _cabin, fuel as _fuel, thermal as _thermal
-from calib.fit.toolkit import CORR_MAX, REL_SE_MAX, U_OC_SE_MAX_V, SubsystemFit
+from calib.fit.toolkit import CONFOUNDED, WEAK_INFORMED, SubsystemFit
 
 #: The parameters each subsystem fitter estimates (each fitter's own ``PARAMS``).
 SUBSYSTEM_PARAMS = {name: list(mod.PARAMS) for name, mod in (("battery", _battery), ("fuel", _fuel),
@@ -88,8 +75,8 @@ class CalibrationResult:
     Attributes
     ----------
     params : ParameterSet
-        Calibrated set: estimated values with ``stderr``, ``status``, ``note`` and ``logs`` filled;
-        undetermined parameters at their prior.
+        Calibrated set: posterior values with ``stderr`` (posterior sd), ``prior_value``, ``prior_sd``,
+        ``informed``, ``status``, ``note`` and ``logs`` filled.
     fits : dict subsystem -> SubsystemFit
     validation : dict log label -> channel -> metrics (RMSE, max_abs, bias; cumulative fuel error %)
     logs : list of dict (name, sha256, source, synthetic, duration_s, channels)
@@ -104,16 +91,23 @@ class CalibrationResult:
     wall_s: float
     date: str
     version: str
+    advice: list = None
+    diagnostics: dict = None  # {"fitted": {log: ...}, "held_out": {log: ...}} (see calib.fit.validate.diagnostics)
 
     def calibration_section(self) -> dict:
         """The ``[calibration]`` section of the artifact: logs, date, software, per-subsystem metrics."""
         sec = {"software": f"iptm/calib {self.version}", "date_utc": self.date, "wall_s": round(self.wall_s, 3),
-               "criteria": {"rel_se_max": REL_SE_MAX, "corr_max": CORR_MAX, "u_oc_se_max_V": U_OC_SE_MAX_V},
-               "logs": self.logs, "subsystems": {}}
+               "method": "maximum a posteriori (data misfit in noise sd + Gaussian prior penalty)",
+               "criteria": {"weak_informed": WEAK_INFORMED, "confounded_abs_r": CONFOUNDED},
+               "logs": self.logs, "subsystems": {}, "advice": list(self.advice or [])}
         for name, f in self.fits.items():
             d = {"logs": list(f.logs), "metrics": _clean(f.metrics), "message": f.message}
             if f.skipped:
                 d["skipped"] = dict(f.skipped)
+            if f.used:
+                d["used"] = _clean(f.used)
+            if f.confounded:
+                d["confounded"] = [{"a": a, "b": b, "r": round(r, 4)} for a, b, r in f.confounded]
             hi = {k: round(v, 4) for k, v in f.correlations.items() if abs(v) > 0.9}
             if hi:
                 d["correlations_above_0_9"] = hi
@@ -130,6 +124,8 @@ class CalibrationResult:
         d = self.params.to_dict()
         d["calibration"] = self.calibration_section()
         d["validation"] = {"logs": self.validation_logs, "metrics": _clean(self.validation)}
+        if self.diagnostics:
+            d["validation"]["diagnostics"] = _clean(self.diagnostics)
         return d
 
     def to_artifact(self, path) -> None:
@@ -157,11 +153,14 @@ class CalibrationResult:
             raise ParameterError(f"{path}: calibration artifacts are .toml or .json")
 
     def report(self) -> str:
-        """Text fit report: per parameter value, standard error, status; fit metrics; validation."""
-        L = [f"Calibration ({self.date}, calib {self.version}) from {len(self.logs)} log(s) in {self.wall_s:.1f} s"]
+        """Text fit report: per parameter posterior value and sd, prior and prior sd, how much the data
+        informed it; what each fit used; confounded pairs; advice; validation and residual diagnostics."""
+        L = [f"Calibration ({self.date}, calib {self.version}) from {len(self.logs)} log(s) in {self.wall_s:.1f} s",
+             "Maximum a posteriori: value +- posterior sd; prior +- prior sd; informed = 1 - posterior sd / prior sd"]
         for lg in self.logs:
             L.append(f"  log {lg['name']}{' [SYNTHETIC]' if lg['synthetic'] else ''}: {lg['duration_s']:.0f} s, "
                      f"sha256 {lg['sha256'][:12] or '-'}")
+        fmt = lambda v: f"{v:.4g}" if isinstance(v, (int, float)) and np.isfinite(v) else "-"  # noqa: E731
         for name, f in self.fits.items():
             L.append("")
             L.append(f"[{name}] logs used: {', '.join(f.logs) or 'none'}")
@@ -169,6 +168,8 @@ class CalibrationResult:
                 L.append(f"  {f.message}")
             for lg, why in f.skipped.items():
                 L.append(f"  skipped {lg}: {why}")
+            for lg, used in f.used.items():
+                L.append(f"  used from {lg}: " + "; ".join(f"{k}: {v}" for k, v in used.items() if v))
             for k, v in f.metrics.items():
                 if isinstance(v, (int, float)):
                     L.append(f"  {k}: {v:.4g}")
@@ -177,23 +178,26 @@ class CalibrationResult:
                 if p.is_table:
                     L.append(f"  {e.name:18s} [{e.status}] {p.unit}")
                     se = e.stderr if isinstance(e.stderr, list) else [None] * len(p.value)
-                    for x, v, s, st in zip(p.x, p.value, se, e.entry_status or [e.status] * len(p.value)):
-                        ss = f"+- {s:.3g}" if s is not None and np.isfinite(s) else ""
-                        L.append(f"      {p.x_name}={x:<8g} {v:12.6g} {ss:12s} {st}")
+                    pr = e.prior if isinstance(e.prior, list) else [None] * len(p.value)
+                    psd = e.prior_sd if isinstance(e.prior_sd, list) else [None] * len(p.value)
+                    inf = e.informed if isinstance(e.informed, list) else [None] * len(p.value)
+                    for x, v, s_, st, p0, s0, i0 in zip(p.x, p.value, se, e.entry_status or [e.status] * len(p.value),
+                                                        pr, psd, inf):
+                        L.append(f"      {p.x_name}={x:<8g} {v:12.6g} +- {fmt(s_):9s} prior {fmt(p0):>9s} +- "
+                                 f"{fmt(s0):9s} informed {fmt(100 * i0) if i0 is not None else '-':>4s} %  {st}")
                 else:
-                    ss = f"+- {e.stderr:.3g}" if isinstance(e.stderr, float) and np.isfinite(e.stderr) else ""
-                    L.append(f"  {e.name:18s} {p.value:12.6g} {ss:14s} {p.unit:10s} [{e.status}]")
+                    inf = f"{100 * e.informed:.0f} %" if isinstance(e.informed, (int, float)) else "-"
+                    L.append(f"  {e.name:18s} {p.value:12.6g} +- {fmt(e.stderr):9s} {p.unit:10s} prior "
+                             f"{fmt(e.prior):>9s} +- {fmt(e.prior_sd):9s} informed {inf:>5s} [{e.status}]")
                 if e.note and e.status != "estimated" or (e.note and "only as" in e.note):
                     L.append(f"      note: {e.note}")
-            hi = {k: v for k, v in f.correlations.items() if abs(v) > 0.9}
-            for k, v in hi.items():
-                L.append(f"  correlation {k}: {v:+.3f}")
-            for k, v in f.conf_intervals.items():
-                if k.startswith("_"):
-                    L.append(f"  {v}")
-                else:
-                    L.append(f"  CI {k}: " + ", ".join(f"{s} [{ab[0]:.5g}, {ab[1]:.5g}]" for s, ab in v.items()
-                                                         if s != "best"))
+            for a, b, r in f.confounded:
+                L.append(f"  confounded: {a} and {b} (posterior correlation {r:+.3f})")
+        if self.advice:
+            L.append("")
+            L.append("Advice (what drive would inform what these logs did not):")
+            for a in self.advice:
+                L.append(f"  - {a}")
         if self.validation:
             L.append("")
             L.append("Validation (simulated - measured):")
@@ -203,9 +207,28 @@ class CalibrationResult:
                     if ch == "cumulative_fuel":
                         L.append(f"    cumulative fuel: measured {v['measured_g']:.1f} g, simulated "
                                  f"{v['simulated_g']:.1f} g, error {v['error_pct']:+.2f} %")
+                    elif ch == "refused":
+                        for k, why in v.items():
+                            L.append(f"    {k:13s} NOT CHECKED: {why}")
+                    elif ch == "inferred":
+                        for k, how in v.items():
+                            L.append(f"    input {k} inferred: {how}")
                     else:
                         L.append(f"    {ch:13s} RMSE {v['rmse']:.4g} max {v['max_abs']:.4g} bias {v['bias']:+.4g} "
                                  f"{v['unit']}")
+        if self.diagnostics:
+            L.append("")
+            L.append("Residual diagnostics (RMSE / bias by regime; lag-1 and lag-60 s residual autocorrelation):")
+            for kind, per in self.diagnostics.items():
+                for lg, chans in per.items():
+                    L.append(f"  [{kind}] {lg}")
+                    for ch, d in chans.items():
+                        ac = d["autocorrelation"]
+                        L.append(f"    {ch:13s} RMSE {d['rmse']:.4g} bias {d['bias']:+.4g} {d['unit']}; acf(1s) "
+                                 f"{ac.get('1s', float('nan')):.2f} acf(60s) {ac.get('60s', float('nan')):.2f}; "
+                                 f"n_eff {d['n_eff']:.0f} of {d['n']}")
+                        for rg, v in d["by_regime"].items():
+                            L.append(f"      {rg:26s} RMSE {v['rmse']:.4g} bias {v['bias']:+.4g} (n {v['n']})")
         return "\n".join(L)
 
 
@@ -232,7 +255,7 @@ def _log_info(lg) -> dict:
             "channels": lg.channels()}
 
 
-def calibrate(logs, *, base=None, fit=None, fix=None, validate=None, progress=True) -> CalibrationResult:
+def calibrate(logs, *, base=None, fit=None, fix=None, validate=None, progress=True, diagnose=True) -> CalibrationResult:
     """Calibrate the model from drive logs.
 
     Parameters
@@ -250,6 +273,9 @@ def calibrate(logs, *, base=None, fit=None, fix=None, validate=None, progress=Tr
         Held-out logs: replayed with the calibrated parameters (:func:`calib.fit.validate.validate`).
     progress : bool
         Show a tqdm progress bar (on stderr).
+    diagnose : bool
+        Replay the fitted and the held-out logs and compute residual diagnostics
+        (:func:`calib.fit.validate.diagnostics`).
 
     Returns
     -------
@@ -266,6 +292,8 @@ def calibrate(logs, *, base=None, fit=None, fix=None, validate=None, progress=Tr
     from calib.fit.fuel import fit_fuel
     from calib.fit.thermal import fit_thermal
     from calib.model.params import default_parameters
+    from calib.fit.advice import advise
+    from calib.fit.validate import diagnostics, replay
     from calib.fit.validate import validate as run_validation
 
     t0 = time.perf_counter()
@@ -303,32 +331,44 @@ def calibrate(logs, *, base=None, fit=None, fix=None, validate=None, progress=Tr
                      software=f"calib {__version__}",
                      synthetic=any(lg.meta.synthetic for lg in logs))
     val = {}
+    diag = {"fitted": {}, "held_out": {}}
     if validate:
         bar.set_postfix_str("validation")
         val = run_validation(validate, work)
         bar.update(1)
+    if diagnose:
+        for kind, group in (("fitted", logs), ("held_out", validate or [])):
+            for lg in group:
+                rep = replay(lg, work)
+                diag[kind][rep.name] = diagnostics(rep)
     bar.close()
     return CalibrationResult(params=work, fits=fits, validation=val, logs=[_log_info(lg) for lg in logs],
                              validation_logs=[_log_info(lg) for lg in (validate or [])],
-                             wall_s=time.perf_counter() - t0, date=stamp, version=__version__)
+                             wall_s=time.perf_counter() - t0, date=stamp, version=__version__,
+                             advice=advise(fits), diagnostics=diag if diagnose else None)
 
 
 def _merge(ps, fit: SubsystemFit, allowed, fixed):
-    """Write a subsystem's estimates into the parameter set (undetermined ones stay at the prior)."""
+    """Write a subsystem's posterior estimates into the parameter set (value, posterior sd, prior, informed)."""
+    from calib.model.params import prior_sd_of
+
     for n, e in fit.estimates.items():
         if n in fixed or n not in allowed:
             continue
         p = ps.param(n)
         p.logs = list(fit.logs)
         p.note = e.note
-        if e.status == "estimated":
+        p.prior_value = e.prior if e.prior is not None else p.value
+        p.prior_sd = e.prior_sd if e.prior_sd is not None else prior_sd_of(p)
+        p.informed = e.informed
+        p.status = e.status
+        if e.status in ("estimated", "weak"):
             p.value = [float(v) for v in e.value] if p.is_table else float(e.value)
+            p.source = "calibration (calib.fit.driver, maximum a posteriori)"
+        if e.stderr is not None:
             p.stderr = ([float(s) if s is not None else float("nan") for s in e.stderr] if p.is_table
                         else float(e.stderr))
-            p.status = "estimated"
-            p.source = "calibration (calib.fit.driver)"
         else:
-            p.status = e.status
             p.stderr = None
         if p.is_table:
             p.entry_status = list(e.entry_status) if e.entry_status else [p.status] * len(p.value)

@@ -1,40 +1,63 @@
-"""Fuel fit (docs/model.md s.4 and s.8): warm map scale, idle fuel, cold factor table.
+"""Fuel fit (docs/model.md s.4 and s.8): the warm fuel rate along the operating line, the idle fuel and a
+monotone, smooth cold-correction table, by maximum a posteriori estimation.
 
-The model is ``W_f = max(fuel_scale * P_e / (eta_ool(P_e) LHV), W_idle) f_cl(T_cl)`` with the engine on and
-``W_idle f_cl(T_cl)`` idling (:func:`calib.model.equations.fuel_rate`). One lmfit least-squares fit over the
-*stable* 1 s bins of all logs (engine mode the same in the bin and both neighbours, see
-:func:`calib.fit.validate.stable_mode`, and engine power within 3 % of both neighbours, so that the bin's mean
-speed and torque describe one operating point; when the engine follows the optimal operating line,
-bins whose mean speed is off the line by > 0.5 % are mixtures of two operating points and are dropped):
+The model is ``W_f = max(fuel_scale * P_e / (eta_ool(P_e) LHV), W_idle) f_cl(T_cl)`` with the engine on
+and ``W_idle f_cl(T_cl)`` idling (:func:`calib.model.equations.fuel_rate`). Estimated:
 
-- warm engine-on bins (coolant >= 80 degC, where ``f_cl`` is 1 by definition) determine ``fuel_scale``;
-- idle bins determine ``W_idle`` (through ``f_cl`` when cold);
-- cold bins determine the ``f_cl`` entries (at the coolant temperature smoothed over 21 s, which removes
-  most of its 1 degC quantisation) (the ratio of measured to nominal fuel rate), each entry only
-  if its hat-function weight over the cold bins is >= 30 samples; the last breakpoint (80 degC) is the
-  warm reference and stays 1.
+- the warm fuel rate as a function of engine power: the entries of the efficiency table ``eta_ool`` (at
+  its power breakpoints; ``fuel_scale`` stays at its base value, the table carries the level and the
+  shape), each with its prior (the reference curve, :data:`calib.model.params.PRIOR_SD`) and a smoothness
+  prior on the second differences of ``log(eta / eta_prior)`` (:data:`SMOOTH_SD` per breakpoint), so
+  entries the logs do not reach follow their neighbours and the prior rather than jumping;
+- ``W_idle_g_per_s`` from idle bins;
+- ``f_cl``: parametrised as ``f_cl_j = 1 + sum_{k >= j} d_k`` with increments ``d_k >= 0``, so the
+  table can only fall towards the warm reference (last breakpoint, 1): monotone by construction; its prior
+  is on the entries and a smoothness prior on the change of slope (:data:`F_SLOPE_SD` per K).
 
-Standard errors include the calibration uncertainty of the inputs (engine power 1 %, coolant
-temperature 0.5 K), propagated by refitting with each input moved by one sd.
+Data: the *stable* 1 s bins of every log with fuel rate and coolant temperature and an engine operating
+point (logged speed x torque, logged engine power, or inferred from the power balance: see
+:func:`calib.fit.replay.log_arrays`): engine mode the same in the bin and both neighbours, engine power
+within 3 % of both neighbours; when the engine follows the optimal operating line (speed logged), bins
+off the line by > 0.5 % mix two operating points and are dropped. The coolant temperature is smoothed
+over 21 s (its 1 degC quantisation).
+
+The posterior sd includes the calibration uncertainty of the inputs (engine power 1 %, fuel meter 2 %,
+coolant temperature 1 K and a coolant sensor response time of 20 s), propagated linearly.
 
 Every evaluation calls :func:`calib.model.equations.fuel_rate` in a compiled loop
-(:func:`calib.fit.validate.fuel_replay`).
+(:func:`calib.fit.replay.fuel_replay`).
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-from calib.fit.toolkit import T_SENSOR_SD, INPUT_REL_SD, MIN_SAMPLES, ParamEstimate, SubsystemFit, lmfit_identify, not_fitted, usable_logs
 from calib.fit.battery import hat_basis
-from calib.model.equations import IDLE, ON
 from calib.fit.replay import fuel_replay, log_arrays
+from calib.fit.toolkit import (INPUT_REL_SD, WEAK_INFORMED, ParamEstimate, SubsystemFit, confounded_pairs, map_fit,
+                               not_fitted, posterior_estimate)
+from calib.model.equations import IDLE, ON
+from calib.model.params import prior_sd_of
 from calib.units import RPM
 
-NEEDS = ("engine_speed_rpm", "engine_torque_Nm", "fuel_rate_g_per_s", "coolant_temp_degC")
-PARAMS = ("fuel_scale", "W_idle_g_per_s", "f_cl")
+NEEDS = ("fuel_rate_g_per_s", "coolant_temp_degC")  # + an engine operating point (logged or inferred)
+PARAMS = ("eta_ool", "fuel_scale", "W_idle_g_per_s", "f_cl")
 WARM_DEGC = 80.0
 MIN_COVER = 30.0
 OOL_TOL = 0.005
+T_SD = 1.0  # degC: sensor calibration (0.5 K) plus what smoothing a 1 degC-quantised reading leaves
+#: Calibration uncertainty of a fuel-flow meter (1 sd, relative) and the response time of a coolant
+#: temperature sensor (s): both propagated into the posterior sd (a biased meter or a slow sensor moves
+#: the estimates by about this much, whatever the amount of data).
+FUEL_METER_REL_SD = 0.02
+SENSOR_LAG_S = 20.0
+NOISE_G_PER_S = 0.02  # a priori noise sd of a fuel-flow reading in a 1 s bin
+SMOOTH_SD = 0.05  # second difference of log(eta / eta_prior) per breakpoint
+F_SLOPE_SD = 0.03  # change of the f_cl slope (1/K) between adjacent intervals
+#: The stable bins are operating points, not a time series: their residuals' autocorrelation (a warm-up
+#: the model follows imperfectly) counts at most this many bins as one independent sample.
+MAX_TAU = 10.0
 
 
 def smooth(x, n=21):
@@ -59,13 +82,53 @@ def _steady_power(P, rel=0.03, abs_W=300.0):
     return d < abs_W + rel * np.abs(P)
 
 
+def f_cl_from_increments(d):
+    """Table values ``1 + sum_{k >= j} d_k`` (length ``len(d) + 1``, last entry 1)."""
+    d = np.asarray(d, float)
+    return np.concatenate([1.0 + np.cumsum(d[::-1])[::-1], [1.0]])
+
+
+def _gather(use, mp0, fit):
+    mode, P, T, W, seg, TL = [], [], [], [], [], []
+    for lg in use:
+        la = log_arrays(lg, mp0)
+        used = {"engine power": la.engine_source, "fuel": "fuel_rate_g_per_s", "coolant": "coolant_temp_degC"}
+        used.update({f"inferred {k}": v for k, v in la.inferred.items() if k != "heater power"})
+        T_cl = smooth(la.ch["coolant_temp_degC"], 21)
+        ok = la.stable & np.isin(la.mode, (ON, IDLE)) & np.isfinite(la.ch["fuel_rate_g_per_s"]) & np.isfinite(T_cl)
+        ok &= np.isfinite(la.P_e) & _steady_power(la.P_e)
+        if la.has("engine_speed_rpm", "engine_torque_Nm"):
+            # bins whose mean speed and torque lie off the optimal operating line mix two operating points
+            # (mean speed x mean torque is then not the mean power): drop them, when the engine follows its
+            # line at all (a real engine that does not keeps all its bins)
+            w = la.ch["engine_speed_rpm"] * RPM
+            dev = np.abs(np.interp(np.nan_to_num(la.P_e), mp0.P_ool, mp0.w_ool) / np.maximum(w, 1e-9) - 1.0)
+            on_ok = ok & (la.mode == ON)
+            if on_ok.sum() and np.mean(dev[on_ok] < OOL_TOL) >= 0.5:
+                ok &= (la.mode != ON) | (dev < OOL_TOL)
+                used["bins"] = "stable bins on the operating line"
+        fit.used[lg.label()] = used
+        mode.append(la.mode[ok])
+        P.append(np.nan_to_num(la.P_e[ok]))
+        T.append(T_cl[ok])
+        # the coolant as a sensor lagging by SENSOR_LAG_S would have read it: the reading leads by that much
+        tt = la.t
+        okT = np.isfinite(T_cl)
+        TL.append(np.interp(tt + SENSOR_LAG_S, tt[okT], T_cl[okT])[ok] if okT.sum() > 1 else T_cl[ok])
+        W.append(la.ch["fuel_rate_g_per_s"][ok])
+        seg.append(int(ok.sum()))
+    return (np.concatenate(mode).astype(np.int64), np.concatenate(P), np.concatenate(T), np.concatenate(W),
+            np.cumsum(seg)[:-1], np.concatenate(TL))
+
+
 def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
-    """Fit ``fuel_scale``, ``W_idle_g_per_s`` and the ``f_cl`` table from every log with the fuel channels.
+    """Fit the warm fuel rate (``eta_ool``), ``W_idle_g_per_s`` and the ``f_cl`` table.
 
     Parameters
     ----------
     logs : list of DriveLog
     base : ParameterSet
+        Priors (values and ``prior_sd``).
     allowed : set of str, optional
 
     Returns
@@ -76,146 +139,169 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
 
     allowed = set(PARAMS) if allowed is None else set(allowed)
     fit = SubsystemFit("fuel", NEEDS)
-    names = [n for n in PARAMS if n in allowed]
-    use, fit.skipped = usable_logs(logs, NEEDS, "fit the fuel map")
+    names = [n for n in PARAMS if n in allowed and n != "fuel_scale"]
     if not names:
         return fit
+    mp0 = base.model_params()
+    use = []
+    for lg in logs:
+        miss = lg.missing(NEEDS)
+        if not miss and not log_arrays(lg, mp0).engine_source:
+            miss.append("engine operating point (engine_speed_rpm + engine_torque_Nm, or engine_power_W, or "
+                        "speed_mps with battery power)")
+        if miss:
+            fit.skipped[lg.label()] = f"missing channel(s) {', '.join(miss)}"
+        else:
+            use.append(lg)
     if not use:
-        return not_fitted(fit, base, names, "no log has engine speed, torque, fuel rate and coolant temperature ("
+        return not_fitted(fit, base, names, "no log has fuel rate, coolant temperature and an engine operating point ("
                           + "; ".join(f"{k}: {v}" for k, v in fit.skipped.items()) + ")")
     fit.logs = [lg.label() for lg in use]
-    mp0 = base.model_params()
-    mode, P, T, W, seg = [], [], [], [], []
-    ool_filtered = []
-    for lg in use:
-        la = log_arrays(lg, mp0)
-        T_cl = smooth(la.ch["coolant_temp_degC"], 21)
-        ok = la.stable & np.isin(la.mode, (ON, IDLE)) & np.isfinite(la.ch["fuel_rate_g_per_s"]) & np.isfinite(T_cl)
-        ok &= np.isfinite(la.P_e) & _steady_power(la.P_e)
-        # bins whose mean speed and torque lie off the optimal operating line mix two operating points
-        # (mean speed x mean torque is then not the mean power): drop them, when the engine follows its
-        # line at all (it does in the model; a real engine that does not keeps all its bins)
-        w = la.ch["engine_speed_rpm"] * RPM
-        dev = np.abs(np.interp(np.nan_to_num(la.P_e), mp0.P_ool, mp0.w_ool) / np.maximum(w, 1e-9) - 1.0)
-        on_ok = ok & (la.mode == ON)
-        if on_ok.sum() and np.mean(dev[on_ok] < OOL_TOL) >= 0.5:
-            ok &= (la.mode != ON) | (dev < OOL_TOL)
-            ool_filtered.append(lg.label())
-        mode.append(la.mode[ok])
-        P.append(np.nan_to_num(la.P_e[ok]))
-        T.append(T_cl[ok])
-        W.append(la.ch["fuel_rate_g_per_s"][ok])
-        seg.append(int(ok.sum()))
-    mode = np.concatenate(mode).astype(np.int64)
-    P, T, W = np.concatenate(P), np.concatenate(T), np.concatenate(W)
-    bounds_idx = np.cumsum(seg)[:-1]
+    mode, P, T, W, bounds_idx, TL = _gather(use, mp0, fit)
     on, idle = mode == ON, mode == IDLE
     warm_on = int(np.sum(on & (T >= WARM_DEGC)))
     n_idle = int(np.sum(idle))
-    pf = base.param("f_cl")
-    Tbp = np.array(pf.x)
-    f0 = np.array(pf.value, float)
+    pe, pf = base.param("eta_ool"), base.param("f_cl")
+    Pbp, eta0 = np.array(pe.x, float), np.array(pe.value, float)
+    eta_sd = np.array(prior_sd_of(pe), float)
+    Tbp, f0 = np.array(pf.x, float), np.array(pf.value, float)
+    f_sd = np.array(prior_sd_of(pf), float)
     cold = T < WARM_DEGC
-    cover = hat_basis(T[cold], Tbp).sum(axis=0)
-    fit.metrics.update(ool_filtered_logs=len(ool_filtered), samples=int(P.size), warm_on_samples=warm_on,
-                       idle_samples=n_idle,
-                       cold_samples=int(cold.sum()))
+    coverT = hat_basis(T[cold], Tbp).sum(axis=0) if cold.any() else np.zeros(len(Tbp))
+    coverP = hat_basis(P[on], Pbp).sum(axis=0) if on.any() else np.zeros(len(Pbp))
+    fit.metrics.update(samples=int(P.size), warm_on_samples=warm_on, idle_samples=n_idle,
+                       cold_samples=int(cold.sum()), engine_power_max_W=float(P[on].max()) if on.any() else 0.0)
 
-    pre = {}
-    cand = []
-    if "fuel_scale" in allowed:
-        cand.append("fuel_scale")
-        if warm_on < MIN_SAMPLES:
-            pre["fuel_scale"] = (f"only {warm_on} stable warm engine-on samples (coolant >= {WARM_DEGC:g} degC), "
-                                 f"need {MIN_SAMPLES}")
-    if "W_idle_g_per_s" in allowed:
-        cand.append("W_idle_g_per_s")
-        if n_idle < MIN_SAMPLES:
-            pre["W_idle_g_per_s"] = f"only {n_idle} stable idle samples, need {MIN_SAMPLES}"
-    fcl_names = []
-    if "f_cl" in allowed:
-        for j in range(len(Tbp) - 1):  # the last breakpoint is the warm reference (1)
-            nm = f"f_cl_{j}"
-            fcl_names.append(nm)
-            cand.append(nm)
-            if cover[j] < MIN_COVER:
-                pre[nm] = f"T_cl {Tbp[j]:g} degC: hat weight of cold samples {cover[j]:.1f} < {MIN_COVER:g}"
-            elif "fuel_scale" in pre:
-                pre[nm] = f"T_cl {Tbp[j]:g} degC: the warm map scale is not determined, so neither is the ratio"
-    bnd = {"fuel_scale": base.param("fuel_scale").bounds, "W_idle_g_per_s": base.param("W_idle_g_per_s").bounds}
-    for j, nm in enumerate(fcl_names):
-        bnd[nm] = pf.bounds
-    prior = {"fuel_scale": float(base["fuel_scale"]), "W_idle_g_per_s": float(base["W_idle_g_per_s"])}
-    prior.update({nm: float(f0[j]) for j, nm in enumerate(fcl_names)})
+    # isolated engine-on bins (a power range with fewer than MIN_COVER bins) cannot be told from transients:
+    # left out, so the table there follows its prior and its neighbours
+    if on.any():
+        Hb = hat_basis(P, Pbp)
+        support = (Hb > 0) @ (coverP >= MIN_COVER)
+        sparse = on & (support == 0)
+        if sparse.any():
+            keep0 = ~sparse
+            fit.metrics["sparse_power_bins_dropped"] = int(sparse.sum())
+            sizes = np.diff(np.concatenate([[0], bounds_idx, [mode.size]]))
+            seg_id = np.repeat(np.arange(sizes.size), sizes)
+            mode, P, T, W, TL = mode[keep0], P[keep0], T[keep0], W[keep0], TL[keep0]
+            seg_id = seg_id[keep0]
+            bounds_idx = np.cumsum(np.bincount(seg_id, minlength=sizes.size))[:-1]
+            on, idle = mode == ON, mode == IDLE
+            cold = T < WARM_DEGC
+    fit_eta = "eta_ool" in allowed
+    fit_idle = "W_idle_g_per_s" in allowed
+    fit_fcl = "f_cl" in allowed
+    # eta entries from the second breakpoint (the first is at zero power, where the idle floor rules)
+    eta_names = [f"eta_{j}" for j in range(1, len(Pbp))] if fit_eta else []
+    d_names = [f"d_{j}" for j in range(len(Tbp) - 1)] if fit_fcl else []
+    d0 = np.maximum(-np.diff(f0), 0.0)
+    prior, psd, bnd = {}, {}, {}
+    for j, nm in enumerate(eta_names, start=1):
+        prior[nm], psd[nm], bnd[nm] = float(eta0[j]), float(eta_sd[j]), pe.bounds
+    if fit_idle:
+        pw = base.param("W_idle_g_per_s")
+        prior["W_idle_g_per_s"], psd["W_idle_g_per_s"] = float(pw.value), float(prior_sd_of(pw))
+        bnd["W_idle_g_per_s"] = pw.bounds
+    cand = eta_names + (["W_idle_g_per_s"] if fit_idle else []) + d_names
 
-    def make_params(vary):
+    def make_params():
         ps = lmfit.Parameters()
-        for nm in cand:
+        for nm in eta_names + (["W_idle_g_per_s"] if fit_idle else []):
             lo, hi = bnd[nm]
-            ps.add(nm, value=prior[nm], min=lo, max=hi, vary=nm in vary)
+            ps.add(nm, value=prior[nm], min=lo, max=hi)
+        for j, nm in enumerate(d_names):
+            ps.add(nm, value=max(float(d0[j]), 1e-4), min=0.0, max=5.0)
         return ps
 
-    def model_of(ps, sP=1.0, dT=0.0):
+    def tables(v):
+        eta = eta0.copy()
+        for j, nm in enumerate(eta_names, start=1):
+            eta[j] = v[nm]
+        f = f_cl_from_increments([v[nm] for nm in d_names]) if d_names else f0
+        return eta, f
+
+    def model_of(ps, sP=1.0, dT=0.0, lag=False):
         v = ps.valuesdict()
-        f = f0.copy()
-        for j, nm in enumerate(fcl_names):
-            f[j] = v[nm]
-        mp = mp0._replace(fuel_scale=float(v.get("fuel_scale", mp0.fuel_scale)),
-                          W_idle=float(v.get("W_idle_g_per_s", mp0.W_idle)), f_cl=f)
-        return fuel_replay(mp, mode, sP * P, T + dT)
+        eta, f = tables(v)
+        mp = mp0._replace(eta_ool=eta, W_idle=float(v.get("W_idle_g_per_s", mp0.W_idle)), f_cl=f)
+        return fuel_replay(mp, mode, sP * P, (TL if lag else T) + dT)
 
-    def residual(ps):
-        return model_of(ps) - W
+    def extra(ps):
+        v = ps.valuesdict()
+        eta, f = tables(v)
+        out = []
+        if eta_names:
+            le = np.log(eta[1:] / eta0[1:])
+            out.append(np.diff(le, 2) / SMOOTH_SD)
+        if d_names:
+            out.append((f[:-1] - f0[:-1]) / f_sd[:-1])
+            slope = np.diff(f) / np.diff(Tbp)
+            out.append(np.diff(slope) / F_SLOPE_SD)
+        return np.concatenate(out) if out else np.zeros(0)
 
-    # input calibration uncertainty: engine power (1 %), coolant temperature (0.5 K)
-    perturbed = [lambda ps: model_of(ps, sP=1.0 + INPUT_REL_SD) - W, lambda ps: model_of(ps, dT=T_SENSOR_SD) - W]
+    def segments(ps, sW=1.0, **kw):
+        return np.split(model_of(ps, **kw) - sW * W, bounds_idx)
 
-    def segments(ps):
-        return np.split(residual(ps), bounds_idx)
-
-    if all(c in pre for c in cand):
-        out = {"undetermined": pre, "values": {}, "stderr": {}, "correl": {}, "vary": [], "n": P.size,
-               "n_eff": float("nan"), "factor": float("nan"), "conf": {}}
-    else:
-        out = lmfit_identify(make_params, residual, cand, bounds=bnd, segments=segments, fixed_reason=pre,
-                             perturbed=perturbed)
-        r = residual(out["result"].params)
-        fit.metrics.update(rmse_g_per_s=float(np.sqrt(np.mean(r ** 2))), n_eff=out["n_eff"],
-                           se_inflation=out["factor"])
-    fit.correlations = out["correl"]
-    und = out["undetermined"]
-    for nm in ("fuel_scale", "W_idle_g_per_s"):
-        if nm not in cand:
-            continue
-        if nm in out["vary"]:
-            fit.estimates[nm] = ParamEstimate(nm, out["values"][nm], out["stderr"][nm], "estimated",
-                                              f"{P.size} stable samples", prior=prior[nm])
-        else:
-            fit.estimates[nm] = ParamEstimate(nm, prior[nm], None, "undetermined", und.get(nm, ""), prior=prior[nm])
-    if fcl_names:
-        est = [nm in out["vary"] for nm in fcl_names] + [False]
-        vals = [out["values"][nm] if e else f0[j] for j, (nm, e) in enumerate(zip(fcl_names, est))] + [f0[-1]]
-        ses = [out["stderr"][nm] if e else float("nan") for nm, e in zip(fcl_names, est)] + [float("nan")]
-        # f_cl must not increase with temperature: revert the less certain offending entry
-        for _ in range(len(vals)):
-            bad = [j for j in range(len(vals) - 1) if vals[j + 1] > vals[j] + 1e-12]
-            if not bad:
-                break
-            j = bad[0]
-            cands = [k for k in (j, j + 1) if est[k]]
-            if not cands:
-                break
-            k = max(cands, key=lambda k: ses[k])
-            est[k] = False
-            und[fcl_names[k]] = f"T_cl {Tbp[k]:g} degC: estimate {vals[k]:.3f} breaks the monotonicity of f_cl"
-            vals[k], ses[k] = f0[k], float("nan")
-        st = ["estimated" if e else "undetermined" for e in est]
-        st[-1] = "fixed"
-        why = [und[nm] for nm in fcl_names if nm in und]
-        note = f"entry at {Tbp[-1]:g} degC is the warm reference (1)"
-        if why:
-            note = "entries not determined: " + "; ".join(why) + ". " + note
-        fit.estimates["f_cl"] = ParamEstimate("f_cl", [float(v) for v in vals], [float(s) for s in ses],
-                                              "estimated" if any(est) else "undetermined", note,
-                                              prior=list(map(float, f0)), entry_status=st)
+    perturbed = [lambda ps: segments(ps, sP=1.0 + INPUT_REL_SD), lambda ps: segments(ps, dT=T_SD),
+                 lambda ps: segments(ps, sW=1.0 + FUEL_METER_REL_SD), lambda ps: segments(ps, lag=True)]
+    out = map_fit(make_params, segments, cand, prior=prior, prior_sd=psd, noise_sd=NOISE_G_PER_S, extra=extra,
+                  perturbed=perturbed, floor=0.002, max_tau=MAX_TAU)
+    fit.metrics.update(rmse_g_per_s=out["rmse"], n_eff=out["n_eff"], noise_sd_g_per_s=out["noise_sd"])
+    fit.correlations = {k: v for k, v in out["correl"].items()}
+    fit.confounded = confounded_pairs(out["correl"])
+    names_cov = out["cov_names"]
+    cov = out["cov"]
+    ix = {k: i for i, k in enumerate(names_cov)}
+    if fit_eta:
+        v = out["values"]
+        eta, _ = tables({**{nm: v[nm] for nm in eta_names}, **{nm: v[nm] for nm in d_names}})
+        post = np.concatenate([[float(eta_sd[0])], [out["post_sd"][nm] for nm in eta_names]])
+        inf = np.concatenate([[0.0], [out["informed"][nm] for nm in eta_names]])
+        st = ["estimated" if x >= WEAK_INFORMED else "weak" for x in inf]
+        st[0] = "prior"
+        covered = [f"{Pbp[j] / 1e3:g}" for j in range(len(Pbp)) if coverP[j] >= MIN_COVER]
+        note = (f"warm fuel rate along the operating line; data informed {100 * np.mean(inf[1:]):.0f} % on average; "
+                f"breakpoints with >= {MIN_COVER:g} engine-on samples: {', '.join(covered) or 'none'} kW; "
+                f"the entry at 0 W is under the idle floor (prior). fuel_scale stays at {mp0.fuel_scale:g}: "
+                f"the table carries the level")
+        fit.estimates["eta_ool"] = ParamEstimate(
+            "eta_ool", [float(x) for x in eta], [float(x) for x in post],
+            "estimated" if any(s == "estimated" for s in st) else "weak", note, prior=list(map(float, eta0)),
+            entry_status=st, prior_sd=list(map(float, eta_sd)), informed=[float(x) for x in inf])
+    if fit_idle:
+        fit.estimates["W_idle_g_per_s"] = posterior_estimate("W_idle_g_per_s", out, f"{n_idle} stable idle samples",
+                                                              prior["W_idle_g_per_s"])
+    if fit_fcl:
+        v = out["values"]
+        f = f_cl_from_increments([v[nm] for nm in d_names])
+        # posterior sd of the entries: f = 1 + A d (delta method on the joint covariance of the increments)
+        m = len(d_names)
+        A = np.triu(np.ones((m, m)))
+        idx = [ix[nm] for nm in d_names]
+        C = cov[np.ix_(idx, idx)]
+        post = np.sqrt(np.maximum(np.diag(A @ C @ A.T), 0.0))
+        jd = [cand.index(nm) for nm in d_names]
+        ref = np.sqrt(np.maximum(np.diag(A @ out["prior_cov"][np.ix_(jd, jd)] @ A.T), 0.0))
+        inf = np.where(ref > 0, np.maximum(0.0, 1.0 - post / np.maximum(ref, 1e-12)), 0.0)
+        st = ["estimated" if x >= WEAK_INFORMED else "weak" for x in inf] + ["fixed"]
+        reach = [f"{Tbp[j]:g}" for j in range(m) if coverT[j] >= MIN_COVER]
+        moved = float(np.max(np.abs((f[:-1] - f0[:-1]) / f_sd[:-1])))
+        note = (f"posterior up to {moved:.1f} prior sd from the prior; "
+                f"monotone (non-increasing increments), smooth; entry at {Tbp[-1]:g} degC is the warm reference "
+                f"(1); breakpoints with >= {MIN_COVER:g} cold samples: {', '.join(reach) or 'none'} degC")
+        fit.estimates["f_cl"] = ParamEstimate(
+            "f_cl", [float(x) for x in f], [float(x) for x in post] + [0.0],
+            "estimated" if any(s == "estimated" for s in st) else "weak", note, prior=list(map(float, f0)),
+            entry_status=st, prior_sd=list(map(float, f_sd)), informed=[float(x) for x in inf] + [0.0])
+    if "fuel_scale" in allowed:
+        fs = base.param("fuel_scale")
+        fit.estimates["fuel_scale"] = ParamEstimate(
+            "fuel_scale", float(fs.value), float(prior_sd_of(fs)), "prior",
+            "not fitted separately: the warm fuel rate is fitted as the eta_ool table (level and shape)"
+            if fit_eta else "not fitted: the warm fuel rate is fitted through eta_ool, which was not selected",
+            prior=float(fs.value), prior_sd=float(prior_sd_of(fs)), informed=0.0)
+    fit.metrics["warm_fuel_covered_kW"] = [float(Pbp[j] / 1e3) for j in range(len(Pbp)) if coverP[j] >= MIN_COVER]
+    fit.metrics["f_cl_covered_degC"] = [float(Tbp[j]) for j in range(len(Tbp)) if coverT[j] >= MIN_COVER]
+    if not math.isfinite(out["rmse"]):
+        fit.message = "fuel fit had no usable bins"
     return fit

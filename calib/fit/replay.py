@@ -185,27 +185,136 @@ class LogArrays:
     P_on: np.ndarray = None
     f_idle: np.ndarray = None  # fraction of each bin idling
 
+    engine_source: str = ""  # how the engine operating point was obtained ("" when it could not be)
+    battery_source: str = ""  # how the battery terminal power was obtained
+    P_bat: np.ndarray = None  # W, battery terminal power (logged, V*I, or NaN)
+    inferred: dict = field(default_factory=dict)  # input -> how it was inferred from a balance
+
     def has(self, *names) -> bool:
         return all(np.isfinite(self.ch.get(n, np.array([np.nan]))).any() for n in names)
 
+    def inputs(self) -> dict:
+        """What the replay/fits take as inputs and where each came from ("" = not available)."""
+        return {"engine": self.engine_source, "battery power": self.battery_source,
+                "heater": self.heater_source}
 
-def log_arrays(log, mp) -> LogArrays:
-    """Extract the arrays the fitters and the replay need from a :class:`calib.drivelog.DriveLog`."""
+
+#: Fuel rate above which an engine counts as running when only the fuel rate says so (g/s).
+FUEL_RUNNING_G_PER_S = 0.03
+#: Engine power above which a logged engine power counts as "on" (below it: idle when fuel flows).
+P_ON_MIN_W = 500.0
+
+LOG_CHANNELS = ["speed_mps", "bat_current_A", "bat_voltage_V", "bat_power_W", "soc", "bat_temp_degC",
+                "engine_speed_rpm", "engine_torque_Nm", "engine_power_W", "fuel_rate_g_per_s",
+                "coolant_temp_degC", "bay_temp_degC", "ambient_temp_degC", "cabin_temp_degC", "heater_power_W",
+                "vent_temp_degC", "blower_flow_kg_per_s", "grade_rad"]
+
+
+@njit(cache=True)
+def engine_power_from_balance(p, v, P_bat, grade, dt):
+    """Engine power from the power balance at the wheels (s.2 inverted): traction demand from the logged
+    speed and grade, less what the motor delivers from the logged battery power (less auxiliaries)."""
+    n = v.shape[0]
+    P = np.zeros(n)
+    for k in range(n):
+        vn = v[k + 1] if k + 1 < n else v[k]
+        Pt = traction_power(p, v[k], vn, grade[k], dt)
+        Pbm = P_bat[k] - p.P_aux
+        P_em = p.eta_em * Pbm if Pbm >= 0.0 else Pbm / p.eta_em
+        Pe = (Pt - P_em) / p.eta_mech
+        P[k] = min(max(Pe, 0.0), p.P_e_max)
+    return P
+
+
+@njit(cache=True)
+def current_from_power(p, soc, P_bat, T_bat):
+    """Battery current from terminal power and the OCV/resistance tables (eq. 1 solved for I); NaN where
+    the power exceeds what the pack can give."""
+    n = soc.shape[0]
+    I = np.empty(n)
+    for k in range(n):
+        I[k] = battery(p, soc[k], P_bat[k], T_bat[k])[0]
+    return I
+
+
+def log_arrays(log, mp, cabin_balance=True) -> LogArrays:
+    """Extract the arrays the fitters and the replay need from a :class:`calib.drivelog.DriveLog`.
+
+    Inputs a log may give in several ways, in order of preference:
+
+    - engine operating point: speed x torque; else the logged engine power (mode: on above
+      :data:`P_ON_MIN_W`, idle when fuel flows below it); else *inferred* from the power balance (traction
+      demand of the logged speed minus the motor's share of the battery power; running where the logged
+      fuel rate exceeds :data:`FUEL_RUNNING_G_PER_S`);
+    - battery terminal power: ``bat_power_W``; else voltage x current;
+    - heater heat: ``heater_power_W``; else ``W_bl c_p (T_vent - T_in)``; else (``cabin_balance``) *inferred*
+      from the cabin heat balance (eq. 10 solved for the heater heat with the given cabin parameters).
+
+    Everything inferred is named in ``la.inferred``.
+    """
     df = log.data
-    names = ["speed_mps", "bat_current_A", "bat_voltage_V", "soc", "bat_temp_degC", "engine_speed_rpm",
-             "engine_torque_Nm", "fuel_rate_g_per_s", "coolant_temp_degC", "bay_temp_degC",
-             "ambient_temp_degC", "cabin_temp_degC", "heater_power_W", "vent_temp_degC",
-             "blower_flow_kg_per_s"]
-    ch = {n: _col(df, n) for n in names}
+    ch = {n: _col(df, n) for n in LOG_CHANNELS}
     t = df.index.to_numpy(dtype=float)
     la = LogArrays(name=log.label() if hasattr(log, "label") else "log", dt=float(log.dt), t=t, ch=ch)
     n_idle = mp.w_idle / RPM
-    la.mode = engine_mode(ch["engine_speed_rpm"], ch["engine_torque_Nm"], n_idle)
-    la.stable = stable_mode(la.mode)
-    la.P_e = np.where(la.mode == ON, ch["engine_speed_rpm"] * RPM * ch["engine_torque_Nm"], 0.0)
-    la.P_e[~np.isfinite(la.P_e)] = np.nan
-    la.f_on, la.P_on, la.f_idle = operating_point(ch["engine_speed_rpm"], ch["engine_torque_Nm"], la.mode,
-                                                  la.stable, mp)
+    # battery power
+    if la.has("bat_power_W"):
+        la.P_bat = ch["bat_power_W"].copy()
+        la.battery_source = "bat_power_W"
+    elif la.has("bat_current_A", "bat_voltage_V"):
+        la.P_bat = ch["bat_current_A"] * ch["bat_voltage_V"]
+        la.battery_source = "bat_voltage_V x bat_current_A"
+    else:
+        la.P_bat = np.full(t.size, np.nan)
+    # engine operating point
+    if la.has("engine_speed_rpm", "engine_torque_Nm"):
+        la.mode = engine_mode(ch["engine_speed_rpm"], ch["engine_torque_Nm"], n_idle)
+        la.stable = stable_mode(la.mode)
+        la.P_e = np.where(la.mode == ON, ch["engine_speed_rpm"] * RPM * ch["engine_torque_Nm"], 0.0)
+        la.P_e[~np.isfinite(la.P_e)] = np.nan
+        la.f_on, la.P_on, la.f_idle = operating_point(ch["engine_speed_rpm"], ch["engine_torque_Nm"], la.mode,
+                                                      la.stable, mp)
+        la.engine_source = "engine_speed_rpm x engine_torque_Nm"
+    else:
+        P = None
+        if la.has("engine_power_W"):
+            P = ch["engine_power_W"].copy()
+            la.engine_source = "engine_power_W"
+        elif la.has("speed_mps") and la.battery_source:
+            grade = _fill(ch["grade_rad"], 0.0)
+            P = engine_power_from_balance(mp, _fill(ch["speed_mps"], 0.0), _fill(la.P_bat, 0.0), grade, float(log.dt))
+            la.engine_source = "inferred from the power balance (speed_mps, " + la.battery_source + ")"
+            la.inferred["engine power"] = ("traction demand of the logged speed minus the motor's share of the "
+                                           "battery power (road load, mass and efficiencies from the parameter set)")
+        if P is None:
+            la.mode = np.zeros(t.size, np.int64)
+            la.P_e = np.full(t.size, np.nan)
+        else:
+            W = ch["fuel_rate_g_per_s"]
+            fuel = np.isfinite(W).any()
+            if la.engine_source == "engine_power_W":
+                on = P > P_ON_MIN_W
+                idle = ~on & (np.nan_to_num(W) > FUEL_RUNNING_G_PER_S) if fuel else np.zeros(t.size, bool)
+                la.inferred["engine mode"] = (f"on where engine_power_W > {P_ON_MIN_W:g} W; " +
+                                              (f"idle where the fuel rate exceeds {FUEL_RUNNING_G_PER_S:g} g/s below it"
+                                               if fuel else "idle cannot be told from off (no fuel rate logged)"))
+            elif fuel:  # the inferred power is a balance of noisy terms: the fuel flow says whether it runs
+                run = np.nan_to_num(W) > FUEL_RUNNING_G_PER_S
+                on = run & (P > P_ON_MIN_W)
+                idle = run & ~on
+                la.inferred["engine mode"] = f"running where fuel_rate_g_per_s > {FUEL_RUNNING_G_PER_S:g} g/s"
+            else:
+                on = P > 2000.0
+                idle = np.zeros(t.size, bool)
+                la.inferred["engine mode"] = "on where the inferred engine power exceeds 2 kW (no fuel rate logged)"
+            la.mode = np.where(on, ON, np.where(idle, IDLE, OFF)).astype(np.int64)
+            la.mode[~np.isfinite(P)] = 0
+            la.P_e = np.where(on, P, 0.0)
+            la.P_e[~np.isfinite(P)] = np.nan
+        la.stable = stable_mode(la.mode)
+        la.f_on = (la.mode == ON).astype(float)
+        la.P_on = np.where(la.mode == ON, np.nan_to_num(la.P_e), 0.0)
+        la.f_idle = (la.mode == IDLE).astype(float)
     T_amb = ch["ambient_temp_degC"]
     T_in = mp.recirc * _fill(ch["cabin_temp_degC"], 0.0) + (1.0 - mp.recirc) * T_amb
     la.T_in = T_in
@@ -215,9 +324,32 @@ def log_arrays(log, mp) -> LogArrays:
     elif np.isfinite(ch["vent_temp_degC"]).any() and np.isfinite(ch["blower_flow_kg_per_s"]).any():
         la.Q_heat = np.maximum(ch["blower_flow_kg_per_s"] * mp.cp_air * (ch["vent_temp_degC"] - T_in), 0.0)
         la.heater_source = "vent_temp_degC + blower_flow_kg_per_s"
+    elif cabin_balance and la.has("cabin_temp_degC", "ambient_temp_degC"):
+        la.Q_heat = heater_from_cabin(mp, t, ch["cabin_temp_degC"], ch["ambient_temp_degC"])
+        la.heater_source = "inferred from the cabin heat balance"
+        la.inferred["heater power"] = ("C_cab dT_cab/dt - UA_cab (T_amb - T_cab) - Q_sun from the logged cabin "
+                                       "and ambient temperatures (60 s smoothing; cabin parameters from the set)")
     else:
         la.Q_heat = np.full(t.size, np.nan)
     return la
+
+
+def heater_from_cabin(mp, t, T_cab, T_amb, window_s=60.0):
+    """Heater heat from the cabin balance (eq. 10 solved for Q_heat), >= 0. The cabin temperature is
+    smoothed over ``window_s`` (a local linear fit's slope) so its quantisation does not dominate the
+    derivative."""
+    Tc = _fill(T_cab, 0.0)
+    Ta = _fill(T_amb, 0.0)
+    dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+    m = max(3, int(round(window_s / dt)) | 1)
+    k = np.arange(m) - m // 2
+    # slope of a centred least-squares line = convolution with k / sum(k^2)
+    w = k[::-1] / (np.sum(k * k) * dt)
+    pad = np.pad(Tc, m // 2, mode="edge")
+    slope = np.convolve(pad, w, mode="valid")
+    sm = np.convolve(pad, np.ones(m) / m, mode="valid")
+    Q = mp.C_cab * slope - mp.UA_cab * (Ta - sm) - mp.Q_sun
+    return np.maximum(Q, 0.0)
 
 
 def first_valid_mean(a, n=5, default=np.nan):

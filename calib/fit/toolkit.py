@@ -1,27 +1,17 @@
-"""Identification toolkit shared by the subsystem fitters: result types, lmfit wrapper, effective sample
-size, identifiability judgement. The criteria and the uncertainty model are described in
+"""Identification toolkit shared by the subsystem fitters: result types, the maximum a posteriori fit
+(lmfit, prior as extra residuals), effective sample size. The method is described in
 :mod:`calib.fit.driver`."""
 import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
-REL_SE_MAX = 1.0 / 30.0
-CORR_MAX = 0.999
-#: Prior uncertainty (1 sd) of parameters left at their prior, propagated into the others' standard
-#: errors: relative to the value, except where an absolute value (unit of the parameter) is given.
-PRIOR_REL_SD = 0.25
 #: Calibration uncertainty (1 sd, relative) of logged inputs of the output-error fits: heater power,
 #: fuel rate, engine power (speed x torque, resampled to 1 s bins). Propagated into the standard errors.
 INPUT_REL_SD = 0.01
-PRIOR_ABS_SD = {"T_open_degC": 4.0, "kappa": 0.1, "Q_sun_W": 100.0}
 #: Calibration uncertainty (1 sd, an offset) of a temperature sensor, degC; propagated like INPUT_REL_SD.
 T_SENSOR_SD = 0.5
-U_OC_SE_MAX_V = 0.5
 MIN_SAMPLES = 60
-
-#: Parameters whose lmfit confidence intervals are computed (when fitted).
-KEY_PARAMETERS = ("C_eng_J_per_K", "gamma_exh", "hA_eng_W_per_K", "C_cab_J_per_K", "UA_cab_W_per_K")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -31,9 +21,10 @@ KEY_PARAMETERS = ("C_eng_J_per_K", "gamma_exh", "hA_eng_W_per_K", "C_cab_J_per_K
 class ParamEstimate:
     """Outcome for one parameter (scalar or table).
 
-    ``status`` is ``estimated``, ``undetermined`` (left at ``prior``), ``fixed`` or ``prior`` (not
-    attempted). For tables ``value``/``stderr`` are lists and ``entry_status`` gives each entry's status
-    (``stderr`` is NaN for entries not estimated).
+    ``value`` is the posterior (maximum a posteriori), ``stderr`` its sd, ``prior``/``prior_sd`` the prior,
+    ``informed`` how much the data narrowed it. ``status`` is ``estimated``, ``weak`` (informed below
+    :data:`WEAK_INFORMED`: mostly the prior), ``fixed`` or ``prior`` (the fit could not run). For tables
+    these are lists and ``entry_status`` gives each entry's status.
     """
 
     name: str
@@ -43,6 +34,8 @@ class ParamEstimate:
     note: str = ""
     prior: object = None
     entry_status: list | None = None
+    prior_sd: object = None
+    informed: object = None
 
 
 @dataclass
@@ -59,11 +52,14 @@ class SubsystemFit:
     skipped: dict = field(default_factory=dict)  # log label -> why not used
     message: str = ""  # why nothing was fitted
     nuisance: dict = field(default_factory=dict)  # per-log initial states etc.
+    used: dict = field(default_factory=dict)  # log label -> what the fit used (logged or inferred inputs)
+    confounded: list = field(default_factory=list)  # [(a, b, r)] posterior |r| > CONFOUNDED
+    advice: list = field(default_factory=list)  # what drive would inform what the data did not
 
     @property
     def fitted(self) -> bool:
         """Whether any parameter of this subsystem was fitted (not all held at prior or fixed)."""
-        return any(e.status == "estimated" for e in self.estimates.values())
+        return any(e.status in ("estimated", "weak") for e in self.estimates.values()) and bool(self.logs)
 
 
 def usable_logs(logs, needs, subsystem, any_of=()):
@@ -108,7 +104,11 @@ def not_fitted(fit: SubsystemFit, base, names, reason):
     fit.message = reason
     for n in names:
         p = base.param(n)
-        fit.estimates[n] = ParamEstimate(n, p.value, None, "prior", f"not fitted: {reason}", prior=p.value)
+        from calib.model.params import prior_sd_of
+
+        sd = prior_sd_of(p)
+        fit.estimates[n] = ParamEstimate(n, p.value, sd, "prior", f"not fitted: {reason}", prior=p.value,
+                                         prior_sd=sd, informed=[0.0] * len(p.value) if p.is_table else 0.0)
     return fit
 
 
@@ -164,176 +164,195 @@ def inflation(residual_segments, nvarys=0) -> float:
     return float(math.sqrt(max(n - nvarys, 1) / max(ne - nvarys, 1.0)))
 
 
-def judge(name, value, se, bounds, rel_max=REL_SE_MAX):
-    """(ok, reason) for criteria 2, 3 and 5 of the module docstring."""
-    if se is None or not np.isfinite(se) or se <= 0:
-        return False, "no finite standard error (the data is not sensitive to it / singular covariance)"
-    rel = se / abs(value) if value != 0 else math.inf
-    if rel > rel_max:
-        return False, f"relative standard error {100 * rel:.3g} % > {100 * rel_max:.3g} %"
-    lo, hi = bounds
-    span = hi - lo
-    if span > 0 and (value - lo < 1e-4 * span or hi - value < 1e-4 * span):
-        return False, f"estimate {value:.6g} stuck at its bound [{lo:g}, {hi:g}]"
-    return True, ""
+# ------------------------------------------------------------------------------------------------
+# maximum a posteriori estimation
+# ------------------------------------------------------------------------------------------------
+#: A parameter whose posterior sd is not at least this fraction below its prior sd is *weakly informed*
+#: by the data: its value is still the posterior (mostly the prior), flagged ``weak``.
+WEAK_INFORMED = 0.3
+#: Posterior correlation above which two parameters are reported as confounded (the data determine a
+#: combination of them better than each one).
+CONFOUNDED = 0.9
 
 
-def collinear(names, stderr, values, correl):
-    """Names flagged by criterion 4: {name: reason}."""
-    flagged = {}
-    for i, a in enumerate(names):
-        for b in names[i + 1:]:
-            r = correl.get(f"{a}|{b}")
-            if r is None or abs(r) <= CORR_MAX:
-                continue
-            ra = stderr[a] / abs(values[a]) if values[a] else math.inf
-            rb = stderr[b] / abs(values[b]) if values[b] else math.inf
-            worse, other, rw = (a, b, ra) if ra >= rb else (b, a, rb)
-            if rw > REL_SE_MAX / 2:
-                flagged[worse] = f"correlation {r:+.3f} with {other} (relative se {100 * rw:.3g} %)"
-    return flagged
+def prior_residual(values, prior, prior_sd):
+    """The prior penalty as residuals ``(p - prior) / prior_sd`` (their squares sum to -2 log prior)."""
+    return np.array([(values[n] - prior[n]) / prior_sd[n] for n in prior], float)
 
 
-def lmfit_identify(make_params, residual, candidates, *, bounds, segments, conf_keys=(), fixed_reason=None,
-                   perturbed=()):
-    """Fit with lmfit and judge every candidate parameter (criteria of the module docstring).
+def map_fit(make_params, data_segments, cand, *, prior, prior_sd, noise_sd, extra=None, perturbed=(),
+            floor=None, loss="linear", max_tau=None):
+    """Maximum a posteriori fit with lmfit: data misfit plus prior penalty.
+
+    The objective is ``sum (r_data / s)^2 + sum ((p - prior) / prior_sd)^2 (+ extra^2)``: the data residuals
+    are divided by their noise sd ``s`` so that both terms are in units of standard deviations. ``s`` is
+    first ``noise_sd`` (a priori, e.g. the sensor's noise), then re-estimated from the fit's residuals as
+    ``rms * sqrt(n / n_eff)``: autocorrelated residuals (a slow model-structure error) carry fewer
+    independent samples, and dividing by the inflated sd gives the data exactly the weight of ``n_eff``
+    independent samples. The fit is repeated once with that ``s``.
 
     Parameters
     ----------
-    make_params : callable(vary: set) -> lmfit.Parameters
-        Builds the parameters (at their priors) with ``vary`` True exactly for the names given (plus
-        nuisance parameters such as initial states, always varied).
-    residual : callable(params) -> ndarray
-        Residual vector over all logs.
-    candidates : list of str
-        Model parameters that may be estimated.
-    bounds : dict name -> (lo, hi)
-    segments : callable(params) -> list of ndarray
-        Per-log residuals (for the autocorrelation inflation).
-    conf_keys : names whose lmfit confidence intervals are wanted (when estimated).
-    fixed_reason : dict name -> reason
-        Parameters known beforehand to be undetermined (no data in their regime): held at the prior,
-        whose uncertainty is propagated into the others' standard errors.
-    perturbed : sequence of callable(params) -> ndarray
-        Residual functions with one logged input scaled by one standard deviation of its calibration
-        uncertainty (:data:`INPUT_REL_SD`); the shift of the estimates when refitted is added in
-        quadrature to their standard errors (errors in the inputs, not only in the output).
-
-    Notes
-    -----
-    Parameters that the data reaches but does not determine (large relative standard error, near
-    collinearity) stay *free* in the fit, as nuisance parameters, so that the estimates of the others
-    are not biased by a wrong prior and their standard errors include the correlation; they are then
-    reported undetermined at their prior. A parameter with no sensitivity at all (singular covariance)
-    or stuck at a bound is instead held at its prior and the fit repeated.
+    make_params : callable() -> lmfit.Parameters
+        Every parameter of ``cand`` (at its prior, bounded) plus nuisance parameters (initial states),
+        all varied.
+    data_segments : callable(params) -> list of ndarray
+        Per-log data residuals (model - measured) in the channel's unit.
+    cand : list of str
+        The model parameters reported (values, posterior sd, correlations).
+    prior, prior_sd : dict name -> float
+        Gaussian prior of the parameters that have one directly (others, e.g. increments of a table,
+        get theirs through ``extra``).
+    extra : callable(params) -> ndarray, optional
+        Further prior residuals (e.g. smoothness of a table), already in sd units.
+    perturbed : sequence of callable(params) -> list of ndarray
+        Data residuals with one logged input moved by one sd of its calibration uncertainty; the
+        linearised shift of the MAP estimate is added in quadrature to the posterior sd.
+    floor : float, optional
+        Smallest ``s`` (the resolution of the measurement).
+    max_tau : float, optional
+        Cap on the autocorrelation time used for ``s`` (for residuals that are not a time series, such as
+        selected operating points, where slow drifts of the selection are not lost information).
+    loss : str
+        ``linear`` (least squares) or a robust loss of scipy's ``least_squares`` (``soft_l1``, residuals
+        beyond 3 sd weigh less): for a first look that finds outliers; the posterior sd assume squares.
 
     Returns
     -------
-    dict with ``result`` (lmfit MinimizerResult), ``stderr``, ``values``, ``correl`` (inflated se,
-    pairwise correlations of the free model parameters), ``undetermined`` {name: reason}, ``vary``
-    (estimated names), ``factor``, ``conf`` {name: {sigma: [lo, hi]}}, ``n``, ``n_eff``.
+    dict: ``values``, ``post_sd``, ``prior_sd``, ``informed`` (``1 - post_sd / sd under the prior alone``,
+    the latter including the couplings of ``extra``), ``correl``
+    ("a|b" -> r over ``cand``), ``params`` (lmfit Parameters at the MAP, nuisance included), ``noise_sd``,
+    ``rmse``, ``n``, ``n_eff``, ``at_bound`` {name: text}.
     """
     import lmfit
 
-    fixed = dict(fixed_reason or {})
-    free = [c for c in candidates if c not in fixed]
-    res = mini = None
-    stderr, values, correl, factor, segs = {}, {}, {}, 1.0, []
-    for _ in range(len(candidates) + 1):
-        params = make_params(set(free))
-        mini = lmfit.Minimizer(residual, params)
-        res = mini.minimize(method="leastsq")
-        segs = segments(res.params)
-        factor = inflation(segs, res.nvarys)
-        values = {n: float(res.params[n].value) for n in free}
-        stderr = {}
-        for n in free:
-            se = res.params[n].stderr
-            stderr[n] = float(se) * factor if se is not None and np.isfinite(se) else None
-        # no sensitivity / at a bound: hold at the prior and refit
-        drop = {}
-        for n in free:
-            lo, hi = bounds[n]
-            span = hi - lo
-            if span > 0 and (values[n] - lo < 1e-4 * span or hi - values[n] < 1e-4 * span):
-                drop[n] = f"estimate {values[n]:.6g} stuck at its bound [{lo:g}, {hi:g}]"
-        if not drop and any(stderr[n] is None for n in free):
-            # covariance singular: drop the candidate with the largest relative step to explain it
-            n = next(n for n in free if stderr[n] is None) if all(stderr[m] is None for m in free) else \
-                next(n for n in free if stderr[n] is None)
-            drop[n] = "no finite standard error (the data is not sensitive to it / singular covariance)"
-        if not drop:
+    extra = extra or (lambda ps: np.zeros(0))
+
+    def total(ps, s):
+        segs = data_segments(ps)
+        r = np.concatenate(segs) / s if segs else np.zeros(0)
+        v = ps.valuesdict()
+        return np.concatenate([r, prior_residual(v, prior, prior_sd), extra(ps)])
+
+    s = float(noise_sd)
+    params = make_params()
+    res = None
+    for _ in range(2):
+        mini = lmfit.Minimizer(total, params, fcn_args=(s,))
+        if loss == "linear":
+            res = mini.minimize(method="leastsq")
+        else:  # robust first look (outliers weigh less); the caller drops them and refits with squares
+            res = mini.minimize(method="least_squares", loss=loss, f_scale=3.0)
+        params = res.params
+        segs = data_segments(params)
+        n, ne = neff(segs)
+        allr = np.concatenate(segs) if segs else np.zeros(0)
+        allr = allr[np.isfinite(allr)]
+        rms = float(np.sqrt(np.mean(allr ** 2))) if allr.size else s
+        tau = max(n, 1) / max(ne, 1.0)
+        if max_tau is not None:
+            tau = min(tau, max_tau)
+        s_new = max(rms * math.sqrt(tau), floor or 0.0, 1e-12)
+        if abs(s_new / s - 1.0) < 0.05:
+            s = s_new
             break
-        fixed.update(drop)
-        free = [c for c in free if c not in drop]
-        if not free:
-            break
-    correl = {}
-    for i, a in enumerate(free):
-        ca = res.params[a].correl or {}
-        for b in free[i + 1:]:
-            if b in ca:
-                correl[f"{a}|{b}"] = float(ca[b])
-    # prior uncertainty of the parameters held at their prior
-    if fixed and free:
-        shift = {n: 0.0 for n in free}
-        for u in fixed:
-            if u not in bounds:
-                continue
-            p0 = make_params(set(free))
-            if u not in p0:
-                continue
-            v0 = float(p0[u].value)
-            sd = PRIOR_ABS_SD.get(u, PRIOR_REL_SD * abs(v0))
-            lo, hi = bounds[u]
-            v1 = v0 + sd if v0 + sd <= hi else v0 - sd
-            if sd == 0 or not lo <= v1 <= hi:
-                continue
-            p0[u].set(value=v1)
-            for n in res.params:
-                if res.params[n].vary and n in p0:
-                    p0[n].set(value=res.params[n].value)
-            r1 = lmfit.Minimizer(residual, p0).minimize(method="leastsq")
-            for n in free:
-                shift[n] += (float(r1.params[n].value) - values[n]) ** 2
-        for n in free:
-            if stderr[n] is not None and shift[n] > 0:
-                stderr[n] = math.sqrt(stderr[n] ** 2 + shift[n])
-    # calibration uncertainty of the logged inputs
+        s = s_new
+    # posterior covariance: Gauss-Newton (J^T J)^-1 of the scaled objective at the MAP, by forward differences
+    names = [k for k in params if params[k].vary]
+    x0 = np.array([params[k].value for k in names])
+    r0 = total(params, s)
+    J = np.empty((r0.size, len(names)))
+    for j, k in enumerate(names):
+        h = 1e-3 * (prior_sd[k] if k in prior_sd else max(abs(x0[j]), 1e-3) * 1e-1 + 1e-3)
+        p1 = params.copy()
+        p1[k].set(value=x0[j] + h, min=-np.inf, max=np.inf)
+        J[:, j] = (total(p1, s) - r0) / h
+    H = J.T @ J
+    cov0 = np.linalg.pinv(H)
+    cov = cov0.copy()
+    idx = {k: j for j, k in enumerate(names)}
+    # calibration uncertainty of the inputs: linearised shift of the estimate, added (as a rank-one
+    # covariance term, so that functions of several parameters get it too)
     for rfun in perturbed:
-        if not free:
-            break
-        p0 = make_params(set(free))
-        for n in res.params:
-            if res.params[n].vary and n in p0:
-                p0[n].set(value=res.params[n].value)
-        r1 = lmfit.Minimizer(rfun, p0).minimize(method="leastsq")
-        for n in free:
-            if stderr[n] is not None:
-                stderr[n] = math.sqrt(stderr[n] ** 2 + (float(r1.params[n].value) - values[n]) ** 2)
-    und = dict(fixed)
-    for n in free:
-        ok, why = judge(n, values[n], stderr[n], bounds[n])
-        if not ok:
-            und[n] = why
-    okse = {n: stderr[n] for n in free if n not in und}
-    und.update(collinear(list(okse), okse, values, correl))
-    est = [n for n in free if n not in und]
-    n_tot, ne = neff(segs)
-    conf = {}
-    keys = [k for k in conf_keys if k in est]
-    if keys:
-        try:
-            res.nfree = max(int(ne) - res.nvarys, 1)
-            ci = lmfit.conf_interval(mini, res, p_names=keys, sigmas=[1, 2])
-            for k, rows in ci.items():
-                d = {}
-                for prob, val in rows:
-                    d.setdefault(round(prob, 4), []).append(float(val))
-                conf[k] = {f"{lev}sigma": [min(d[p]), max(d[p])] for lev, p in
-                           ((1, 0.6827), (2, 0.9545)) if p in d}
-                conf[k]["best"] = float(res.params[k].value)
-        except Exception as exc:  # noqa: BLE001 - lmfit raises plain exceptions on degenerate profiles
-            conf["_error"] = f"conf_interval failed: {str(exc)[:120]}"
-    return {"result": res, "stderr": stderr, "values": values, "correl": correl, "undetermined": und,
-            "factor": factor, "conf": conf, "n": n_tot, "n_eff": float(ne), "vary": est}
+        segs1 = rfun(params)
+        d = np.concatenate([np.concatenate(segs1) / s, r0[sum(x.size for x in segs):]]) - r0 if segs1 else None
+        if d is None or d.size != r0.size:
+            continue
+        dx = -cov0 @ (J.T @ d)
+        cov += np.outer(dx, dx)
+    var = {k: max(float(cov[idx[k], idx[k]]), 0.0) for k in cand}
+    values = {k: float(params[k].value) for k in cand}
+    post = {k: math.sqrt(var[k]) for k in cand}
+    # what the prior alone (its own sd plus the couplings of `extra`, e.g. smoothness) gives: the data
+    # informed a parameter only as far as its posterior sd is below *that*
+    nd = sum(x.size for x in segs)
+    ci = [idx[k] for k in cand]
+    Jp = J[nd:][:, ci]
+    prior_cov = np.linalg.pinv(Jp.T @ Jp)
+    ref = {k: math.sqrt(max(float(prior_cov[i, i]), 0.0)) for i, k in enumerate(cand)}
+    informed = {k: float(max(0.0, 1.0 - post[k] / ref[k])) if ref[k] > 0 else 0.0 for k in cand}
+    correl = {}
+    for i, a in enumerate(cand):
+        for b in cand[i + 1:]:
+            den = math.sqrt(cov[idx[a], idx[a]] * cov[idx[b], idx[b]])
+            if den > 0:
+                correl[f"{a}|{b}"] = float(cov[idx[a], idx[b]] / den)
+    at_bound = {}
+    for k in cand:
+        lo, hi = params[k].min, params[k].max
+        span = hi - lo
+        if np.isfinite(span) and span > 0 and (values[k] - lo < 1e-4 * span or hi - values[k] < 1e-4 * span):
+            at_bound[k] = f"posterior mode {values[k]:.6g} at its bound [{lo:g}, {hi:g}]"
+    n, ne = neff(data_segments(params))
+    return {"values": values, "post_sd": post, "prior_sd": {k: float(prior_sd[k]) for k in cand if k in prior_sd},
+            "informed": informed, "correl": correl, "params": params, "noise_sd": s,
+            "rmse": rms, "n": n, "n_eff": float(ne), "at_bound": at_bound, "cov": cov, "cov_names": names,
+            "prior_cov": prior_cov}
+
+
+def posterior_estimate(name, out, note, prior_value):
+    """A :class:`ParamEstimate` from a :func:`map_fit` result: the posterior, flagged ``weak`` when the
+    data narrowed the prior by less than :data:`WEAK_INFORMED`."""
+    inf = out["informed"][name]
+    st = "estimated" if inf >= WEAK_INFORMED else "weak"
+    txt = f"data informed {100 * inf:.0f} % (prior sd {out['prior_sd'][name]:.3g}, posterior sd {out['post_sd'][name]:.3g})"
+    shift = (out["values"][name] - prior_value) / out["prior_sd"][name] if out["prior_sd"][name] > 0 else 0.0
+    if abs(shift) >= 0.5:
+        txt += f"; moved {shift:+.1f} prior sd from the prior"
+    if st == "weak":
+        txt += ("; weakly informed: the value is mostly the prior" if abs(shift) < 1.0 else
+                "; weakly informed: the data moved it, but its sd is still close to the prior's")
+    if name in out.get("at_bound", {}):
+        txt += "; " + out["at_bound"][name]
+    return ParamEstimate(name, out["values"][name], out["post_sd"][name], st, f"{note}; {txt}" if note else txt,
+                         prior=prior_value, prior_sd=out["prior_sd"][name], informed=inf)
+
+
+def prior_only(name, prior_value, prior_sd, why, status="weak"):
+    """Estimate of a parameter no data reaches: the prior, with the prior sd (status ``weak``, or ``prior``
+    when the fit could not run for lack of channels)."""
+    return ParamEstimate(name, prior_value, prior_sd, status, f"{why}; the value and sd are the prior's",
+                         prior=prior_value, prior_sd=prior_sd, informed=0.0)
+
+
+def confounded_pairs(correl, limit=CONFOUNDED):
+    """[(a, b, r)] with ``|r| > limit``, strongest first."""
+    out = []
+    for k, r in correl.items():
+        if abs(r) > limit:
+            a, b = k.split("|")
+            out.append((a, b, float(r)))
+    return sorted(out, key=lambda t: -abs(t[2]))
+
+
+def combine_with_prior(name, est, se, prior_value, prior_sd, note):
+    """Posterior of a parameter estimated in closed form (a linear regression with standard error ``se``)
+    under its Gaussian prior: precision-weighted mean, ``1/post^2 = 1/se^2 + 1/prior_sd^2``."""
+    if se is None or not np.isfinite(se) or se <= 0 or not np.isfinite(est):
+        return prior_only(name, prior_value, prior_sd, note + "; the data gave no usable estimate")
+    w1, w0 = 1.0 / se ** 2, 1.0 / prior_sd ** 2
+    v = (w1 * est + w0 * prior_value) / (w1 + w0)
+    post = math.sqrt(1.0 / (w1 + w0))
+    out = {"values": {name: v}, "post_sd": {name: post}, "prior_sd": {name: prior_sd},
+           "informed": {name: max(0.0, 1.0 - post / prior_sd)}}
+    return posterior_estimate(name, out, note, prior_value)

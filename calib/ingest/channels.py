@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from calib.drivelog import CHANNELS, DriveLog
+from calib.drivelog import CHANNELS, DERIVABLE, DriveLog
 
 
 def _gaps(t: np.ndarray, threshold: float) -> tuple[int, float]:
@@ -32,8 +32,10 @@ def channel_report(log: DriveLog, streams: dict | None = None, max_gap_s: float 
     -------
     pandas.DataFrame
         Index ``channel``; columns ``present`` (bool), ``n`` (samples), ``rate_hz`` (median native rate),
-        ``gaps`` (count), ``longest_gap_s``, ``min``, ``max``, ``unit``. ``attrs["damage"]`` is the log's
-        damage summary (empty for an intact file), ``attrs["speed_source"]`` where speed came from.
+        ``gaps`` (count), ``longest_gap_s``, ``min``, ``max``, ``unit``, ``derivable`` (absent, but follows
+        from channels that are present: engine power from speed and torque, battery power from V and I).
+        ``attrs["damage"]`` is the log's damage summary (empty for an intact file), ``attrs["speed_source"]``
+        where speed came from.
     """
     rows = []
     for ch, (unit, _desc) in CHANNELS.items():
@@ -61,6 +63,10 @@ def channel_report(log: DriveLog, streams: dict | None = None, max_gap_s: float 
             row["min"], row["max"] = float(col.min()), float(col.max())
         rows.append(row)
     out = pd.DataFrame(rows).set_index("channel")
+    out["derivable"] = False
+    for ch, parts in DERIVABLE.items():
+        if ch in out.index and not out.loc[ch, "present"] and all(out.loc[c, "present"] for c in parts):
+            out.loc[ch, "derivable"] = True
     out.attrs["damage"] = dict(log.meta.damage or {})
     out.attrs["speed_source"] = log.meta.channel_sources.get("speed_mps", "")
     return out
@@ -128,7 +134,10 @@ def format_report(report: pd.DataFrame, title: str = "") -> str:
     for _, r in disp.iterrows():
         lines.append(f"{r['channel']:22s} {r['samples']:8d} {r['rate Hz']:>8s} {r['gaps']:5d} "
                      f"{r['longest gap s']:>8s} {r['min']:>16s} {r['max']:>16s}  {r['unit']}")
-    missing = [ch for ch, r in report.iterrows() if not r["present"]]
+    missing = [ch for ch, r in report.iterrows() if not r["present"] and not bool(r.get("derivable", False))]
+    derived = [ch for ch, r in report.iterrows() if not r["present"] and bool(r.get("derivable", False))]
+    if derived:
+        lines.append("derivable: " + ", ".join(f"{ch} (from {' x '.join(DERIVABLE[ch])})" for ch in derived))
     src = report.attrs.get("speed_source")
     if src:
         lines.append(f"speed from: {src}")

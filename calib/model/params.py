@@ -63,13 +63,21 @@ class Parameter:
     stderr : float or list, optional
         Standard error after a calibration.
     status : str
-        ``prior`` (not estimated), ``estimated``, ``undetermined`` (fit tried, data did not determine it:
-        left at the prior), ``fixed``.
+        ``prior`` (not estimated), ``estimated`` (maximum a posteriori, the data narrowed the prior),
+        ``weak`` (posterior, but the data narrowed the prior little: mostly the prior), ``fixed``.
     note : str
         Why (for example which channels were missing).
     entry_status : list of str, optional
         For a table after a calibration: the status of each entry (a table is ``estimated`` when any entry
         is; :meth:`status_text` says how many).
+    prior_sd : float or list, optional
+        Prior uncertainty (1 sd, unit of ``value``; per entry for tables) used by the maximum-a-posteriori
+        calibration. ``None``: :func:`prior_sd_of` gives the default (25 % of the value).
+    prior_value : float or list, optional
+        After a calibration: the prior value the posterior ``value`` was estimated from.
+    informed : float or list, optional
+        After a calibration: ``1 - posterior sd / prior sd`` (0: the data said nothing, 1: the data
+        alone determine it).
     """
 
     name: str
@@ -87,6 +95,9 @@ class Parameter:
     note: str = ""
     logs: list = field(default_factory=list)
     entry_status: list | None = None
+    prior_sd: float | list | None = None
+    prior_value: float | list | None = None
+    informed: float | list | None = None
 
     @property
     def is_table(self) -> bool:
@@ -105,7 +116,7 @@ class Parameter:
         n = self.n_entries_estimated()
         if n is None or self.status != "estimated" or n[0] == n[1]:
             return self.status
-        return f"estimated: {n[0]} of {n[1]} entries ({n[1] - n[0]} undetermined)"
+        return f"estimated: {n[0]} of {n[1]} entries ({n[1] - n[0]} weak or at the prior)"
 
     def to_dict(self) -> dict:
         """The parameter as a TOML/JSON-able dict."""
@@ -125,6 +136,9 @@ class Parameter:
             d["logs"] = list(self.logs)
         if self.entry_status:
             d["entry_status"] = list(self.entry_status)
+        for key in ("prior_sd", "prior_value", "informed"):
+            if getattr(self, key) is not None:
+                d[key] = getattr(self, key)
         return d
 
 
@@ -190,16 +204,18 @@ def default_parameters() -> "ParameterSet":
         _p("T_bat_ref_degC", 26.0, "degC", -40, 60, bat, "reference temperature of R_int_ohm", vary=False),
         _p("C_bat_Ah", 6.5, "A*h", 2.0, 20.0, "Toyota: NiMH 6.5 Ah (data/prius_facts.md)", "capacity"),
         # fuel
-        _p("eta_ool", eta_ool, "dimensionless", 0.02, 0.45,
+        # upper bound above any engine's efficiency: a calibrated table also carries the level (fuel_scale
+        # stays at its base value), so it is an effective efficiency eta / fuel_scale
+        _p("eta_ool", eta_ool, "dimensionless", 0.02, 0.6,
            "NREL FASTSim 2016 Prius engine efficiency vs fraction of 71 kW", "engine efficiency on the OOL",
-           x=P_ool, x_name="P_e", x_unit="W", vary=False),
+           x=P_ool, x_name="P_e", x_unit="W"),
         _p("n_ool_rpm", n_ool, "rpm", 600, 6000, "iptm choice through 142 N m @ 3600 rpm and 72 kW @ 5200 rpm",
            "engine speed on the optimal operating line", x=P_ool, x_name="P_e", x_unit="W", vary=False),
         _p("fuel_scale", 1.07, "dimensionless", 0.5, 2.0,
            "tuned to EPA warm UDDS/HWFET/US06 with the rule-based controller (calib.model.epa.tune_fuel_scale)",
            "warm fuel-map scale"),
         _p("W_idle_g_per_s", 0.10, "g/s", 0.02, 0.5, "docs/model.md s.4", "idle fuel rate, warm"),
-        _p("f_cl", [1.5, 1.2, 1.05, 1.0], "dimensionless", 1.0, 3.0, "docs/model.md s.4 (prior shape)",
+        _p("f_cl", [1.5, 1.2, 1.05, 1.0], "dimensionless", 1.0, 6.0, "docs/model.md s.4 (prior shape)",
            "cold-coolant fuel factor", x=[-10.0, 20.0, 60.0, 80.0], x_name="T_cl", x_unit="degC"),
         _p("LHV_J_per_g", 42.6e3, "J/g", 40e3, 45e3, "gasoline, 42.6 MJ/kg", "lower heating value", vary=False),
         # engine coolant
@@ -226,8 +242,46 @@ def default_parameters() -> "ParameterSet":
         _p("UA_cab_W_per_K", 50.0, "W/K", 5.0, 300.0, "docs/model.md s.6 (prior)", "cabin loss conductance"),
         _p("Q_sun_W", 0.0, "W", -500.0, 2000.0, "docs/model.md s.6 (prior)", "solar and occupant gains"),
     ]
+    for p in plist:
+        if p.name in PRIOR_SD:
+            sd = PRIOR_SD[p.name]
+            p.prior_sd = [float(sd(v)) for v in p.value] if p.is_table else float(sd(p.value))
     return ParameterSet({p.name: p for p in plist}, meta={"name": "2017 Toyota Prius, default",
                                                          "origin": "calib.model.params.default_parameters"})
+
+
+#: Prior uncertainty (1 sd) of every parameter the calibration estimates, as a function of the prior
+#: value (per entry for tables). Judgement, stated so it can be argued with: the spec's priors are
+#: round engineering numbers (25-50 %), the pack tables and the efficiency curve are measured on
+#: similar hardware (a few %), the cold-fuel excess is uncertain in proportion to its size.
+PRIOR_SD = {
+    "U_oc_V": lambda v: 4.0,  # V: +-2 % between packs of the same type
+    "R_int_ohm": lambda v: 0.25 * v,
+    "R_int_tc_per_K": lambda v: 0.01,
+    "C_bat_Ah": lambda v: 1.5,
+    "eta_ool": lambda v: 0.20 * v,  # another engine, or this one with a biased fuel meter
+    "fuel_scale": lambda v: 0.15,
+    "W_idle_g_per_s": lambda v: 0.04,
+    "f_cl": lambda v: 0.05 + 1.0 * (v - 1.0),  # engines differ most when cold (x2-x5 at -7 degC seen)
+    "C_eng_J_per_K": lambda v: 0.3 * v,
+    "gamma_exh": lambda v: 0.1,
+    "hA_eng_W_per_K": lambda v: 0.5 * v,
+    "kappa": lambda v: 0.1,
+    "T_open_degC": lambda v: 4.0,
+    "k_rad_W_per_K": lambda v: 0.5 * v,
+    "eps_hc": lambda v: 0.15,
+    "C_cab_J_per_K": lambda v: 0.4 * v,
+    "UA_cab_W_per_K": lambda v: 0.4 * v,
+    "Q_sun_W": lambda v: 150.0,
+}
+
+
+def prior_sd_of(p: "Parameter"):
+    """Prior sd of a parameter: its own ``prior_sd``, else :data:`PRIOR_SD` of its value, else 25 %."""
+    if p.prior_sd is not None:
+        return p.prior_sd
+    f = PRIOR_SD.get(p.name, lambda v: 0.25 * abs(v) if v else 1.0)
+    return [float(f(v)) for v in p.value] if p.is_table else float(f(p.value))
 
 
 # The compact form the compiled model reads (numba accepts namedtuples of floats and arrays).
@@ -398,6 +452,9 @@ class ParameterSet:
             unit = entry.get("unit", p.unit)
             val = _convert(val, unit, p.unit, f"{origin}: parameter {name}")
             p.value = [float(v) for v in val] if p.is_table else float(val)
+            if "prior_sd" not in entry and p.name in PRIOR_SD:  # the default uncertainty of the new value
+                p.prior_sd = None
+                p.prior_sd = prior_sd_of(p)
             if p.is_table and "x" in entry:
                 xu = entry.get("x_unit", p.x_unit)
                 p.x = [float(v) for v in _convert(entry["x"], xu, p.x_unit, f"{origin}: breakpoints of {name}")]
@@ -413,6 +470,9 @@ class ParameterSet:
                 if not (isinstance(st, list) and len(st) == len(p.value)):
                     raise ParameterError(f"{origin}: entry_status of {name} must list one status per table entry")
                 p.entry_status = [str(v) for v in st]
+            for key in ("prior_sd", "prior_value", "informed"):
+                if key in entry:
+                    setattr(p, key, entry[key])
             if "bounds" in entry:
                 b = entry["bounds"]
                 if not (isinstance(b, list) and len(b) == 2):

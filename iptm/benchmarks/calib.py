@@ -60,24 +60,24 @@ def run(quick: bool = False) -> dict:
             t0 = time.perf_counter()
             rh = calibrate([lg for i, lg in enumerate(logs) if i != k], validate=[logs[k]], progress=False)
             holdouts.append((time.perf_counter() - t0, rh, _recovery(rh.params, truth)))
-        und = [n for n in res_all.params.names() if res_all.params.param(n).status == "undetermined"]
+        und = [n for n in res_all.params.names() if res_all.params.param(n).status == "weak"]
         print(f"seed {seed}: {len(logs)} logs, {duration / 60:.1f} min of driving (synthesis {t_synth:.1f} s)")
         print(f"  calibration wall time (all 3 logs): {t_all:.2f} s")
         print(f"  {'parameter':24s} {'truth':>12s} {'estimate':>12s} {'stderr':>10s} {'|err|/truth':>11s} 3se")
         for r in rec:
             print(f"  {r['name']:24s} {r['truth']:12.6g} {r['estimate']:12.6g} {r['stderr']:10.3g} "
                   f"{r['rel_err_pct']:10.2f}% {'yes' if r['within_3se'] else 'NO'}")
-        print(f"  undetermined (left at prior): {', '.join(und) or 'none'}")
+        print(f"  weakly informed (posterior mostly the prior): {', '.join(und) or 'none'}")
         n_ok = sum(r["within_3se"] and r["within_10pct"] for r in rec)
         print(f"  recovery: {n_ok}/{len(rec)} estimated entries within 3 se and 10 %")
         val = {}
         for t_hold, rh, rec_hold in holdouts:
             n_h = sum(r["within_3se"] and r["within_10pct"] for r in rec_hold)
-            und_h = [n for n in rh.params.names() if rh.params.param(n).status == "undetermined"]
+            und_h = [n for n in rh.params.names() if rh.params.param(n).status == "weak"]
             for lg, m in rh.validation.items():
                 val[lg] = m
                 print(f"  held out {lg}: fit on the other two in {t_hold:.2f} s, recovery {n_h}/{len(rec_hold)}, "
-                      f"undetermined: {', '.join(und_h) or 'none'}")
+                      f"weak: {', '.join(und_h) or 'none'}")
                 for ch, v in m.items():
                     if ch == "cumulative_fuel":
                         print(f"    cumulative fuel error {v['error_pct']:+.2f} %")
@@ -85,7 +85,7 @@ def run(quick: bool = False) -> dict:
                         print(f"    {ch:13s} RMSE {v['rmse']:.4g} max {v['max_abs']:.4g} bias {v['bias']:+.4g} "
                               f"{v['unit']}")
         figures["runs"].append({"seed": seed, "driving_min": duration / 60, "calibration_wall_s": t_all,
-                                "recovery": rec, "undetermined": und, "validation_holdout": val,
+                                "recovery": rec, "weak": und, "validation_holdout": val,
                                 "recovery_holdout": [h[2] for h in holdouts]})
     walls = [r["calibration_wall_s"] for r in figures["runs"]]
     figures["calibration_wall_s_max"] = max(walls)

@@ -5,9 +5,11 @@ from __future__ import annotations
 def register(sub):
     p = sub.add_parser("calibrate", help="calibrate the model from drive logs (lmfit), with validation",
                        description="Fit battery, fuel, engine-thermal and cabin parameters from one or more drive "
-                                   "logs (CSV, MCAP, CAN dumps, MDF4, canonical tables), report standard errors, "
-                                   "correlations and which parameters the data did not determine, validate on "
-                                   "held-out logs, and write the calibration artifact (a parameter file).")
+                                   "logs (CSV, MCAP, CAN dumps, MDF4, canonical tables) by maximum a posteriori "
+                                   "estimation; report prior and posterior sd, how much the logs informed each "
+                                   "parameter, confounded pairs and which drive would inform the rest; validate on "
+                                   "held-out logs (channels whose inputs a log lacks are named, not scored), and "
+                                   "write the calibration artifact (a parameter file).")
     p.add_argument("logs", nargs="+", metavar="LOG", help="logs to fit")
     p.add_argument("--validate", nargs="+", default=[], metavar="LOG", help="held-out logs to validate on")
     p.add_argument("--params", metavar="BASE", help="prior/base parameter file (default: the default Prius)")
@@ -15,7 +17,8 @@ def register(sub):
     p.add_argument("--fix", metavar="NAMES", help="comma-separated parameters held at the base value")
     p.add_argument("--out", required=True, metavar="FILE", help="calibration artifact (.toml or .json)")
     p.add_argument("--json", metavar="FILE", help="write the fit and validation figures as JSON")
-    p.add_argument("--plots", metavar="DIR", help="write measured-vs-simulated plots of the validation logs")
+    p.add_argument("--plots", metavar="DIR", help="write measured-vs-simulated plots of the validation logs and "
+                                                "residual diagnostics (residuals, autocorrelation) of every log")
     p.add_argument("--rate", type=float, default=1.0, help="resampling rate in Hz (default 1)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--strict", action="store_true",
@@ -48,7 +51,7 @@ def run(args) -> int:
     from calib.drivelog import file_sha256
     from calib.fileio import write_json
     from calib.model.params import ParameterSet
-    from calib.fit.validate import plot_validation, replay
+    from calib.fit.validate import plot_residuals, plot_validation, replay
 
     paths = list(args.logs) + list(args.validate)
     logs, val = [], []
@@ -69,6 +72,11 @@ def run(args) -> int:
             f = d / f"validation_{Path(lg.meta.source).stem}.png"
             plot_validation(replay(lg, res.params), f)
             print(f"plot: {f}")
+        for kind, group in (("fitted", logs), ("held_out", val)):
+            for lg in group:
+                f = d / f"residuals_{kind}_{Path(lg.meta.source).stem}.png"
+                plot_residuals(replay(lg, res.params), f, title=f"Residual diagnostics ({kind}): {lg.label()}")
+                print(f"plot: {f}")
     if args.json:
         write_json(args.json, res.to_dict())
     return 0

@@ -45,7 +45,7 @@ def run(args) -> int:
     print()
     print(f"iptm run {s['run_id']} finished in {out.wall_s:.1f} s"
           + ("  [SYNTHETIC logs]" if s["synthetic_data"] else ""))
-    print(f"calibration: {s['n_estimated']} parameters estimated, {s['n_undetermined']} undetermined")
+    print(f"calibration: {s['n_estimated']} parameters estimated, {s['n_weak']} weakly informed")
     for k, v in s["strategies"].items():
         sav = v.get("saving_vs_rule_pct")
         eco = (f" ({v['L_per_100km']:.2f} L/100 km, {v['mpg']:.1f} mpg)"
