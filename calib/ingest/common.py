@@ -24,6 +24,7 @@ _BASE = {
     "bat_temp": "bat_temp_degC", "battery_temp": "bat_temp_degC", "battery_temperature": "bat_temp_degC",
     "engine_speed": "engine_speed_rpm", "rpm": "engine_speed_rpm", "engine_rpm": "engine_speed_rpm",
     "engine_torque": "engine_torque_Nm", "torque": "engine_torque_Nm",
+    "engine_power": "engine_power_W", "bat_power": "bat_power_W", "battery_power": "bat_power_W",
     "fuel_rate": "fuel_rate_g_per_s", "fuel_flow": "fuel_rate_g_per_s", "fuel": "fuel_rate_g_per_s",
     "coolant_temp": "coolant_temp_degC", "coolant_temperature": "coolant_temp_degC", "ect": "coolant_temp_degC",
     "bay_temp": "bay_temp_degC", "engine_bay_temp": "bay_temp_degC",
@@ -42,6 +43,7 @@ CHANNEL_ALIASES.update(_BASE)
 HUMAN_NAME: dict[str, str] = {
     "speed_mps": "speed", "bat_current_A": "bat_current", "bat_voltage_V": "bat_voltage", "soc": "soc",
     "bat_temp_degC": "bat_temp", "engine_speed_rpm": "engine_speed", "engine_torque_Nm": "engine_torque",
+    "engine_power_W": "engine_power", "bat_power_W": "bat_power",
     "fuel_rate_g_per_s": "fuel_rate", "coolant_temp_degC": "coolant_temp", "bay_temp_degC": "bay_temp",
     "ambient_temp_degC": "ambient_temp", "cabin_temp_degC": "cabin_temp", "heater_power_W": "heater_power",
     "vent_temp_degC": "vent_temp", "blower_flow_kg_per_s": "blower_flow",

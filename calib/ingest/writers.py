@@ -32,6 +32,7 @@ from calib.units import convert
 CSV_UNITS = {
     "speed_mps": "km/h", "bat_current_A": "A", "bat_voltage_V": "V", "soc": "%", "bat_temp_degC": "degC",
     "engine_speed_rpm": "rpm", "engine_torque_Nm": "N*m", "fuel_rate_g_per_s": "g/s",
+    "engine_power_W": "kW", "bat_power_W": "kW",
     "coolant_temp_degC": "degC", "bay_temp_degC": "degC", "ambient_temp_degC": "degC",
     "cabin_temp_degC": "degC", "heater_power_W": "W", "vent_temp_degC": "degC",
     "blower_flow_kg_per_s": "kg/s", "hvac_setpoint_degC": "degC", "grade_rad": "rad",
