@@ -70,7 +70,8 @@ def detect_format(path) -> str:
 
 
 def read_streams(path, *, fmt: str | None = None, dbc=None, column_map: dict | None = None,
-                 topic_map: dict | None = None, signal_map: dict | None = None):
+                 topic_map: dict | None = None, signal_map: dict | None = None, profile: str | None = None,
+                 vehicle=None, trip=None):
     """Read a log file into raw canonical streams.
 
     Parameters
@@ -87,6 +88,10 @@ def read_streams(path, *, fmt: str | None = None, dbc=None, column_map: dict | N
         MCAP: ``{topic: {field: "channel [unit]"}}``.
     signal_map : dict, optional
         CAN: ``{"MESSAGE.SIGNAL": "channel"}`` added over the default map.
+    profile : {"d3", "ved"}, optional
+        Read a test-data format (:mod:`calib.ingest.profiles`); detected from a CSV's header when omitted.
+    vehicle, trip : optional
+        VED: the vehicle and trip to read.
 
     Returns
     -------
@@ -102,6 +107,14 @@ def read_streams(path, *, fmt: str | None = None, dbc=None, column_map: dict | N
     if fmt == "log":
         fmt = "candump"
     if fmt == "csv":
+        from calib.ingest.profiles import detect_profile, read_profile_streams
+
+        profile = profile or detect_profile(path)
+        if profile:
+            return read_profile_streams(path, profile, column_map=column_map, vehicle=vehicle, trip=trip)
+    elif profile:
+        raise LogFormatError(path, f"profile {profile!r} applies to CSV/TSV text files, not {fmt}")
+    if fmt == "csv":
         return read_csv_streams(path, column_map=column_map)
     if fmt == "mcap":
         return read_mcap_streams(path, topic_map=topic_map)
@@ -114,10 +127,11 @@ def read_streams(path, *, fmt: str | None = None, dbc=None, column_map: dict | N
 
 def read_log(path, *, fmt: str | None = None, dbc=None, column_map: dict | None = None,
              topic_map: dict | None = None, signal_map: dict | None = None,
-             rate_hz: float = 1.0, max_gap_s: float = 5.0) -> DriveLog:
+             rate_hz: float = 1.0, max_gap_s: float = 5.0, profile: str | None = None, vehicle=None,
+             trip=None) -> DriveLog:
     """:func:`read_streams` then :func:`to_drivelog`."""
     streams, meta = read_streams(path, fmt=fmt, dbc=dbc, column_map=column_map, topic_map=topic_map,
-                                 signal_map=signal_map)
+                                 signal_map=signal_map, profile=profile, vehicle=vehicle, trip=trip)
     if not streams:
         raise LogFormatError(path, "no samples of any canonical channel in the log")
     return to_drivelog(streams, meta, rate_hz=rate_hz, max_gap_s=max_gap_s)
