@@ -58,7 +58,10 @@ FASTSIM_SENSORS: dict[str, Sensor] = {
 
 @dataclass
 class FastsimScenario:
-    """One FASTSim drive: cycle (our cycle names, ``+`` joins), ambient and initial states (degC)."""
+    """One FASTSim drive: cycle (our cycle names, ``+`` joins), ambient and initial temperatures (degC).
+
+    FASTSim starts the battery at the middle of its SOC window (0.625) whatever the vehicle's state says.
+    """
 
     name: str
     cycle: str
@@ -66,25 +69,25 @@ class FastsimScenario:
     T_eng0: float
     T_cab0: float
     T_bat0: float
-    soc0: float = 0.55
     description: str = ""
+    duration_s: float | None = None  # cut the cycle (short samples)
 
 
 #: The Sonata drives: two cold-soaked calibration drives at -7 degC, a warm restart at -7 degC and a
 #: 22 degC drive held out for validation, and single UDDS runs for the cold/warm fuel ratio.
 SONATA = [
-    FastsimScenario("sonata_cold_udds_hwfet", "udds+hwfet", -7.0, -7.0, -7.0, -7.0, 0.55,
+    FastsimScenario("sonata_cold_udds_hwfet", "udds+hwfet", -7.0, -7.0, -7.0, -7.0,
                     "cold soak at -7 degC, UDDS + HWFET (36 min)"),
-    FastsimScenario("sonata_cold_nycc_us06_udds", "nycc+us06+udds", -7.0, -7.0, -7.0, -7.0, 0.60,
+    FastsimScenario("sonata_cold_nycc_us06_udds", "nycc+us06+udds", -7.0, -7.0, -7.0, -7.0,
                     "cold soak at -7 degC, NYCC + US06 + UDDS (42 min)"),
-    FastsimScenario("sonata_warm_restart", "artemis_urban+udds", -7.0, 70.0, 12.0, -3.0, 0.58,
+    FastsimScenario("sonata_warm_restart", "artemis_urban+udds", -7.0, 70.0, 12.0, -3.0,
                     "restart at -7 degC after a 20-min stop: engine 70 degC, cabin 12 degC; ARTEMIS Urban + UDDS"),
-    FastsimScenario("sonata_mild_udds_hwfet", "udds+hwfet", 22.0, 22.0, 22.0, 22.0, 0.55,
+    FastsimScenario("sonata_mild_udds_hwfet", "udds+hwfet", 22.0, 22.0, 22.0, 22.0,
                     "soak at 22 degC, UDDS + HWFET"),
 ]
 #: Cold-soaked and 22 degC UDDS: FASTSim's cold/warm fuel-per-km ratio.
-UDDS_COLD = FastsimScenario("sonata_udds_cold", "udds", -7.0, -7.0, -7.0, -7.0, 0.55, "cold soak at -7 degC, UDDS")
-UDDS_WARM = FastsimScenario("sonata_udds_22", "udds", 22.0, 22.0, 22.0, 22.0, 0.55, "soak at 22 degC, UDDS")
+UDDS_COLD = FastsimScenario("sonata_udds_cold", "udds", -7.0, -7.0, -7.0, -7.0, "cold soak at -7 degC, UDDS")
+UDDS_WARM = FastsimScenario("sonata_udds_22", "udds", 22.0, 22.0, 22.0, 22.0, "soak at 22 degC, UDDS")
 
 
 def fastsim_available() -> bool:
@@ -115,7 +118,6 @@ def _vehicle(fsim, sc: FastsimScenario):
     bat = hev["res"]["thrml"]["RESLumpedThermal"]["state"]
     bat["temperature_kelvin"] = bat["temp_prev_kelvin"] = sc.T_bat0 + K0
     hev["fc"]["thrml"]["FuelConverterThermal"]["state"]["temperature_kelvin"] = sc.T_eng0 + K0
-    hev["res"]["state"]["soc"] = sc.soc0
     veh = fsim.Vehicle.from_dict(vd)
     veh.set_save_interval(1)
     return veh
@@ -125,6 +127,9 @@ def _cycle(fsim, sc: FastsimScenario):
     from calib.model.cycles import load_cycle
 
     cyc = load_cycle(sc.cycle)
+    if sc.duration_s is not None:
+        keep = cyc.t <= sc.duration_s
+        cyc = type(cyc)(cyc.name, cyc.t[keep], cyc.v[keep], None if cyc.grade is None else cyc.grade[keep])
     if abs(cyc.Ts - 1.0) > 1e-9:
         from calib.errors import ScenarioError
 
@@ -218,7 +223,7 @@ def synthesise_fastsim(sc: FastsimScenario, seed: int = 0, drop_channels=()):
                    notes=[f"SYNTHETIC log: simulated with NREL FASTSim {FASTSIM_VERSION} (Apache-2.0, Copyright 2020 "
                           f"Alliance for Energy Innovation, LLC), vehicle {VEHICLE_RESOURCE}; not measured on a car",
                           f"scenario {sc.name}: {sc.description}; ambient {sc.T_amb:g} degC; initial engine "
-                          f"{sc.T_eng0:g} degC, cabin {sc.T_cab0:g} degC, battery {sc.T_bat0:g} degC, SOC {sc.soc0:g}; "
+                          f"{sc.T_eng0:g} degC, cabin {sc.T_cab0:g} degC, battery {sc.T_bat0:g} degC; "
                           f"seed {seed}",
                           f"true totals: fuel {true['fuel_g']:.1f} g over {true['distance_km']:.2f} km"])
     return true, streams, meta

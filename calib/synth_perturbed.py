@@ -18,7 +18,7 @@ only that the code agrees with itself. This plant (its own 1 s Euler loop, no ca
 The truth is written beside the logs in two parts: the plant's own parameters (``structure``) and, for
 the fitter's parameters that have a counterpart in this plant, the value a perfect fit would find
 (``comparable``: e.g. ``W_idle_g_per_s`` as the fuel meter reads it, ``f_cl`` and the battery tables
-evaluated at the fitter's breakpoints). Parameters without a counterpart (``k_rad``, ``T_open``,
+evaluated at the fitter's breakpoints, ``f_cl`` relative to its value at the fitter's warm reference). Parameters without a counterpart (``k_rad``, ``T_open``,
 ``fuel_scale``) are listed as such and never scored.
 """
 from __future__ import annotations
@@ -39,8 +39,8 @@ PLANT = {
     "m_kg": 1500.0, "CdA_m2": 0.58, "crr": 0.009, "eta_em": 0.87, "eta_mech": 0.97, "P_aux_W": 350.0,
     "P_e_max_W": 72e3, "eta_max": 0.395, "P0_W": 4500.0, "eta_droop": 0.18, "n_idle_rpm": 1050.0,
     "n0_rpm": 1100.0, "n_max_rpm": 5200.0, "W_idle_g_per_s": 0.12,
-    "fcl_a": 0.45, "fcl_b_K": 32.0,
-    "C_eng_J_per_K": 85e3, "gamma_exh": 0.45, "hA_eng_W_per_K": 28.0, "kappa": 0.3,
+    "fcl_a": 0.7, "fcl_b_K": 40.0,
+    "C_eng_J_per_K": 75e3, "gamma_exh": 0.45, "hA_eng_W_per_K": 28.0, "kappa": 0.3,
     "T_open_degC": 84.0, "dT_open_K": 12.0, "UA_rad_W_per_K": 900.0,
     "eps_hc": 0.65, "C_cab_J_per_K": 70e3, "UA_cab_W_per_K": 45.0, "Q_sun_W": 80.0,
     "C_bat_Ah": 6.5, "U_mid_V": 221.0, "U_slope_V": 9.0, "U_knee_V": 2.5, "R0_ohm": 0.27, "R_tc_per_K": 0.024,
@@ -194,7 +194,7 @@ def simulate_plant(p: dict, drive: Drive) -> dict:
         # eps W_bl cp (T_cl - T_amb) (fresh air)
         err = drive.T_set - T_cab[k]
         W_bl = 0.09 if err > 8 else (0.06 if err > 2 else 0.035)
-        Q_req = min(max(700.0 + 450.0 * err, 0.0), 6000.0)
+        Q_req = min(max(700.0 + 450.0 * err, 0.0), 4500.0)
         Q_heat = min(Q_req, max(p["eps_hc"] * W_bl * CP_AIR * (T_cl[k] - T_amb), 0.0))
         Q_fuel = LHV * W_true
         frac = min(max((T_cl[k] - p["T_open_degC"]) / p["dT_open_K"], 0.0), 1.0)
@@ -228,18 +228,21 @@ def comparable_truth(p: dict, base=None) -> dict:
 
     base = base or default_parameters()
     bias = 1.0 + p["fuel_meter_bias"]
+    # the fitter's f_cl is 1 at its warmest breakpoint (the warm reference); this plant's factor is not
+    # quite 1 there, so the comparable table and idle rate are taken relative to that temperature
     xs_f = base.param("f_cl").x
+    f_ref = float(f_cold(p, xs_f[-1]))
     xs_b = base.param("U_oc_V").x
     vals = {
         "C_bat_Ah": p["C_bat_Ah"], "C_eng_J_per_K": p["C_eng_J_per_K"], "gamma_exh": p["gamma_exh"],
         "hA_eng_W_per_K": p["hA_eng_W_per_K"], "kappa": p["kappa"], "C_cab_J_per_K": p["C_cab_J_per_K"],
         "UA_cab_W_per_K": p["UA_cab_W_per_K"], "Q_sun_W": p["Q_sun_W"], "eps_hc": p["eps_hc"],
-        "W_idle_g_per_s": p["W_idle_g_per_s"] * bias,
-        "f_cl": [float(f_cold(p, x)) for x in xs_f],
+        "W_idle_g_per_s": p["W_idle_g_per_s"] * bias * f_ref,
+        "f_cl": [float(f_cold(p, x)) / f_ref for x in xs_f],
         "U_oc_V": [float(ocv(p, x)) for x in xs_b],
         "R_int_ohm": [float(r_int(p, x, 26.0)) for x in xs_b],
         "R_int_tc_per_K": p["R_tc_per_K"],
-        "f_cl_at_-10": float(f_cold(p, -10.0)), "f_cl_at_0": float(f_cold(p, 0.0)),
+        "f_cl_at_-10": float(f_cold(p, -10.0)) / f_ref, "f_cl_at_0": float(f_cold(p, 0.0)) / f_ref,
     }
     none = {"fuel_scale": "warm fuel follows another efficiency curve; no single scale reproduces it",
             "T_open_degC": "the thermostat opens over a range", "k_rad_W_per_K": "radiator heat goes with T_cl - T_amb",
