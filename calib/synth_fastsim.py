@@ -88,6 +88,9 @@ SONATA = [
 #: Cold-soaked and 22 degC UDDS: FASTSim's cold/warm fuel-per-km ratio.
 UDDS_COLD = FastsimScenario("sonata_udds_cold", "udds", -7.0, -7.0, -7.0, -7.0, "cold soak at -7 degC, UDDS")
 UDDS_WARM = FastsimScenario("sonata_udds_22", "udds", 22.0, 22.0, 22.0, 22.0, "soak at 22 degC, UDDS")
+#: The short sample committed under tests/data/fastsim (first 5 min of a cold-soaked UDDS, seed 0).
+SAMPLE = FastsimScenario("sonata_cold_udds_300s", "udds", -7.0, -7.0, -7.0, -7.0,
+                         "cold soak at -7 degC, first 300 s of UDDS", duration_s=300.0)
 
 
 def fastsim_available() -> bool:
@@ -118,6 +121,8 @@ def _vehicle(fsim, sc: FastsimScenario):
     bat = hev["res"]["thrml"]["RESLumpedThermal"]["state"]
     bat["temperature_kelvin"] = bat["temp_prev_kelvin"] = sc.T_bat0 + K0
     hev["fc"]["thrml"]["FuelConverterThermal"]["state"]["temperature_kelvin"] = sc.T_eng0 + K0
+    # a logged drive is not repeated until its SOC balances (FASTSim's default for HEVs)
+    hev["sim_params"]["balance_soc"] = False
     veh = fsim.Vehicle.from_dict(vd)
     veh.set_save_interval(1)
     return veh
@@ -160,7 +165,7 @@ def run_fastsim(sc: FastsimScenario) -> dict:
     # its default setting treats as an error; accept misses within its own tolerances (5 % of distance).
     d["sim_params"]["trace_miss_opts"] = "AllowChecked"
     sd = fsim.SimDrive.from_dict(d)
-    sd.walk()
+    sd.run()
     df = sd.to_dataframe()
     H = "veh.pt_type.HEV."
     fct = H + "fc.thrml.FuelConverterThermal.history."
@@ -229,6 +234,15 @@ def synthesise_fastsim(sc: FastsimScenario, seed: int = 0, drop_channels=()):
     return true, streams, meta
 
 
+def write_fastsim_log(sc: FastsimScenario, path, seed: int = 0):
+    """Write one scenario's logger CSV to ``path``; returns the true signals."""
+    from calib.ingest.writers import write_streams
+
+    true, streams, meta = synthesise_fastsim(sc, seed=seed)
+    write_streams(streams, meta, path, "csv")
+    return true
+
+
 def udds_cold_warm_ratio() -> dict:
     """FASTSim's fuel per km on a cold-soaked -7 degC UDDS over that on a 22 degC UDDS."""
     c, w = run_fastsim(UDDS_COLD), run_fastsim(UDDS_WARM)
@@ -245,16 +259,14 @@ def write_fastsim_logs(out_dir, scenarios=None, seed: int = 0, progress=print) -
     from pathlib import Path
 
     from calib.fileio import write_json
-    from calib.ingest.writers import write_streams
 
     out = Path(out_dir)
     scenarios = list(scenarios or SONATA)
     info = {"note": "SYNTHETIC: true totals of the FASTSim 3 logs next to this file", "simulator":
             f"NREL FASTSim {FASTSIM_VERSION} (Apache-2.0)", "vehicle": VEHICLE_RESOURCE, "logs": {}}
     for i, sc in enumerate(scenarios):
-        true, streams, meta = synthesise_fastsim(sc, seed=seed + i)
         path = out / f"SYNTHETIC_fastsim_{sc.name}.csv"
-        write_streams(streams, meta, path, "csv")
+        true = write_fastsim_log(sc, path, seed=seed + i)
         info["logs"][sc.name] = {"file": str(path), "fuel_g": true["fuel_g"], "distance_km": true["distance_km"],
                                  "duration_s": float(true["t"][-1]), "scenario": sc.__dict__}
         progress(f"SYNTHETIC (FASTSim) {sc.name}: {true['t'][-1]:.0f} s, {true['fuel_g']:.0f} g fuel -> {path}")
@@ -265,5 +277,5 @@ def write_fastsim_logs(out_dir, scenarios=None, seed: int = 0, progress=print) -
     return info
 
 
-__all__ = ["FastsimScenario", "SONATA", "UDDS_COLD", "UDDS_WARM", "FASTSIM_SENSORS", "fastsim_available",
+__all__ = ["FastsimScenario", "SONATA", "SAMPLE", "write_fastsim_log", "UDDS_COLD", "UDDS_WARM", "FASTSIM_SENSORS", "fastsim_available",
            "run_fastsim", "synthesise_fastsim", "udds_cold_warm_ratio", "write_fastsim_logs"]
