@@ -41,9 +41,13 @@ def test_calibration_runs_on_the_sample_and_names_what_it_lacks():
     assert res.fits["cabin"].logs  # cabin temperature, ambient and heater power are logged
 
 
-fastsim = pytest.importorskip("fastsim", reason="optional package fastsim (extra 'fastsim') not installed")
+from calib.synth_fastsim import fastsim_available  # noqa: E402
+
+needs_fastsim = pytest.mark.skipif(not fastsim_available(),
+                                   reason="optional package fastsim (extra 'fastsim') not installed")
 
 
+@needs_fastsim
 def test_generator_reproduces_the_committed_sample(tmp_path):
     from calib.synth_fastsim import SAMPLE, write_fastsim_log
 
@@ -52,6 +56,7 @@ def test_generator_reproduces_the_committed_sample(tmp_path):
     assert out.read_text() == SAMPLE_CSV.read_text()
 
 
+@needs_fastsim
 def test_ambient_and_initial_temperatures_reach_fastsim():
     from calib.synth_fastsim import FastsimScenario, run_fastsim
 
@@ -67,6 +72,7 @@ def test_ambient_and_initial_temperatures_reach_fastsim():
     assert 0.1 < np.median(eta) < 0.45
 
 
+@needs_fastsim
 def test_cold_start_costs_fuel_and_highway_overheats():
     from calib.synth_fastsim import FastsimScenario, run_fastsim, udds_cold_warm_ratio
 
