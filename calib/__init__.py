@@ -10,7 +10,8 @@ A script needs only this front door::
 
 Sub-packages: :mod:`calib.model` (equations, parameters, cycles, simulation, stock controller, fuel maps),
 :mod:`calib.ingest` (readers, writers, resampling, channel report), :mod:`calib.fit` (identification
-toolkit, subsystem fitters, driver, validation), :mod:`calib.synth` (SYNTHETIC logs with a known truth).
+toolkit, subsystem fitters, driver, validation), :mod:`calib.synth` (SYNTHETIC logs with a known truth), :mod:`calib.synth_perturbed` (a plant whose structure the
+fitter does not share), :mod:`calib.synth_fastsim` (NREL FASTSim 3's thermal Sonata hybrid, optional).
 ``calib`` never imports ``optimize`` or ``iptm``.
 """
 from importlib.metadata import PackageNotFoundError, version as _version

@@ -39,6 +39,12 @@ CHANNELS: dict[str, tuple[str, str]] = {
     "grade_rad": ("rad", "road grade"),
 }
 
+#: Power channels and the channels they follow from when those are logged instead (P = omega tau, P = V I).
+DERIVABLE: dict[str, tuple[str, ...]] = {
+    "engine_power_W": ("engine_speed_rpm", "engine_torque_Nm"),
+    "bat_power_W": ("bat_current_A", "bat_voltage_V"),
+}
+
 Streams = dict  # dict[str, pd.Series]: channel -> irregular samples (index: time_s)
 
 

@@ -1,7 +1,7 @@
 """An independent synthesiser whose car differs in structure from the model the fitter assumes.
 
 :mod:`calib.synth` writes logs with the fitter's own equations; a fit that recovers those truths proves
-only that the code agrees with itself. This plant (its own 1 s Euler loop, no call into
+only that the code agrees with itself. This plant (its own 1 s Euler loop; no equation from
 :mod:`calib.model`) differs where real cars differ from spec/model.md:
 
 - engine efficiency ``eta(P) = eta_max (1 - exp(-P/P0)) (1 - c (P/P_max)^2)`` instead of the FASTSim

@@ -3,7 +3,7 @@
 What must hold despite the mismatch: the fit runs, the parameters the data determine land near the
 plant's comparable values, and no reported uncertainty is overconfident beyond a tolerance that
 reflects the mismatch (per parameter below). Parameters the fit reports no uncertainty for are not
-judged here; ``iptm bench calib`` prints them and the issue's targets.
+judged here; ``iptm bench calib`` prints them beside their targets.
 """
 from __future__ import annotations
 

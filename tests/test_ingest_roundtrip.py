@@ -63,7 +63,8 @@ def test_channel_report(written):
     assert rep.loc["speed_mps", "rate_hz"] == pytest.approx(10.0, rel=0.01)
     assert rep.loc["coolant_temp_degC", "gaps"] == 1
     assert rep.loc["coolant_temp_degC", "longest_gap_s"] == pytest.approx(13.0, abs=1.1)
-    assert rep["present"].all()
+    assert (rep["present"] | rep["derivable"]).all()
+    assert rep.loc["engine_power_W", "derivable"] and not rep.loc["engine_power_W", "present"]
     text = format_report(rep)
     assert "speed_mps" in text and "missing: none" in text
     sub = to_drivelog({"speed_mps": s["speed_mps"]}, m)

@@ -32,7 +32,7 @@ def test_committed_sample_reads_as_a_synthetic_log_with_power_channels():
     assert np.median(d.loc[on, "engine_power_W"]) == pytest.approx(14.8e3, rel=0.05)
 
 
-def test_calibration_runs_on_the_sample_and_names_what_it_lacks():
+def test_calibration_runs_on_the_sample():
     from calib.fit.driver import calibrate
 
     res = calibrate([read_log(SAMPLE_CSV)], progress=False)

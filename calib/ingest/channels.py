@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from calib.drivelog import CHANNELS, DriveLog
+from calib.drivelog import CHANNELS, DERIVABLE, DriveLog
 
 
 def _gaps(t: np.ndarray, threshold: float) -> tuple[int, float]:
@@ -32,7 +32,8 @@ def channel_report(log: DriveLog, streams: dict | None = None, max_gap_s: float 
     -------
     pandas.DataFrame
         Index ``channel``; columns ``present`` (bool), ``n`` (samples), ``rate_hz`` (median native rate),
-        ``gaps`` (count), ``longest_gap_s``, ``min``, ``max``, ``unit``.
+        ``gaps`` (count), ``longest_gap_s``, ``min``, ``max``, ``unit``, ``derivable`` (absent, but follows
+        from channels that are present: engine power from speed and torque, battery power from V and I).
     """
     rows = []
     for ch, (unit, _desc) in CHANNELS.items():
@@ -59,20 +60,27 @@ def channel_report(log: DriveLog, streams: dict | None = None, max_gap_s: float 
             row["gaps"], row["longest_gap_s"] = _gaps(t[ok], log.dt * 1.5)
             row["min"], row["max"] = float(col.min()), float(col.max())
         rows.append(row)
-    return pd.DataFrame(rows).set_index("channel")
+    rep = pd.DataFrame(rows).set_index("channel")
+    rep["derivable"] = False
+    for ch, parts in DERIVABLE.items():
+        if ch in rep.index and not rep.loc[ch, "present"] and all(rep.loc[c, "present"] for c in parts):
+            rep.loc[ch, "derivable"] = True
+    return rep
 
 
 def format_report(report: pd.DataFrame, title: str = "") -> str:
     """Plain-text table of a :func:`channel_report` (missing channels listed at the end)."""
     lines = [title] if title else []
     lines.append(f"{'channel':22s} {'n':>8s} {'rate Hz':>8s} {'gaps':>5s} {'longest':>8s} {'min':>10s} {'max':>10s}  unit")
-    missing = []
+    missing, derived = [], []
     for ch, r in report.iterrows():
         if not r["present"]:
-            missing.append(ch)
+            (derived if bool(r.get("derivable", False)) else missing).append(ch)
             continue
         rate = f"{r['rate_hz']:8.2f}" if np.isfinite(r["rate_hz"]) else f"{'-':>8s}"
         lines.append(f"{ch:22s} {int(r['n']):8d} {rate} {int(r['gaps']):5d} {r['longest_gap_s']:8.1f} "
                      f"{r['min']:10.4g} {r['max']:10.4g}  {r['unit']}")
+    if derived:
+        lines.append("derivable: " + ", ".join(f"{ch} (from {' x '.join(DERIVABLE[ch])})" for ch in derived))
     lines.append("missing: " + (", ".join(missing) if missing else "none"))
     return "\n".join(lines)
