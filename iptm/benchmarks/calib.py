@@ -135,8 +135,9 @@ def fastsim_section() -> dict:
     # cold/warm UDDS ratio: FASTSim vs the calibrated model
     fr = udds_cold_warm_ratio()
     mr = model_udds_ratio(res.params)
-    est = [n for n in ("fuel_scale", "W_idle_g_per_s", "f_cl", "C_eng_J_per_K", "gamma_exh", "hA_eng_W_per_K")
-           if res.params.param(n).status == "estimated"]
+    # what the fuel and thermal fits took from the logs (anything else in the ratio is a prior)
+    est = [n for sub in ("fuel", "thermal") if sub in res.fits
+           for n, e in res.fits[sub].estimates.items() if e.status in ("estimated", "weak")]
     fig["udds"] = {"estimated_fuel_thermal": est}
     fig["udds"].update(fastsim=fr, model=mr)
     print(f"   UDDS fuel per km, cold-soaked -7 degC / 22 degC: FASTSim {fr['ratio']:.3f} "
