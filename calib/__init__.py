@@ -10,19 +10,21 @@ A script needs only this front door::
 
 Sub-packages: :mod:`calib.model` (equations, parameters, cycles, simulation, stock controller, fuel maps),
 :mod:`calib.ingest` (readers, writers, resampling, channel report), :mod:`calib.fit` (identification
-toolkit, subsystem fitters, driver, validation), :mod:`calib.synth` (SYNTHETIC logs with a known truth).
+toolkit, subsystem fitters, driver, validation), :mod:`calib.synth` (SYNTHETIC logs with a known truth),
+:mod:`calib.synth_perturbed` (a plant whose structure the fitter does not share), :mod:`calib.synth_fastsim`
+(NREL FASTSim 3's thermal Sonata hybrid, optional).
 ``calib`` never imports ``optimize`` or ``iptm``.
 """
-from ._version import __version__
+from calib._version import __version__
 
-from .errors import (IptmError, LogFormatError, MissingChannelsError, ParameterError,
-                     ScenarioError)
-from .drivelog import DriveLog, LogMeta
-from .model import (Cycle, ParameterSet, RuleBasedController, RuleParams, SimResult,
-                    available_cycles, default_parameters, load_cycle, simulate)
-from .ingest import channel_report, read_canonical, read_log, write_canonical
-from .fit import CalibrationResult, calibrate, replay, validate
-from .synth import synthesise
+from calib.errors import (IptmError, LogFormatError, MissingChannelsError, ParameterError,
+                          ScenarioError)
+from calib.drivelog import DriveLog, LogMeta
+from calib.model import (Cycle, ParameterSet, RuleBasedController, RuleParams, SimResult,
+                         available_cycles, default_parameters, load_cycle, simulate)
+from calib.ingest import channel_report, read_canonical, read_log, write_canonical
+from calib.fit import CalibrationResult, calibrate, replay, validate
+from calib.synth import synthesise
 
 __all__ = [
     "__version__",

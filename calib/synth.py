@@ -218,6 +218,55 @@ def sensor_streams(sim, sc: Scenario, seed: int = 0, sensors: dict | None = None
     return streams
 
 
+def sample_signals(t, signals: dict, sensors: dict, rng, *, nonneg=(), long_gaps=()) -> dict:
+    """Sample true signals like a logger: per-channel rate and phase, noise, quantisation, dropouts.
+
+    Parameters
+    ----------
+    t : ndarray (N+1,)
+        Times of the true states (uniform step).
+    signals : dict
+        Channel -> (kind, values): 'state' (N+1 values at ``t``, interpolated) or 'flow' (N values, held
+        over each step).
+    sensors : dict
+        Channel -> :class:`Sensor`.
+    rng : numpy Generator
+    nonneg : iterable of str
+        Channels clipped at zero after noise (flows and speeds a logger never reports negative).
+    long_gaps : iterable of (channel, t_start, duration_s)
+
+    Returns
+    -------
+    dict of pandas.Series (index ``time_s``).
+    """
+    t = np.asarray(t, float)
+    Ts = float(t[1] - t[0])
+    t_end = float(t[-1])
+    streams = {}
+    for ch, (kind, vals) in signals.items():
+        s = sensors[ch]
+        vals = np.asarray(vals, float)
+        ts = np.arange(rng.uniform(0, 1.0 / s.rate_hz), t_end, 1.0 / s.rate_hz)
+        if kind == "state":
+            x = np.interp(ts, t, vals)
+        else:
+            x = vals[np.minimum(((ts - t[0]) / Ts).astype(int), len(vals) - 1)]
+        x = x + rng.normal(0.0, s.noise, ts.size) if s.noise > 0 else x.copy()
+        if s.quantum > 0:
+            x = np.round(x / s.quantum) * s.quantum
+        if ch in nonneg:
+            x = np.maximum(x, 0.0)
+        keep = np.ones(ts.size, bool)
+        for _ in range(rng.poisson(t_end / 600.0)):  # short dropouts, 0.5-3 s each
+            t0 = rng.uniform(0, t_end)
+            keep &= ~((ts >= t0) & (ts < t0 + rng.uniform(0.5, 3.0)))
+        for gch, g0, gdur in long_gaps:
+            if gch == ch:
+                keep &= ~((ts >= g0) & (ts < g0 + gdur))
+        streams[ch] = pd.Series(x[keep], index=pd.Index(ts[keep], name="time_s"), name=ch)
+    return streams
+
+
 def synthesise(sc: Scenario, truth: ParameterSet, seed: int = 0):
     """Simulate a scenario from ``truth`` and sample its sensors.
 

@@ -72,7 +72,8 @@ def detect_format(path) -> str:
 
 
 def read_streams(path, *, fmt: str | None = None, dbc=None, column_map: dict | None = None,
-                 topic_map: dict | None = None, signal_map: dict | None = None, strict: bool = False):
+                 topic_map: dict | None = None, signal_map: dict | None = None, strict: bool = False,
+                 profile: str | None = None, vehicle=None, trip=None):
     """Read a log file into raw canonical streams.
 
     Parameters
@@ -93,6 +94,10 @@ def read_streams(path, *, fmt: str | None = None, dbc=None, column_map: dict | N
         Refuse a damaged log (the first garbled line/record, or a truncation, is a LogFormatError).
         By default a damaged log is read as far as it can be trusted, ``meta.damage`` says what was
         lost and one :class:`~calib.errors.LogDamageWarning` is issued.
+    profile : {"d3", "ved"}, optional
+        Read a test-data format (:mod:`calib.ingest.profiles`); detected from a CSV's header when omitted.
+    vehicle, trip : optional
+        VED: the vehicle and trip to read.
 
     Returns
     -------
@@ -106,7 +111,8 @@ def read_streams(path, *, fmt: str | None = None, dbc=None, column_map: dict | N
         names the file and, where it applies, the line/message/channel.
     """
     streams, meta = _read_streams(path, fmt=fmt, dbc=dbc, column_map=column_map, topic_map=topic_map,
-                                  signal_map=signal_map, strict=strict)
+                                  signal_map=signal_map, strict=strict, profile=profile, vehicle=vehicle,
+                                  trip=trip)
     if meta.damage:
         if not streams:
             raise LogFormatError(path, "nothing readable: " + meta.damage["summary"])
@@ -114,10 +120,18 @@ def read_streams(path, *, fmt: str | None = None, dbc=None, column_map: dict | N
     return streams, meta
 
 
-def _read_streams(path, *, fmt, dbc, column_map, topic_map, signal_map, strict):
+def _read_streams(path, *, fmt, dbc, column_map, topic_map, signal_map, strict, profile, vehicle, trip):
     fmt = (fmt or detect_format(path)).lower().lstrip(".")
     if fmt == "log":
         fmt = "candump"
+    if fmt == "csv":
+        from calib.ingest.profiles import detect_profile, read_profile_streams
+
+        profile = profile or detect_profile(path)
+        if profile:
+            return read_profile_streams(path, profile, column_map=column_map, vehicle=vehicle, trip=trip)
+    elif profile:
+        raise LogFormatError(path, f"profile {profile!r} applies to CSV/TSV text files, not {fmt}")
     if fmt == "csv":
         return read_csv_streams(path, column_map=column_map, strict=strict)
     if fmt == "mcap":
@@ -131,10 +145,11 @@ def _read_streams(path, *, fmt, dbc, column_map, topic_map, signal_map, strict):
 
 def read_log(path, *, fmt: str | None = None, dbc=None, column_map: dict | None = None,
              topic_map: dict | None = None, signal_map: dict | None = None,
-             rate_hz: float = 1.0, max_gap_s: float = 5.0, strict: bool = False) -> DriveLog:
+             rate_hz: float = 1.0, max_gap_s: float = 5.0, strict: bool = False, profile: str | None = None,
+             vehicle=None, trip=None) -> DriveLog:
     """:func:`read_streams` then :func:`to_drivelog` (``strict``: refuse a damaged log)."""
     streams, meta = read_streams(path, fmt=fmt, dbc=dbc, column_map=column_map, topic_map=topic_map,
-                                 signal_map=signal_map, strict=strict)
+                                 signal_map=signal_map, strict=strict, profile=profile, vehicle=vehicle, trip=trip)
     if not streams:
         raise LogFormatError(path, "no samples of any canonical channel in the log")
     return to_drivelog(streams, meta, rate_hz=rate_hz, max_gap_s=max_gap_s)

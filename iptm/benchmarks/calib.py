@@ -1,93 +1,294 @@
-"""Calibration benchmark: full-size bundled winter logs from random truths, recovery and validation.
+"""Calibration on test cars that are not our model, with the targets beside every figure.
 
-For each seed a truth is drawn (:func:`calib.synth.draw_truth`, never the defaults), the three bundled
-scenarios (about 75 min of driving) are synthesised, and :func:`calib.fit.driver.calibrate` is run
-(1) on all three logs (the timed figure: the issue's < 60 s on 2 cores), and (2) on two of them with the
-third held out for validation, each log in turn. Printed: wall time, the recovery table (truth, estimate,
-standard error, |err|/truth, within 3 se) of every parameter flagged estimated, and the held-out
-validation metrics.
+Sections (``iptm bench calib``; ``--quick``: one perturbed seed, no repeated timing):
 
-Reproduce: ``iptm bench calib`` (``--quick``: one seed).
+1. **FASTSim 3 Sonata** (:mod:`calib.synth_fastsim`, needs the ``fastsim`` extra): calibrate on the two
+   cold-soaked -7 degC drives, validate on the held-out warm restart and the 22 degC drive: cumulative
+   fuel error, cabin and SOC RMSE, coolant RMSE per coolant-temperature regime; then the calibrated
+   model's cold (-7 degC soak) over warm (22 degC) UDDS fuel per km (simulated with the rule-based
+   controller and a 22 degC climate control) against FASTSim's own ratio.
+2. **Perturbed-structure synthesiser** (:mod:`calib.synth_perturbed`, seeds 1-3): calibrate on the two
+   cold-start drives, validate on the held-out warm restart; ``f_cl`` at -10 and 0 degC against the
+   truth; coverage of the truth by the reported 95 % intervals (value +- 1.96 sd) over the fitter's
+   parameters that have a counterpart in the plant.
+3. **Missing channels**: the perturbed seed-1 drives without engine speed/torque, and without heater
+   data (vent temperature, blower flow): does calibration run, what each subsystem used, what the
+   validation reports.
+4. **Wall time** of calibrating 1 hour of logs (the two perturbed calibration drives cut to 30 min each;
+   median of 3 runs, with the load average: the machine is shared).
+
+Every log is SYNTHETIC. Figures are printed, never asserted.
 """
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
 
+TARGETS = {
+    "fastsim_fuel_pct": 5.0, "fastsim_cabin_rmse": 1.0, "fastsim_soc_rmse": 0.02, "fastsim_udds_ratio_pct": 10.0,
+    "pert_fuel_pct": 3.0, "pert_coolant_rmse": 1.5, "pert_soc_rmse": 0.01, "pert_fcl_pct": 10.0,
+    "coverage": 0.90, "wall_1h_s": 10.0,
+}
+#: Coolant regimes (measured coolant temperature, degC) for the FASTSim error breakdown.
+REGIMES = [("below 40", -100.0, 40.0), ("40-80 warm-up", 40.0, 80.0), ("80-95 thermostat", 80.0, 95.0),
+           ("above 95 (FASTSim: radiator off while moving)", 95.0, 1e9)]
 
-def _recovery(params, truth):
-    rows = []
-    for n in params.names():
-        p = params.param(n)
-        if p.status != "estimated":
-            continue
-        tv = truth[n]
-        if p.is_table:
-            for x, v, s, t in zip(p.x, p.value, p.stderr, tv):
-                if s is not None and np.isfinite(s):
-                    rows.append((f"{n}[{x:g}]", t, v, s))
-        else:
-            rows.append((n, tv, p.value, p.stderr))
+
+def _mark(ok) -> str:
+    return "n/a" if ok is None else ("MEETS" if ok else "MISSES")
+
+
+def _replay(log, params):
+    """The validation replay, or the message of its refusal."""
+    from calib.errors import IptmError
+    from calib.fit.validate import replay
+
+    try:
+        return replay(log, params), None
+    except IptmError as exc:
+        return None, str(exc)
+
+
+def _val_line(m: dict) -> str:
+    parts = []
+    cf = m.get("cumulative_fuel")
+    if cf:
+        parts.append(f"cumulative fuel {cf['error_pct']:+.2f} % ({cf['simulated_g']:.0f} vs {cf['measured_g']:.0f} g)")
+    for k in ("soc", "coolant_temp", "cabin_temp"):
+        if k in m:
+            parts.append(f"{k} RMSE {m[k]['rmse']:.3g}")
+    return "; ".join(parts) or "no metrics"
+
+
+def _fit_summary(res) -> list[str]:
     out = []
-    for name, t, v, s in rows:
-        err = abs(v - t)
-        out.append({"name": name, "truth": float(t), "estimate": float(v), "stderr": float(s),
-                    "rel_err_pct": 100 * err / abs(t) if t else float("inf"), "within_3se": bool(err <= 3 * s),
-                    "within_10pct": bool(err <= 0.1 * abs(t))})
+    for name, f in res.fits.items():
+        est = [n for n, e in f.estimates.items() if e.status == "estimated"]
+        line = f"    [{name}] logs used: {len(f.logs)}; estimated: {', '.join(est) or 'none'}"
+        if f.message:
+            line += f"; {f.message}"
+        out.append(line)
+        for lg, why in f.skipped.items():
+            out.append(f"      skipped {lg}: {why}")
     return out
 
 
-def run(quick: bool = False) -> dict:
+# ---------------------------------------------------------------------------------------- FASTSim
+def fastsim_section() -> dict:
     from calib.fit.driver import calibrate
     from calib.ingest import to_drivelog
-    from calib.synth import BUNDLED, draw_truth, synthesise
+    from calib.synth_fastsim import SONATA, fastsim_available, synthesise_fastsim, udds_cold_warm_ratio
 
-    seeds = [11] if quick else [11, 12, 13]
-    figures = {"seeds": seeds, "runs": []}
+    print("-- FASTSim 3 Sonata thermal HEV (SYNTHETIC): calibrate on 2 cold drives, validate on a warm restart "
+          "and a 22 degC drive")
+    if not fastsim_available():
+        print("   skipped: the optional package fastsim is not installed (pip install 'iptm[fastsim]')")
+        return {"skipped": "fastsim not installed"}
+    logs = {}
+    for i, sc in enumerate(SONATA):
+        _, streams, meta = synthesise_fastsim(sc, seed=7 + i)
+        logs[sc.name] = to_drivelog(streams, meta)
+    names = list(logs)
+    cal, val = [logs[n] for n in names[:2]], [logs[n] for n in names[2:]]
+    t0 = time.perf_counter()
+    try:
+        res = calibrate(cal, progress=False)
+    except Exception as exc:  # noqa: BLE001 - the benchmark reports any failure as a figure
+        print(f"   calibration FAILED: {type(exc).__name__}: {exc}")
+        return {"calibration_error": str(exc)}
+    wall = time.perf_counter() - t0
+    print(f"   calibration of {sum(lg.duration_s for lg in cal) / 60:.0f} min of logs: {wall:.1f} s")
+    for line in _fit_summary(res):
+        print(line)
+    fig = {"calibration_wall_s": wall, "validation": {}}
+    for lg in val:
+        rep, refused = _replay(lg, res.params)
+        if rep is None:
+            print(f"   held out {lg.name}: validation refused: {refused}")
+            fig["validation"][lg.name] = {"refused": refused}
+            continue
+        m = rep.metrics()
+        cf = m.get("cumulative_fuel", {}).get("error_pct")
+        cab = m.get("cabin_temp", {}).get("rmse")
+        soc = m.get("soc", {}).get("rmse")
+        print(f"   held out {lg.name} (inputs: {getattr(rep, 'inputs', '?')})")
+        print(f"     cumulative fuel error {cf:+.2f} %  [target |err| <= {TARGETS['fastsim_fuel_pct']:g} %: "
+              f"{_mark(None if cf is None else abs(cf) <= TARGETS['fastsim_fuel_pct'])}]" if cf is not None
+              else "     cumulative fuel: not computed")
+        print(f"     cabin RMSE {cab:.2f} degC  [target <= {TARGETS['fastsim_cabin_rmse']:g}: "
+              f"{_mark(cab <= TARGETS['fastsim_cabin_rmse'])}]" if cab is not None else "     cabin: not computed")
+        print(f"     SOC RMSE {soc:.4f}  [target <= {TARGETS['fastsim_soc_rmse']:g}: "
+              f"{_mark(soc <= TARGETS['fastsim_soc_rmse'])}]" if soc is not None else "     SOC: not computed")
+        reg = {}
+        meas, sim = rep.measured.get("coolant_temp"), rep.simulated.get("coolant_temp")
+        if meas is not None and sim is not None:
+            for label, lo, hi in REGIMES:
+                sel = np.isfinite(meas) & np.isfinite(sim) & (meas >= lo) & (meas < hi)
+                if sel.sum() >= 10:
+                    e = sim[sel] - meas[sel]
+                    reg[label] = {"rmse": float(np.sqrt(np.mean(e * e))), "bias": float(np.mean(e)), "n": int(sel.sum())}
+                    print(f"     coolant {label:46s} RMSE {reg[label]['rmse']:6.2f} degC, bias "
+                          f"{reg[label]['bias']:+6.2f}, {reg[label]['n']} s")
+        fig["validation"][lg.name] = {"metrics": m, "coolant_by_regime": reg, "inputs": getattr(rep, "inputs", "")}
+    # cold/warm UDDS ratio: FASTSim vs the calibrated model
+    fr = udds_cold_warm_ratio()
+    mr = model_udds_ratio(res.params)
+    # what the fuel and thermal fits took from the logs (anything else in the ratio is a prior)
+    est = [n for sub in ("fuel", "thermal") if sub in res.fits
+           for n, e in res.fits[sub].estimates.items() if e.status in ("estimated", "weak")]
+    fig["udds"] = {"estimated_fuel_thermal": est}
+    fig["udds"].update(fastsim=fr, model=mr)
+    print(f"   UDDS fuel per km, cold-soaked -7 degC / 22 degC: FASTSim {fr['ratio']:.3f} "
+          f"({fr['cold_g_per_km']:.1f} / {fr['warm_g_per_km']:.1f} g/km)")
+    if "error" in mr:
+        print(f"   calibrated model: simulation failed: {mr['error']}")
+    else:
+        dev = 100 * (mr["ratio"] / fr["ratio"] - 1)
+        fig["udds"]["deviation_pct"] = dev
+        print(f"   calibrated model {mr['ratio']:.3f} ({mr['cold_g_per_km']:.1f} / {mr['warm_g_per_km']:.1f} g/km, "
+              f"Prius road load and controller): {dev:+.1f} %  [target within {TARGETS['fastsim_udds_ratio_pct']:g} %: "
+              f"{_mark(abs(dev) <= TARGETS['fastsim_udds_ratio_pct'])}]")
+        print(f"     fuel and engine-thermal parameters estimated from the FASTSim logs: "
+              f"{', '.join(est) or 'none, so this is the prior model ratio, not a calibrated one'}")
+    print("   structure mismatch: FASTSim's radiator acts only while the car is stopped, so its engine runs to "
+          "120-160 degC on a highway where our thermostat model holds ~90 degC; its engine runs at one power "
+          "(~14.8 kW), so the warm fuel map is seen at one point; its heater passes up to 15 kW from a cold engine.")
+    return fig
+
+
+def model_udds_ratio(params) -> dict:
+    """Fuel per km of ``params`` on a cold-soaked -7 degC UDDS over a 22 degC one (rule-based controller,
+    climate control at 22 degC without base heat)."""
+    from calib.errors import IptmError
+    from calib.model.rulebased import RuleParams
+    from calib.model.simulate import simulate
+    from calib.synth import HvacController
+
+    out = {}
+    try:
+        for key, T in (("cold", -7.0), ("warm", 22.0)):
+            ctrl = HvacController(params.model_params(), RuleParams(), T_set=22.0, Q_base_W=0.0)
+            r = simulate(params, "udds", ctrl, T_amb=T, soc0=0.6, T_cl0=T, T_cab0=T, T_bat=T)
+            out[f"{key}_g_per_km"] = r.fuel_g / r.distance_km
+    except IptmError as exc:
+        return {"error": str(exc)}
+    out["ratio"] = out["cold_g_per_km"] / out["warm_g_per_km"]
+    return out
+
+
+# ---------------------------------------------------------------------------------------- perturbed
+def perturbed_section(seeds) -> dict:
+    from calib.fit.driver import calibrate
+    from calib.synth_perturbed import CALIBRATION, perturbed_logs, score
+
+    print(f"-- perturbed-structure synthesiser (SYNTHETIC), seeds {', '.join(map(str, seeds))}: calibrate on "
+          f"{len(CALIBRATION)} cold-start drives, validate on a held-out warm restart")
+    runs, pairs = [], []
     for seed in seeds:
-        truth = draw_truth(seed)
+        logs, plant = perturbed_logs(seed)
+        cal, val = logs[:len(CALIBRATION)], logs[len(CALIBRATION):]
         t0 = time.perf_counter()
-        logs = [to_drivelog(*synthesise(sc, truth, seed=seed + i)[1:]) for i, sc in enumerate(BUNDLED)]
-        t_synth = time.perf_counter() - t0
-        duration = sum(lg.duration_s for lg in logs)
+        res = calibrate(cal, validate=val, progress=False)
+        wall = time.perf_counter() - t0
+        print(f"   seed {seed}: calibration {wall:.1f} s on {sum(lg.duration_s for lg in cal) / 60:.0f} min of logs")
+        run = {"seed": seed, "wall_s": wall, "validation": res.validation, "params": {}}
+        for lg, m in res.validation.items():
+            cf = m.get("cumulative_fuel", {}).get("error_pct")
+            cool = m.get("coolant_temp", {}).get("rmse")
+            soc = m.get("soc", {}).get("rmse")
+            print(f"     held out {lg}")
+            if cf is not None:
+                print(f"       cumulative fuel error {cf:+.2f} %  [target |err| <= {TARGETS['pert_fuel_pct']:g} %: "
+                      f"{_mark(abs(cf) <= TARGETS['pert_fuel_pct'])}]")
+            if cool is not None:
+                print(f"       coolant RMSE {cool:.2f} degC  [target <= {TARGETS['pert_coolant_rmse']:g}: "
+                      f"{_mark(cool <= TARGETS['pert_coolant_rmse'])}]")
+            if soc is not None:
+                print(f"       SOC RMSE {soc:.4f}  [target <= {TARGETS['pert_soc_rmse']:g}: "
+                      f"{_mark(soc <= TARGETS['pert_soc_rmse'])}]")
+        print(f"     {'parameter':16s} {'truth':>11s} {'estimate':>11s} {'sd':>9s} {'status':>13s}  95 % interval")
+        for r in score(res.params, plant):
+            name, tv, v, sd, covered = r["name"], r["truth"], r["estimate"], r["sd"], r["covered"]
+            pairs.append(covered)
+            run["params"][name] = r
+            extra = ""
+            if name.startswith("f_cl@"):
+                dev = 100 * (v / tv - 1)
+                extra = f"  {dev:+.1f} % [target within {TARGETS['pert_fcl_pct']:g} %: {_mark(abs(dev) <= TARGETS['pert_fcl_pct'])}]"
+            sds = f"{sd:9.3g}" if sd is not None else "        -"
+            cov = "no interval" if covered is None else ("contains truth" if covered else "MISSES truth")
+            print(f"     {name:16s} {tv:11.5g} {v:11.5g} {sds} {r['status']:>13s}  {cov}{extra}")
+        runs.append(run)
+    n_all = len(pairs)
+    n_int = sum(c is not None for c in pairs)
+    n_cov = sum(bool(c) for c in pairs)
+    print(f"   95 % interval coverage: {n_cov}/{n_all} parameter-seed pairs contain the truth ({n_int} have an "
+          f"interval; {n_all - n_int} report none)  [target >= {100 * TARGETS['coverage']:.0f} % of pairs: "
+          f"{_mark(n_all and n_cov / n_all >= TARGETS['coverage'])}]")
+    return {"runs": runs, "coverage": {"pairs": n_all, "with_interval": n_int, "covered": n_cov}}
+
+
+# ---------------------------------------------------------------------------------------- missing data
+def missing_section() -> dict:
+    from calib.fit.driver import calibrate
+    from calib.synth_perturbed import CALIBRATION, ENGINE_CHANNELS, HEATER_CHANNELS, perturbed_logs
+
+    print("-- logs without engine data / without heater data (perturbed seed 1)")
+    out = {}
+    for label, drop in (("no engine speed/torque", ENGINE_CHANNELS), ("no heater data", HEATER_CHANNELS)):
+        logs, _ = perturbed_logs(1, drop_channels=drop)
+        cal, val = logs[:len(CALIBRATION)], logs[len(CALIBRATION):]
+        print(f"   {label} (dropped: {', '.join(drop)})")
+        try:
+            res = calibrate(cal, progress=False)
+        except Exception as exc:  # noqa: BLE001 - reported as the figure
+            print(f"     calibration FAILED: {type(exc).__name__}: {exc}")
+            out[label] = {"calibration_error": str(exc)}
+            continue
+        print("     calibration ran")
+        for line in _fit_summary(res):
+            print("  " + line)
+        rep, refused = _replay(val[0], res.params)
+        if rep is None:
+            print(f"     validation refused: {refused}")
+            out[label] = {"validation_refused": refused}
+        else:
+            m = rep.metrics()
+            print(f"     validation (inputs: {getattr(rep, 'inputs', '?')}): {_val_line(m)}")
+            out[label] = {"validation": m, "inputs": getattr(rep, "inputs", "")}
+    return out
+
+
+# ---------------------------------------------------------------------------------------- timing
+def timing_section(repeats: int) -> dict:
+    from calib.drivelog import DriveLog
+    from calib.fit.driver import calibrate
+    from calib.synth_perturbed import CALIBRATION, perturbed_logs
+
+    logs, _ = perturbed_logs(1, drives=CALIBRATION)
+    cut = [DriveLog(lg.data.loc[:1800.0].copy(), lg.meta) for lg in logs]
+    minutes = sum(lg.duration_s for lg in cut) / 60
+    walls = []
+    for _ in range(repeats):
         t0 = time.perf_counter()
-        res_all = calibrate(logs, progress=False)
-        t_all = time.perf_counter() - t0
-        rec = _recovery(res_all.params, truth)
-        holdouts = []
-        for k in range(len(logs)):  # each log held out in turn
-            t0 = time.perf_counter()
-            rh = calibrate([lg for i, lg in enumerate(logs) if i != k], validate=[logs[k]], progress=False)
-            holdouts.append((time.perf_counter() - t0, rh, _recovery(rh.params, truth)))
-        und = [n for n in res_all.params.names() if res_all.params.param(n).status == "weak"]
-        print(f"seed {seed}: {len(logs)} logs, {duration / 60:.1f} min of driving (synthesis {t_synth:.1f} s)")
-        print(f"  calibration wall time (all 3 logs): {t_all:.2f} s")
-        print(f"  {'parameter':24s} {'truth':>12s} {'estimate':>12s} {'stderr':>10s} {'|err|/truth':>11s} 3se")
-        for r in rec:
-            print(f"  {r['name']:24s} {r['truth']:12.6g} {r['estimate']:12.6g} {r['stderr']:10.3g} "
-                  f"{r['rel_err_pct']:10.2f}% {'yes' if r['within_3se'] else 'NO'}")
-        print(f"  weakly informed (posterior mostly the prior): {', '.join(und) or 'none'}")
-        n_ok = sum(r["within_3se"] and r["within_10pct"] for r in rec)
-        print(f"  recovery: {n_ok}/{len(rec)} estimated entries within 3 se and 10 %")
-        val = {}
-        for t_hold, rh, rec_hold in holdouts:
-            n_h = sum(r["within_3se"] and r["within_10pct"] for r in rec_hold)
-            und_h = [n for n in rh.params.names() if rh.params.param(n).status == "weak"]
-            for lg, m in rh.validation.items():
-                val[lg] = m
-                print(f"  held out {lg}: fit on the other two in {t_hold:.2f} s, recovery {n_h}/{len(rec_hold)}, "
-                      f"weak: {', '.join(und_h) or 'none'}")
-                for ch, v in m.items():
-                    if ch == "cumulative_fuel":
-                        print(f"    cumulative fuel error {v['error_pct']:+.2f} %")
-                    else:
-                        print(f"    {ch:13s} RMSE {v['rmse']:.4g} max {v['max_abs']:.4g} bias {v['bias']:+.4g} "
-                              f"{v['unit']}")
-        figures["runs"].append({"seed": seed, "driving_min": duration / 60, "calibration_wall_s": t_all,
-                                "recovery": rec, "weak": und, "validation_holdout": val,
-                                "recovery_holdout": [h[2] for h in holdouts]})
-    walls = [r["calibration_wall_s"] for r in figures["runs"]]
-    figures["calibration_wall_s_max"] = max(walls)
-    print(f"calibration of the bundled-size logs: max wall time {max(walls):.2f} s over {len(walls)} seed(s)")
+        calibrate(cut, progress=False)
+        walls.append(time.perf_counter() - t0)
+    med = float(np.median(walls))
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    print(f"-- wall time: calibration of {minutes:.0f} min of logs: median {med:.2f} s over {repeats} run(s) "
+          f"(all: {', '.join(f'{w:.2f}' for w in walls)}); load average {load:.1f} on {os.cpu_count()} cores  "
+          f"[target <= {TARGETS['wall_1h_s']:g} s on 2 cores: {_mark(med <= TARGETS['wall_1h_s'])}"
+          f"{'; measured under load' if load > 1.5 else ''}]")
+    return {"minutes": minutes, "walls_s": walls, "median_s": med, "load_average": load}
+
+
+def run(quick: bool = False) -> dict:
+    seeds = [1] if quick else [1, 2, 3]
+    figures = {"targets": TARGETS}
+    figures["fastsim"] = fastsim_section()
+    figures["perturbed"] = perturbed_section(seeds)
+    figures["missing_channels"] = missing_section()
+    figures["timing"] = timing_section(1 if quick else 3)
     return figures

@@ -34,6 +34,11 @@ def register(subparsers) -> None:
     p.add_argument("--dbc", help="DBC for CAN logs (default: the shipped Prius DBC)")
     p.add_argument("--map", dest="map_file",
                    help="TOML/JSON map with [columns] (CSV/MDF), [topics.\"/topic\"] (MCAP), [signals] (CAN)")
+    p.add_argument("--profile", choices=("d3", "ved"),
+                   help="test-data format: d3 (Argonne dynamometer .txt), ved (Vehicle Energy Dataset CSV); "
+                        "detected from the header when omitted")
+    p.add_argument("--vehicle", help="VED: vehicle id (VehId) to read")
+    p.add_argument("--trip", help="VED: trip id to read")
     p.add_argument("--rate", type=float, default=1.0, help="output rate, Hz (default 1)")
     p.add_argument("--max-gap", type=float, default=5.0,
                    help="never interpolate across gaps longer than this, s (default 5)")
@@ -77,7 +82,8 @@ def run(args) -> int:
         src = Path(f)
         streams, meta = read_streams(src, fmt=args.fmt, dbc=args.dbc, column_map=maps["columns"] or None,
                                      topic_map=maps["topics"] or None, signal_map=maps["signals"] or None,
-                                     strict=args.strict)
+                                     strict=args.strict, profile=args.profile, vehicle=args.vehicle,
+                                     trip=args.trip)
         if not streams:
             raise IptmError(f"{src}: no samples of any canonical channel")
         log = to_drivelog(streams, meta, rate_hz=args.rate, max_gap_s=args.max_gap)

@@ -14,7 +14,16 @@ def register(sub):
     p.add_argument("--seed", type=int, default=2017, help="seed of the truth draw and the sensor noise")
     p.add_argument("--truth", metavar="FILE", help="truth parameter file (default: drawn with --seed)")
     p.add_argument("--scenario", action="append", help="scenario name (repeatable; default all bundled)")
-    p.add_argument("--formats", default="csv,mcap,candump,blf", help="comma-separated: " + ",".join(FORMATS))
+    p.add_argument("--formats", default=None,
+                   help="comma-separated: " + ",".join(FORMATS) + " (default all; csv only for --simulator "
+                        "fastsim and --perturbed)")
+    p.add_argument("--simulator", choices=("model", "fastsim"), default="model",
+                   help="model: our model from a truth parameter set (default); fastsim: NREL FASTSim 3's thermal "
+                        "Hyundai Sonata hybrid at -7 and 22 degC (needs the fastsim extra)")
+    p.add_argument("--perturbed", action="store_true",
+                   help="our own plant with structure the fitter does not share (other efficiency curve, "
+                        "thermostat range, lagged coolant sensor, biased fuel meter, ordinary drives); the truth "
+                        "is written as SYNTHETIC_perturbed_truth.json")
     p.add_argument("--json", metavar="FILE", help="write the list of files and true summaries as JSON")
     p.set_defaults(func=run)
 
@@ -28,7 +37,9 @@ def run(args) -> int:
     from calib.synth import BUNDLED, draw_truth, synthesise
     from calib.ingest.writers import write_streams
 
-    fmts = [f.strip() for f in args.formats.split(",") if f.strip()]
+    if args.simulator == "fastsim" or args.perturbed:
+        return _run_other(args)
+    fmts = [f.strip() for f in (args.formats or ",".join(FORMATS)).split(",") if f.strip()]
     bad = [f for f in fmts if f not in FORMATS]
     if bad:
         raise IptmError(f"unknown format(s) {bad}; choose from {', '.join(FORMATS)}")
@@ -57,4 +68,29 @@ def run(args) -> int:
     print(f"truth parameters: {truth_file}")
     if args.json:
         write_json(args.json, written)
+    return 0
+
+
+def _run_other(args) -> int:
+    """The test cars that are not our model: FASTSim 3 or the perturbed-structure plant (CSV logs)."""
+    from calib.errors import IptmError
+    from calib.fileio import write_json
+
+    if args.formats and [f.strip() for f in args.formats.split(",") if f.strip()] != ["csv"]:
+        raise IptmError("--simulator fastsim and --perturbed write CSV logs only (engine and battery power "
+                        "channels have no MCAP/CAN layout): use --formats csv")
+    if args.simulator == "fastsim" and args.perturbed:
+        raise IptmError("choose one of --simulator fastsim and --perturbed")
+    if args.truth or args.scenario:
+        raise IptmError("--truth and --scenario apply to --simulator model only")
+    if args.perturbed:
+        from calib.synth_perturbed import write_perturbed_logs
+
+        info = write_perturbed_logs(args.out, seed=args.seed)
+    else:
+        from calib.synth_fastsim import write_fastsim_logs
+
+        info = write_fastsim_logs(args.out, seed=args.seed)
+    if args.json:
+        write_json(args.json, info)
     return 0
