@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from calib import model as M
+from calib.model import equations as M
 
 
 def test_traction_power_road_load_at_constant_speed(mp):

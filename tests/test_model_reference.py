@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from calib import model as M
+from calib.model import equations as M
 from calib.model.params import default_parameters
 from calib.model.simulate import simulate
 
