@@ -6,10 +6,11 @@ function, which is every ``@njit`` function (the model equations, the DP kernels
 core would not be mutated at all. Here a mutant is the module's source with one AST node changed, written
 into a scratch copy of the repository; the selected tests run there in a fresh process.
 
-Numba: with ``NUMBA_DISABLE_JIT=1`` a compiled function runs as plain Python, so a mutant needs no
-compilation and no stale on-disk cache can hide it (a cached kernel in another file inlines the *old*
-equation). Modules whose tests are too slow without compilation (the DP kernels) run compiled with an empty
-numba cache per mutant instead. Which applies is set per module in ``[tool.iptm.mutation]`` of
+Numba: a cached kernel in another file inlines the *old* version of a mutated compiled function, so a
+module with compiled code runs either with ``NUMBA_DISABLE_JIT=1`` (plain Python: no compilation, no cache)
+or compiled with an empty numba cache per mutant (``jit = "fresh"``, for the DP kernels, too slow as plain
+Python). A module without compiled code of its own (a fitter, the DP engine's Python side) runs compiled
+with a cache shared by all its mutants (``jit = "shared"``). Set per module in ``[tool.iptm.mutation]`` of
 pyproject.toml.
 
 Operators (as mutmut's numeric ones): ``+ <-> -``, ``* <-> /``, ``** -> *``, ``//, % -> /``; comparison
@@ -189,13 +190,17 @@ def _scratch() -> Path:
     return d
 
 
-def _run_tests(work: Path, tests: list, jit: bool, timeout: float):
+def _run_tests(work: Path, tests: list, jit, timeout: float):
+    """jit: False -> NUMBA_DISABLE_JIT=1; "fresh" -> compiled, empty numba cache; "shared" -> compiled with the
+    scratch copy's persistent cache (only for modules without compiled code of their own)."""
     env = dict(os.environ, PYTHONPATH=str(work), MPLBACKEND="Agg", PYTHONDONTWRITEBYTECODE="1")
+    env.pop("NUMBA_DISABLE_JIT", None)
     cache = None
-    if jit:
+    if jit == "shared":
+        env["NUMBA_CACHE_DIR"] = str(work / ".numba-cache")
+    elif jit:
         cache = tempfile.mkdtemp(prefix="iptm-mut-nb-")
         env["NUMBA_CACHE_DIR"] = cache
-        env.pop("NUMBA_DISABLE_JIT", None)
     else:
         env["NUMBA_DISABLE_JIT"] = "1"
     cmd = [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", "-m", "not slow and not browser",
