@@ -227,11 +227,24 @@ def main(argv=None) -> int:
     ap.add_argument("--time-limit", type=float, default=0.0, help="stop starting new mutants after this many s")
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--list", action="store_true", help="only list the mutants")
+    ap.add_argument("--rerun", metavar="JSON", help="run again only the survivors of an earlier report (after "
+                                                     "adding tests); the report merges the two runs")
     a = ap.parse_args(argv)
     cfg = config()
     mods = a.module or list(cfg["modules"])
     plan = []
-    for m in mods:
+    earlier = []
+    if a.rerun:
+        earlier = json.loads(Path(a.rerun).read_text())["mutants"]
+        surv = [r for r in earlier if r["status"] in ("survived", "equivalent")]
+        for r in surv:  # the source must not have changed since: same mutation at the same line
+            ss = {i: (ln, d) for i, ln, d in sites((ROOT / r["module"]).read_text())}
+            if ss.get(r["index"]) != (r["line"], r["mutation"]):
+                raise SystemExit(f"{r['module']} changed since {a.rerun}; run the full sample again")
+        plan = [(r["module"], r["index"], r["line"], r["mutation"]) for r in surv]
+        mods = sorted({p[0] for p in plan})
+        earlier = [r for r in earlier if r not in surv]
+    for m in ([] if a.rerun else mods):
         mc = cfg["modules"][m]
         src = (ROOT / m).read_text()
         ss = sites(src)
@@ -239,6 +252,8 @@ def main(argv=None) -> int:
             ss = sorted(random.Random(f"{a.seed}:{m}").sample(ss, a.sample))
         plan += [(m, i, ln, d) for i, ln, d in ss]
         print(f"{m}: {len(sites(src))} mutants, {len(ss)} to run; tests {' '.join(mc['tests'])}", flush=True)
+    if a.rerun:
+        print(f"re-running {len(plan)} survivors of {a.rerun}", flush=True)
     if a.list:
         for m, i, ln, d in plan:
             print(f"{m}:{ln}  #{i}  {d}")
@@ -294,7 +309,7 @@ def main(argv=None) -> int:
     finally:
         for w in works:
             shutil.rmtree(w, ignore_errors=True)
-    report = summarise(results, plan, cfg)
+    report = summarise(earlier + results, plan, cfg)
     report.update(seed=a.seed, sample=a.sample, wall_s=round(time.perf_counter() - t_start))
     out = ROOT / a.out
     out.parent.mkdir(parents=True, exist_ok=True)
