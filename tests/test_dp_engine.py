@@ -364,6 +364,7 @@ def test_three_state_off_grid_optimum_equals_exhaustive_search():
     assert res.feasible
     assert res.cost == pytest.approx(best, abs=1e-9)
     assert tuple(res.u_index) == best_seq
+    assert res.policy is None  # the policy is stored only on request
     # the value function predicts the optimum from the off-grid start (float32 storage)
     assert res.predicted_cost[0] == pytest.approx(best, abs=1e-4 * (1 + abs(best)))
 

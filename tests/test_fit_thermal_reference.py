@@ -15,7 +15,7 @@ TRUE = dict(C_eng_J_per_K=95e3, gamma_exh=0.42, hA_eng_W_per_K=34.0)
 KAPPA = 0.3  # the prior: kappa is not fitted without the engine-bay temperature
 
 
-def _log(n=1500, T0=-5.0, T_amb=-8.0):
+def _log(n=1500, T0=-5.0, T_amb=-8.0, bay_samples=0):
     t = np.arange(n, dtype=float)
     rpm = 1800.0 + 400.0 * np.sin(2 * np.pi * t / 300.0)  # off the optimal operating line: P = n tau
     torque = 25.0 + 12.0 * np.sin(2 * np.pi * t / 170.0)
@@ -32,6 +32,10 @@ def _log(n=1500, T0=-5.0, T_amb=-8.0):
     data = pd.DataFrame({"engine_speed_rpm": rpm, "engine_torque_Nm": torque, "fuel_rate_g_per_s": W,
                          "heater_power_W": Q_heat, "coolant_temp_degC": T, "ambient_temp_degC": T_amb,
                          "speed_mps": 12.0}, index=pd.Index(t, name="time_s"))
+    if bay_samples:  # engine-bay temperature (eq. 8) logged for the last few samples only
+        bay = T_amb + KAPPA * (T - T_amb)
+        bay[:-bay_samples] = np.nan
+        data["bay_temp_degC"] = bay
     return DriveLog(data=data, meta=LogMeta(source="independent eq. 3 integration", format="test",
                                             synthetic=True))
 
@@ -47,3 +51,12 @@ def test_thermal_fit_returns_the_values_of_an_independent_integration():
         assert e.value == pytest.approx(v, rel=1e-3), n
     assert fit.metrics["rmse_degC"] < 1e-3
     assert fit.nuisance["T0_0"] == pytest.approx(-5.0, abs=1e-3)
+
+
+@pytest.mark.filterwarnings("ignore:rel_change")
+def test_kappa_needs_sixty_bay_temperature_samples():
+    fit = fit_thermal([_log(bay_samples=40)], default_parameters(), allowed={"kappa"})
+    assert fit.estimates["kappa"].status == "prior"
+    fit = fit_thermal([_log(bay_samples=200)], default_parameters(), allowed={"kappa"})
+    assert fit.estimates["kappa"].status == "estimated"
+    assert fit.estimates["kappa"].value == pytest.approx(KAPPA, rel=1e-9)

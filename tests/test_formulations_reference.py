@@ -38,3 +38,5 @@ def test_baseline_dp_reaches_the_enumerated_optimum(params, tmp_path, kmh):
     assert o.sim.soc[-1] >= 0.6 - 1e-12
     assert best > 0.5  # the engine must run
     assert o.sim.fuel_g == pytest.approx(best, rel=1e-9)
+    # the DP's own off-grid SOC steps are the model's
+    np.testing.assert_allclose(o.dp.x[:, 0], o.sim.soc, rtol=0, atol=1e-12)

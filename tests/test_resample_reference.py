@@ -75,3 +75,11 @@ def test_to_drivelog_uses_the_centred_bins_and_notes_it():
     np.testing.assert_allclose(log.data["soc"], [0.5, 0.51, 0.52, 0.53, 0.54, 0.55, 0.56, 0.57, 0.58, 0.59],
                                atol=1e-12)
     assert "resampled to 1 Hz" in log.meta.notes[-1]
+
+
+def test_default_gap_limit_is_five_seconds():
+    meta = LogMeta(source="hand", format="csv")
+    short = to_drivelog({"soc": _stream([0.0, 5.0], [0.5, 0.55])}, meta)
+    np.testing.assert_allclose(short.data["soc"], [0.5, 0.51, 0.52, 0.53, 0.54, 0.55])
+    long = to_drivelog({"soc": _stream([0.0, 5.5], [0.5, 0.55])}, meta)
+    assert np.isnan(long.data["soc"].to_numpy()[1:5]).all()
