@@ -241,6 +241,8 @@ def main(argv=None) -> int:
             ss = {i: (ln, d) for i, ln, d in sites((ROOT / r["module"]).read_text())}
             if ss.get(r["index"]) != (r["line"], r["mutation"]):
                 raise SystemExit(f"{r['module']} changed since {a.rerun}; run the full sample again")
+        if a.module:
+            surv = [r for r in surv if r["module"] in a.module]
         plan = [(r["module"], r["index"], r["line"], r["mutation"]) for r in surv]
         mods = sorted({p[0] for p in plan})
         earlier = [r for r in earlier if r not in surv]
