@@ -385,3 +385,9 @@ def test_three_state_lq_matches_riccati_and_error_shrinks():
     assert errs[0] < 0.2 * exact
     assert errs[1] < 0.08 * exact
     assert errs[1] < 0.5 * errs[0]
+
+
+def test_two_point_grid_is_accepted():
+    prob = DPProblem(grids=[np.array([0.0, 1.0])], controls=np.zeros((1, 1)), N=1, transition=linear_quadratic,
+                     params=(np.eye(1), np.eye(1), np.eye(1), np.eye(1)))
+    assert prob.grid_shape == (2,)

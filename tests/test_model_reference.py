@@ -99,3 +99,11 @@ def test_drive_matches_an_independent_ode_solution(sunny, case):
     assert bal["cabin_stored_J"] == pytest.approx(p.C_cab * (T_cab[-1] - T_cab[0]), rel=0.01, abs=1e4)
     if case["cycle"] == "hwfet":
         assert E_rad[-1] > 1e5  # the radiator case really exercises the radiator
+
+
+def test_power_split_small_discharge_uses_the_discharge_efficiency(sunny):
+    p = sunny.model_params()
+    # 0.5 W of battery discharge reaches the motor as eta_em * 0.5 W (charging would divide by eta_em)
+    P_e, Pbm, P_em, brake, ok = M.power_split(p, M.ON, 0.5, 10e3)
+    assert P_em == pytest.approx(p.eta_em * 0.5, rel=1e-12)
+    assert P_e == pytest.approx((10e3 - p.eta_em * 0.5) / p.eta_mech, rel=1e-12)

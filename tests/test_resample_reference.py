@@ -83,3 +83,16 @@ def test_default_gap_limit_is_five_seconds():
     np.testing.assert_allclose(short.data["soc"], [0.5, 0.51, 0.52, 0.53, 0.54, 0.55])
     long = to_drivelog({"soc": _stream([0.0, 5.5], [0.5, 0.55])}, meta)
     assert np.isnan(long.data["soc"].to_numpy()[1:5]).all()
+
+
+def test_single_sample_stream_fills_its_own_bin_only():
+    out = resample_stream(_stream([2.2], [7.0]), np.arange(5.0), 1.0, 5.0)
+    assert out[2] == 7.0 and np.isnan(out[[0, 1, 3, 4]]).all()
+
+
+@pytest.mark.parametrize("rate", [0.0, -1.0, np.inf, np.nan])
+def test_bad_rate_is_refused(rate):
+    from calib.errors import IptmError
+
+    with pytest.raises(IptmError, match="resampling rate"):
+        to_drivelog({"soc": _stream([0.0, 1.0], [0.5, 0.5])}, LogMeta(source="hand"), rate_hz=rate)
