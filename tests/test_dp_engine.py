@@ -391,3 +391,17 @@ def test_two_point_grid_is_accepted():
     prob = DPProblem(grids=[np.array([0.0, 1.0])], controls=np.zeros((1, 1)), N=1, transition=linear_quadratic,
                      params=(np.eye(1), np.eye(1), np.eye(1), np.eye(1)))
     assert prob.grid_shape == (2,)
+
+
+def test_four_state_interpolation_is_exact_on_multilinear_functions():
+    # four states take the general (slow) interpolation path
+    grids = [np.linspace(-1, 1, 3), np.array([0.0, 0.5, 2.0]), np.linspace(0, 1, 4), np.array([-1.0, 0.0])]
+    prob = DPProblem(grids=grids, controls=np.zeros((1, 1)), N=1, transition=twostatesys)
+
+    def f(X):
+        return 1.0 + X[:, 0] - 2.0 * X[:, 1] * X[:, 3] + 0.3 * X[:, 2] + 0.5 * X[:, 0] * X[:, 1] * X[:, 2] * X[:, 3]
+
+    V = f(prob.grid_points()).reshape(prob.grid_shape)
+    rng = np.random.default_rng(5)
+    Q = np.column_stack([rng.uniform(g[0], g[-1], 100) for g in grids])
+    np.testing.assert_allclose(interpolate(prob, V, Q), f(Q), rtol=0, atol=1e-12)
