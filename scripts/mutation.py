@@ -229,8 +229,19 @@ def main(argv=None) -> int:
     ap.add_argument("--list", action="store_true", help="only list the mutants")
     ap.add_argument("--rerun", metavar="JSON", help="run again only the survivors of an earlier report (after "
                                                      "adding tests); the report merges the two runs")
+    ap.add_argument("--resummarise", metavar="JSON", help="recompute a report's score with the current list of "
+                                                           "equivalent mutants (no test is run)")
     a = ap.parse_args(argv)
     cfg = config()
+    if a.resummarise:
+        old = json.loads(Path(a.resummarise).read_text())
+        muts = [dict(r, status="survived") if r["status"] == "equivalent" else r for r in old["mutants"]]
+        report = summarise(muts, muts, cfg)
+        report.update({k: old[k] for k in ("seed", "sample", "wall_s") if k in old})
+        report["planned"] = old.get("planned", len(muts))
+        Path(a.out).write_text(json.dumps(report, indent=1))
+        print(json.dumps({k: v for k, v in report.items() if k not in ("mutants", "survivors")}, indent=1))
+        return 0
     mods = a.module or list(cfg["modules"])
     plan = []
     earlier = []
