@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test test-slow test-browser screenshots browser bench venv clean
+.PHONY: run test test-slow test-browser screenshots browser bench venv clean mutation mutation-sample figures figures-check lint
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -38,6 +38,21 @@ screenshots: $(STAMP)
 
 bench: $(STAMP)
 	MPLBACKEND=Agg $(BIN)/iptm bench
+
+## mutation testing of the core modules (long: hours on 2 cores); score and survivors -> reports/mutation.json
+mutation: $(STAMP)
+	$(BIN)/python scripts/mutation.py --jobs 2 --out reports/mutation.json
+
+## a small seeded sample (a few mutants per module, minutes) for CI
+mutation-sample: $(STAMP)
+	$(BIN)/python scripts/mutation.py --module calib/ingest/resample.py --module calib/units.py --sample 4 --seed 0 --out reports/mutation-sample.json
+
+## re-run the benchmarks behind the README's figures and rewrite them; figures-check compares without re-running
+figures: $(STAMP)
+	MPLBACKEND=Agg $(BIN)/python scripts/figures.py run
+
+figures-check: $(STAMP)
+	$(BIN)/python scripts/figures.py check
 
 clean:
 	rm -rf $(VENV) .pytest_cache

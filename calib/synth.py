@@ -107,9 +107,15 @@ BUNDLED = [
 ]
 
 
-def draw_truth(seed: int, spread: float = 0.25, base: ParameterSet | None = None) -> ParameterSet:
+def draw_truth(seed: int, spread: float = 0.25, base: ParameterSet | None = None, *,
+               gains: bool = False) -> ParameterSet:
     """A truth parameter set: identifiable parameters drawn uniformly within +-spread of the defaults
-    (clipped to bounds), so that no truth equals the defaults."""
+    (clipped to bounds), so that no truth equals the defaults.
+
+    With ``gains``, the solar/occupant gain ``Q_sun_W`` (100-400 W) and the recirculated air fraction
+    ``recirc_frac`` (0.1-0.4) are drawn too; their defaults are 0, where a term with a wrong sign or a
+    wrong weight would make no difference. Off by default so that the bundled logs' truths stay as they are.
+    """
     rng = np.random.default_rng(seed)
     ps = (base or default_parameters()).copy()
     names = ["C_bat_Ah", "fuel_scale", "W_idle_g_per_s", "C_eng_J_per_K", "gamma_exh", "hA_eng_W_per_K",
@@ -135,6 +141,9 @@ def draw_truth(seed: int, spread: float = 0.25, base: ParameterSet | None = None
             vals[n] = list(np.maximum.accumulate(vals[n]))
         else:
             vals[n] = [v * f for v in p.value]
+    if gains:
+        vals["Q_sun_W"] = float(rng.uniform(100.0, 400.0))
+        vals["recirc_frac"] = float(rng.uniform(0.1, 0.4))
     truth = ps.with_values(**vals)
     truth.meta.update(name=f"synthetic truth (seed {seed})", origin="calib.synth.draw_truth", seed=seed)
     for n in vals:

@@ -256,9 +256,13 @@ def test_calibrate_optimise_report_flow(small_csv):
         "short_cycle" in at.session_state[dash.OPT]["cycle"]["name"]
     assert list(at.session_state[dash.OPT]["cs"].sims) == ["thermal"]
 
-    # --- an invalid grid/scenario combination is a message, not a crash
-    at.number_input(key="opt_duration").set_value(100000.0)
+    # --- an invalid scenario (initial coolant below the coolant grid's 0 degC) is a message, not a crash
+    tcl0 = at.number_input(key="opt_Tcl0").value
+    at.number_input(key="opt_Tcl0").set_value(-20.0)
+    at.button(key="opt_run").click()
     ok(at.run())
+    assert any("Optimisation failed" in m and "outside the coolant grid" in m for m in errors(at)), errors(at)
+    at.number_input(key="opt_Tcl0").set_value(tcl0)
 
     # --- report: the whole chain through iptm.pipeline.run on the session's log and scenario
     at.number_input(key="opt_duration").set_value(60.0)

@@ -76,9 +76,15 @@ def test_recovery_of_a_random_truth(seed):
 def test_validation_on_a_held_out_log(seed):
     res = result(seed)
     (m,) = res.validation.values()
-    assert m["coolant_temp"]["rmse"] < 1.5
-    assert m["soc"]["rmse"] < 0.01
-    assert abs(m["cumulative_fuel"]["error_pct"]) < 3.0
+    # measured on these seeds: coolant 0.28-0.92 degC, SOC 0.0016, fuel -0.9 to -1.2 %; the uncalibrated
+    # defaults score 1.2-4.6 degC, 0.0027-0.0057 and -1.2 to -4.3 % on the same held-out logs
+    assert m["coolant_temp"]["rmse"] < 1.0
+    assert m["soc"]["rmse"] < 0.0025
+    assert abs(m["cumulative_fuel"]["error_pct"]) < 1.5
+    truth, logs, val = data(seed)
+    (d,) = calibrate(logs[:1], fit=[], validate=[val], progress=False).validation.values()
+    assert m["coolant_temp"]["rmse"] < 0.8 * d["coolant_temp"]["rmse"]  # calibration must beat the defaults
+    assert m["soc"]["rmse"] < d["soc"]["rmse"]
     for ch in ("soc", "coolant_temp", "cabin_temp", "fuel_rate"):
         assert {"rmse", "max_abs", "bias"} <= set(m[ch])
 

@@ -378,3 +378,104 @@ def test_levelset_agrees_with_inf_where_inf_is_feasible():
                 n += 1
                 assert ls.feasible and ls.cost == pytest.approx(inf.cost, abs=1e-9), (x0, h)
     assert n >= 4
+
+
+# ----------------------------------------------------------------------------------------------------
+# 6. 3-state problems (the kernels' own 3-D interpolation path)
+# ----------------------------------------------------------------------------------------------------
+def _multilinear(X):
+    x0, x1, x2 = X[:, 0], X[:, 1], X[:, 2]
+    return 1.0 + 2.0 * x0 - 3.0 * x1 + 0.5 * x2 + 0.7 * x0 * x1 - 1.1 * x1 * x2 + 0.4 * x0 * x1 * x2
+
+
+@pytest.mark.parametrize("uniform", [True, False])
+def test_trilinear_interpolation_is_exact_on_multilinear_functions(uniform):
+    # multilinear interpolation reproduces any function linear in each coordinate separately
+    if uniform:
+        grids = [np.linspace(-1, 1, 5), np.linspace(0, 3, 7), np.linspace(-2, 0, 4)]
+    else:
+        grids = [np.array([-1, -0.7, 0.1, 1.0]), np.array([0, 0.4, 2.0, 3.0]), np.array([-2, -1.5, -0.2, 0.0])]
+    prob = DPProblem(grids=grids, controls=np.zeros((1, 1)), N=1, transition=twostatesys)
+    V = _multilinear(prob.grid_points()).reshape(prob.grid_shape)
+    rng = np.random.default_rng(3)
+    Q = np.column_stack([rng.uniform(g[0], g[-1], 200) for g in grids])
+    np.testing.assert_allclose(interpolate(prob, V, Q), _multilinear(Q), rtol=0, atol=1e-12)
+
+
+@njit(cache=True)
+def shift3(k, x, u, w_k, p, tab, iu, ix, x_next):
+    """x+ = x + u in 3-D; stage cost affine in x with a step-dependent slope, plus a convex control cost."""
+    c = 0.0
+    for i in range(3):
+        x_next[i] = x[i] + u[i]
+        c += p[k, i] * x[i]
+    return c + p[k, 3] * u[0] * u[0] + p[k, 4] * abs(u[1] - 0.25) + p[k, 5] * (u[2] + 0.1) ** 2
+
+
+def test_three_state_off_grid_optimum_equals_exhaustive_search():
+    # States move by grid multiples from an off-grid start, and every cost is affine in the state, so each
+    # cost-to-go is affine and interpolated exactly: the DP must find the enumerated optimum exactly.
+    N = 4
+    rng = np.random.default_rng(11)
+    p = np.column_stack([rng.uniform(-1, 1, (N, 3)), rng.uniform(0.5, 2.0, (N, 3))])
+    a = np.array([0.8, -1.3, 0.6])
+    controls = cartesian([-0.5, 0.0, 0.5], [0.0, 0.5], [-0.5, 0.5])
+    g = np.arange(-3.0, 3.01, 0.5)
+    prob = DPProblem(grids=[g, g, g], controls=controls, N=N, transition=shift3, params=p,
+                     terminal_cost=lambda X: X @ a)
+    x0 = np.array([0.13, -0.37, 0.21])
+    best, best_seq = np.inf, None
+    xn = np.empty(3)
+    for seq in itertools.product(range(len(controls)), repeat=N):
+        x, c = x0.copy(), 0.0
+        for k, iu in enumerate(seq):
+            c += shift3(k, x, controls[iu], np.zeros(0), p, np.zeros((1, 1)), iu, np.zeros(3, np.int64), xn)
+            x = xn.copy()
+        c += x @ a
+        if c < best:
+            best, best_seq = c, seq
+    res = solve(prob, x0)
+    assert res.feasible
+    assert res.cost == pytest.approx(best, abs=1e-9)
+    assert tuple(res.u_index) == best_seq
+    assert res.policy is None  # the policy is stored only on request
+    # the value function predicts the optimum from the off-grid start (float32 storage)
+    assert res.predicted_cost[0] == pytest.approx(best, abs=1e-4 * (1 + abs(best)))
+
+
+def test_three_state_lq_matches_riccati_and_error_shrinks():
+    A = np.array([[1.0, 0.2, 0.0], [0.0, 1.0, 0.2], [0.0, 0.0, 0.9]])
+    B = np.array([[0.0], [0.1], [0.5]])
+    Q, R, QN = 0.1 * np.eye(3), np.eye(1), 4.0 * np.eye(3)
+    N, x0 = 6, np.array([0.7, -0.45, 0.3])
+    exact = float(x0 @ _riccati(A, B, Q, R, QN, N) @ x0)
+    errs = []
+    for n_x, n_u in ((17, 41), (33, 81)):
+        res = solve(_lq_problem(A, B, Q, R, QN, N, n_x, n_u, half=2.0, u_max=2.0), x0)
+        assert res.feasible and res.steps_completed == N
+        assert res.cost >= exact - 1e-9  # an admissible sequence never beats the optimum
+        errs.append(res.cost - exact)
+    # interpolation error on the quadratic cost-to-go: 15 % at dx = 0.25, 5 % at dx = 0.125
+    assert errs[0] < 0.2 * exact
+    assert errs[1] < 0.08 * exact
+    assert errs[1] < 0.5 * errs[0]
+
+
+def test_two_point_grid_is_accepted():
+    prob = DPProblem(grids=[np.array([0.0, 1.0])], controls=np.zeros((1, 1)), N=1, transition=linear_quadratic,
+                     params=(np.eye(1), np.eye(1), np.eye(1), np.eye(1)))
+    assert prob.grid_shape == (2,)
+
+
+def test_four_state_interpolation_is_exact_on_multilinear_functions():
+    # four states take the general (slow) interpolation path
+    grids = [np.linspace(-1, 1, 3), np.array([0.0, 0.5, 2.0]), np.linspace(0, 1, 4), np.array([-1.0, 0.0])]
+    prob = DPProblem(grids=grids, controls=np.zeros((1, 1)), N=1, transition=twostatesys)
+
+    def f(X):
+        return 1.0 + X[:, 0] - 2.0 * X[:, 1] * X[:, 3] + 0.3 * X[:, 2] + 0.5 * X[:, 0] * X[:, 1] * X[:, 2] * X[:, 3]
+
+    V = f(prob.grid_points()).reshape(prob.grid_shape)
+    rng = np.random.default_rng(5)
+    Q = np.column_stack([rng.uniform(g[0], g[-1], 100) for g in grids])
+    np.testing.assert_allclose(interpolate(prob, V, Q), f(Q), rtol=0, atol=1e-12)

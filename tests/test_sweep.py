@@ -155,8 +155,12 @@ def test_study_on_local_cluster_matches_sequential(client, store, reference, tmp
     assert (df["status"] == "ok").all() and not df["cached"].any()
     assert len(df) == 8
     _compare(df, reference)
-    # the cases ran on the workers, not here
-    assert (reference["status"] == "ok").all()
+    # the cases ran on the workers, not here: each stored record carries the pid of the process that ran it
+    from calib.store import Store
+
+    worker_pids = set(client.run(os.getpid).values())
+    pids = {Store(store).get_json("sweep", k)["pid"] for k in df["case_key"].unique()}
+    assert pids and pids <= worker_pids and os.getpid() not in pids
     # Parquet round trip and plots
     p = write_table(df, tmp_path / "r.parquet")
     back = pd.read_parquet(p)

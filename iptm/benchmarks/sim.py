@@ -24,5 +24,5 @@ def run(quick: bool = False) -> dict:
     df = epa_comparison(ps)
     print("EPA warm comparison (rule-based, SOC-corrected):")
     print(df.to_string(index=False))
-    return {"sim_artemis_median_s": med, "sim_artemis_best_s": best, "steps": n,
+    return {"sim_artemis_median_s": med, "sim_artemis_best_s": best, "sim_artemis_times_s": times, "steps": n,
             "epa": df.to_dict(orient="records")}

@@ -1,0 +1,139 @@
+"""README figures that cannot drift: the blocks between ``<!-- figures:NAME -->`` and ``<!-- /figures:NAME -->``
+in README.md are rendered from the benchmarks' JSON (``iptm bench SUITE --json``), committed under
+reports/figures/.
+
+    python scripts/figures.py run      # re-run the benchmarks, write their JSON, rewrite the README blocks
+    python scripts/figures.py render   # rewrite the README blocks from the committed JSON (no benchmark)
+    python scripts/figures.py check    # exit 1 when a README block differs from what the JSON renders
+
+Deterministic figures (the EPA table) are printed to the README's precision and must match exactly; a
+timing is quoted as the median and the range of its repetitions with the machine's load at the time, so
+the README says how noisy it is. ``check`` never re-runs a benchmark (it is part of the test suite).
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+README = ROOT / "README.md"
+JSON_DIR = ROOT / "reports" / "figures"
+SUITES = ("sim",)
+
+
+def bench_json(suite: str) -> Path:
+    return JSON_DIR / f"bench-{suite}.json"
+
+
+# --------------------------------------------------------------------------------------------------- renderers
+def _epa(d: dict) -> str:
+    rows = ["| cycle | EPA mpg | model mpg | model mpg, SOC-corrected | final SOC | error |",
+            "|---|---|---|---|---|---|"]
+    for r in d["sim"]["epa"]:
+        rows.append(f"| {r['cycle']} | {r['epa_mpg']:.1f} | {r['model_mpg']:.1f} | "
+                    f"{r['model_mpg_soc_corrected']:.1f} | {r['soc_final']:.3f} | {r['error_pct']:+.1f} % |")
+    return "\n".join(rows)
+
+
+def _sim_speed(d: dict) -> str:
+    s, m = d["sim"], d.get("machine", {})
+    ms = [t * 1e3 for t in s.get("sim_artemis_times_s", [s["sim_artemis_best_s"], s["sim_artemis_median_s"]])]
+    load = f", load average {m['load_1min']:.1f} on {m['cpus']} cores" if m else ""
+    return (f"the {s['steps']}-s ARTEMIS Urban cycle under the rule-based controller takes a median "
+            f"{s['sim_artemis_median_s'] * 1e3:.0f} ms after compilation (range {min(ms):.0f}-{max(ms):.0f} ms over "
+            f"{len(ms)} runs{load})")
+
+
+RENDER = {"epa": _epa, "sim-speed": _sim_speed}
+
+
+# --------------------------------------------------------------------------------------------------- README blocks
+BLOCK = re.compile(r"(<!-- figures:(?P<name>[\w-]+) -->)(?P<body>.*?)(<!-- /figures:(?P=name) -->)", re.S)
+
+
+def load() -> dict:
+    d = {}
+    for s in SUITES:
+        p = bench_json(s)
+        if p.exists():
+            d.update(json.loads(p.read_text()))
+    return d
+
+
+def blocks(text: str) -> dict:
+    return {m["name"]: m["body"] for m in BLOCK.finditer(text)}
+
+
+def rendered(data: dict, body: str, name: str) -> str:
+    """A block's new body, keeping its inline/multi-line layout (a table starts on its own line)."""
+    out = RENDER[name](data)
+    return f"\n{out}\n" if body.startswith("\n") else out
+
+
+def render_readme(text: str, data: dict) -> str:
+    def sub(m):
+        return m.group(1) + rendered(data, m["body"], m["name"]) + m.group(4)
+
+    return BLOCK.sub(sub, text)
+
+
+def check(text: str, data: dict) -> list:
+    """Differences between README blocks and the JSON: list of (block, in README, from JSON)."""
+    found = blocks(text)
+    bad = [(n, "(no block)", "") for n in RENDER if n not in found]
+    for n, body in found.items():
+        if n not in RENDER:
+            bad.append((n, body, "(unknown block)"))
+            continue
+        want = rendered(data, body, n)
+        if body.strip() != want.strip():
+            bad.append((n, body.strip(), want.strip()))
+    return bad
+
+
+def run_benchmarks():
+    JSON_DIR.mkdir(parents=True, exist_ok=True)
+    for s in SUITES:
+        with tempfile.TemporaryDirectory() as td:
+            tmp = Path(td) / "b.json"
+            subprocess.run([sys.executable, "-m", "iptm.cli", "bench", s, "--json", str(tmp)], cwd=ROOT, check=True)
+            d = json.loads(tmp.read_text())
+        d["machine"] = {"load_1min": os.getloadavg()[0], "cpus": os.cpu_count()}
+        out = bench_json(s)
+        out.with_suffix(".tmp").write_text(json.dumps(d, indent=2) + "\n")
+        out.with_suffix(".tmp").replace(out)
+
+
+def main(argv=None) -> int:
+    cmd = (argv or sys.argv[1:] or ["check"])[0]
+    if cmd == "run":
+        run_benchmarks()
+        cmd = "render"
+    data = load()
+    text = README.read_text()
+    if cmd == "render":
+        new = render_readme(text, data)
+        if new != text:
+            tmp = README.with_suffix(".tmp")
+            tmp.write_text(new)
+            tmp.replace(README)
+        print(f"README figures rendered from {', '.join(str(bench_json(s).relative_to(ROOT)) for s in SUITES)}")
+        return 0
+    if cmd == "check":
+        bad = check(text, data)
+        for n, have, want in bad:
+            print(f"README block {n!r} differs from the benchmark JSON:\n  README: {have}\n  JSON:   {want}")
+        if not bad:
+            print("README figures match the benchmark JSON")
+        return 1 if bad else 0
+    print(__doc__)
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,365 @@
+"""Mutation testing of the core modules: one small change at a time, in a scratch copy, against the tests
+that should notice it.
+
+Why not mutmut or cosmic-ray: mutmut 3 swaps each function for a "trampoline" and skips every decorated
+function, which is every ``@njit`` function (the model equations, the DP kernels, the replay loops): the
+core would not be mutated at all. Here a mutant is the module's source with one AST node changed, written
+into a scratch copy of the repository; the selected tests run there in a fresh process.
+
+Numba: a cached kernel in another file inlines the *old* version of a mutated compiled function, so a
+module with compiled code runs either with ``NUMBA_DISABLE_JIT=1`` (plain Python: no compilation, no cache)
+or compiled with an empty numba cache per mutant (``jit = "fresh"``, for the DP kernels, too slow as plain
+Python). A module without compiled code of its own (a fitter, the DP engine's Python side) runs compiled
+with a cache shared by all its mutants (``jit = "shared"``). Set per module in ``[tool.iptm.mutation]`` of
+pyproject.toml.
+
+Operators (as mutmut's numeric ones): ``+ <-> -``, ``* <-> /``, ``** -> *``, ``//, % -> /``; comparison
+boundaries ``< <-> <=``, ``> <-> >=``, ``== <-> !=``, ``in <-> not in``, ``is <-> is not``; ``and <-> or``;
+unary ``-x -> x``, ``not x -> x``; number constants ``n -> n + 1``; ``True <-> False``; augmented
+assignments ``+= <-> -=``, ``*= <-> /=``. Strings (messages) are not mutated; nor are docstrings, ``__all__``
+or lines marked ``# pragma: no mutate``.
+
+Usage::
+
+    python scripts/mutation.py [--module calib/units.py ...] [--sample N] [--seed S] [--out FILE]
+                               [--time-limit SECONDS] [--jobs J]
+
+Writes a JSON report (score, every mutant's outcome, the survivors with their source line) and prints a
+summary. A mutant is *killed* when the tests fail or time out (a timeout is counted and listed apart).
+"""
+from __future__ import annotations
+
+import argparse
+import ast
+import copy
+import json
+import os
+import random
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+try:
+    import tomllib
+except ImportError:  # pragma: no cover - python 3.10
+    import tomli as tomllib
+
+ROOT = Path(__file__).resolve().parent.parent
+COPY = ("calib", "optimize", "iptm", "tests", "pyproject.toml", "logs", "studies")
+
+BINOP = {ast.Add: ast.Sub, ast.Sub: ast.Add, ast.Mult: ast.Div, ast.Div: ast.Mult, ast.Pow: ast.Mult,
+         ast.FloorDiv: ast.Div, ast.Mod: ast.Div}
+CMPOP = {ast.Lt: ast.LtE, ast.LtE: ast.Lt, ast.Gt: ast.GtE, ast.GtE: ast.Gt, ast.Eq: ast.NotEq,
+         ast.NotEq: ast.Eq, ast.In: ast.NotIn, ast.NotIn: ast.In, ast.Is: ast.IsNot, ast.IsNot: ast.Is}
+BOOLOP = {ast.And: ast.Or, ast.Or: ast.And}
+
+
+def _skip_lines(src: str) -> set:
+    return {i + 1 for i, line in enumerate(src.splitlines()) if "pragma: no mutate" in line}
+
+
+def _docstring_nodes(tree) -> set:
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Module, ast.FunctionDef, ast.ClassDef, ast.AsyncFunctionDef)):
+            body = node.body
+            if body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant):
+                out.add(id(body[0].value))
+    return out
+
+
+def _excluded_ids(tree) -> set:
+    """Nodes not mutated: ``__all__`` assignments, annotations, decorators (executed at import)."""
+    out = set()
+    for node in ast.walk(tree):
+        targets = []
+        if isinstance(node, ast.Assign):
+            targets = node.targets
+        if any(isinstance(t, ast.Name) and t.id == "__all__" for t in targets):
+            out.update(id(n) for n in ast.walk(node))
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            for d in node.decorator_list:
+                out.update(id(n) for n in ast.walk(d))
+            if node.returns is not None:
+                out.update(id(n) for n in ast.walk(node.returns))
+            for a in node.args.args + node.args.kwonlyargs + node.args.posonlyargs:
+                if a.annotation is not None:
+                    out.update(id(n) for n in ast.walk(a.annotation))
+        if isinstance(node, ast.AnnAssign):
+            out.update(id(n) for n in ast.walk(node.annotation))
+    return out
+
+
+def sites(src: str):
+    """Every mutation of a module's source: list of (index, lineno, description)."""
+    tree = ast.parse(src)
+    skip_l, docs, excl = _skip_lines(src), _docstring_nodes(tree), _excluded_ids(tree)
+    out = []
+    for node in ast.walk(tree):
+        if id(node) in excl or getattr(node, "lineno", None) in skip_l:
+            continue
+        for desc in _node_mutations(node, docs):
+            out.append((getattr(node, "lineno", 0), desc))
+    return [(i, ln, d) for i, (ln, d) in enumerate(out)]
+
+
+def _node_mutations(node, docs):
+    if isinstance(node, ast.BinOp) and type(node.op) in BINOP:
+        yield f"{type(node.op).__name__} -> {BINOP[type(node.op)].__name__}"
+    elif isinstance(node, ast.AugAssign) and type(node.op) in (ast.Add, ast.Sub, ast.Mult, ast.Div):
+        yield f"{type(node.op).__name__}= -> {BINOP[type(node.op)].__name__}="
+    elif isinstance(node, ast.Compare):
+        for j, op in enumerate(node.ops):
+            if type(op) in CMPOP:
+                yield f"compare {j}: {type(op).__name__} -> {CMPOP[type(op)].__name__}"
+    elif isinstance(node, ast.BoolOp):
+        yield f"{type(node.op).__name__} -> {BOOLOP[type(node.op)].__name__}"
+    elif isinstance(node, ast.UnaryOp) and isinstance(node.op, (ast.USub, ast.Not)):
+        yield f"drop unary {type(node.op).__name__}"
+    elif isinstance(node, ast.Constant) and id(node) not in docs:
+        if isinstance(node.value, bool):
+            yield f"{node.value} -> {not node.value}"
+        elif isinstance(node.value, (int, float)) and not isinstance(node.value, bool):
+            yield f"{node.value!r} -> {node.value + 1!r}"
+
+
+def mutate(src: str, index: int) -> str:
+    """The source with mutation ``index`` (as numbered by :func:`sites`) applied."""
+    tree = ast.parse(src)
+    skip_l, docs, excl = _skip_lines(src), _docstring_nodes(tree), _excluded_ids(tree)
+    k = 0
+    for node in ast.walk(tree):
+        if id(node) in excl or getattr(node, "lineno", None) in skip_l:
+            continue
+        for j, _desc in enumerate(list(_node_mutations(node, docs))):
+            if k == index:
+                if isinstance(node, ast.UnaryOp):  # drop the operator: put the operand in its place
+                    _replace(tree, node, node.operand)
+                else:
+                    _apply(node, j)
+                return ast.unparse(ast.fix_missing_locations(tree))
+            k += 1
+    raise IndexError(index)
+
+
+def _apply(node, j):
+    if isinstance(node, ast.BinOp):
+        node.op = BINOP[type(node.op)]()
+    elif isinstance(node, ast.AugAssign):
+        node.op = BINOP[type(node.op)]()
+    elif isinstance(node, ast.Compare):
+        idx = [i for i, op in enumerate(node.ops) if type(op) in CMPOP][j]
+        node.ops[idx] = CMPOP[type(node.ops[idx])]()
+    elif isinstance(node, ast.BoolOp):
+        node.op = BOOLOP[type(node.op)]()
+    elif isinstance(node, ast.Constant):
+        node.value = (not node.value) if isinstance(node.value, bool) else node.value + 1
+
+
+def _replace(tree, old, new):
+    for parent in ast.walk(tree):
+        for field, value in ast.iter_fields(parent):
+            if value is old:
+                setattr(parent, field, new)
+                return
+            if isinstance(value, list):
+                for i, v in enumerate(value):
+                    if v is old:
+                        value[i] = new
+                        return
+    raise ValueError("node not found")
+
+
+def config() -> dict:
+    data = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    return data["tool"]["iptm"]["mutation"]
+
+
+def _scratch() -> Path:
+    d = Path(tempfile.mkdtemp(prefix="iptm-mut-"))
+    for name in COPY:
+        src = ROOT / name
+        if src.is_dir():
+            shutil.copytree(src, d / name, ignore=shutil.ignore_patterns("__pycache__", "*.nbi", "*.nbc"))
+        elif src.exists():
+            shutil.copy2(src, d / name)
+    return d
+
+
+def _run_tests(work: Path, tests: list, jit, timeout: float):
+    """jit: False -> NUMBA_DISABLE_JIT=1; "fresh" -> compiled, empty numba cache; "shared" -> compiled with the
+    scratch copy's persistent cache (only for modules without compiled code of their own)."""
+    env = dict(os.environ, PYTHONPATH=str(work), MPLBACKEND="Agg", PYTHONDONTWRITEBYTECODE="1")
+    env.pop("NUMBA_DISABLE_JIT", None)
+    cache = None
+    if jit == "shared":
+        env["NUMBA_CACHE_DIR"] = str(work / ".numba-cache")
+    elif jit:
+        cache = tempfile.mkdtemp(prefix="iptm-mut-nb-")
+        env["NUMBA_CACHE_DIR"] = cache
+    else:
+        env["NUMBA_DISABLE_JIT"] = "1"
+    cmd = [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", "-m", "not slow and not browser",
+           "-o", "addopts=", *tests]
+    t0 = time.perf_counter()
+    try:
+        r = subprocess.run(cmd, cwd=work, env=env, capture_output=True, text=True, timeout=timeout)
+        status = "survived" if r.returncode == 0 else ("killed" if r.returncode == 1 else f"error rc={r.returncode}")
+        tail = (r.stdout + r.stderr)[-600:]
+    except subprocess.TimeoutExpired:
+        status, tail = "timeout", ""
+    finally:
+        if cache:
+            shutil.rmtree(cache, ignore_errors=True)
+    return status, time.perf_counter() - t0, tail
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--module", action="append", help="module path(s) from [tool.iptm.mutation] (default: all)")
+    ap.add_argument("--sample", type=int, default=0, help="at most N mutants per module, drawn with --seed")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", default="reports/mutation.json")
+    ap.add_argument("--time-limit", type=float, default=0.0, help="stop starting new mutants after this many s")
+    ap.add_argument("--jobs", type=int, default=1)
+    ap.add_argument("--list", action="store_true", help="only list the mutants")
+    ap.add_argument("--rerun", metavar="JSON", help="run again only the survivors of an earlier report (after "
+                                                     "adding tests); the report merges the two runs")
+    ap.add_argument("--resummarise", metavar="JSON", help="recompute a report's score with the current list of "
+                                                           "equivalent mutants (no test is run)")
+    a = ap.parse_args(argv)
+    cfg = config()
+    if a.resummarise:
+        old = json.loads(Path(a.resummarise).read_text())
+        muts = [dict(r, status="survived") if r["status"] == "equivalent" else r for r in old["mutants"]]
+        report = summarise(muts, muts, cfg)
+        report.update({k: old[k] for k in ("seed", "sample", "wall_s") if k in old})
+        report["planned"] = old.get("planned", len(muts))
+        Path(a.out).write_text(json.dumps(report, indent=1))
+        print(json.dumps({k: v for k, v in report.items() if k not in ("mutants", "survivors")}, indent=1))
+        return 0
+    mods = a.module or list(cfg["modules"])
+    plan = []
+    earlier = []
+    if a.rerun:
+        earlier = json.loads(Path(a.rerun).read_text())["mutants"]
+        surv = [r for r in earlier if r["status"] in ("survived", "equivalent")]
+        for r in surv:  # the source must not have changed since: same mutation at the same line
+            ss = {i: (ln, d) for i, ln, d in sites((ROOT / r["module"]).read_text())}
+            if ss.get(r["index"]) != (r["line"], r["mutation"]):
+                raise SystemExit(f"{r['module']} changed since {a.rerun}; run the full sample again")
+        if a.module:
+            surv = [r for r in surv if r["module"] in a.module]
+        plan = [(r["module"], r["index"], r["line"], r["mutation"]) for r in surv]
+        mods = sorted({p[0] for p in plan})
+        earlier = [r for r in earlier if r not in surv]
+    for m in ([] if a.rerun else mods):
+        mc = cfg["modules"][m]
+        src = (ROOT / m).read_text()
+        ss = sites(src)
+        if a.sample and len(ss) > a.sample:
+            ss = sorted(random.Random(f"{a.seed}:{m}").sample(ss, a.sample))
+        plan += [(m, i, ln, d) for i, ln, d in ss]
+        print(f"{m}: {len(sites(src))} mutants, {len(ss)} to run; tests {' '.join(mc['tests'])}", flush=True)
+    if a.rerun:
+        print(f"re-running {len(plan)} survivors of {a.rerun}", flush=True)
+    if a.list:
+        for m, i, ln, d in plan:
+            print(f"{m}:{ln}  #{i}  {d}")
+        return 0
+    t_start = time.perf_counter()
+    works = [_scratch() for _ in range(a.jobs)]
+    results = []
+    try:
+        # baselines: the unmutated (unparsed) sources must pass, and give each module's test time
+        base_t = {}
+        for m in mods:
+            mc = cfg["modules"][m]
+            w = works[0]
+            (w / m).write_text(ast.unparse(ast.parse((ROOT / m).read_text())))
+            st, dt, tail = _run_tests(w, mc["tests"], mc.get("jit", False), 1800)
+            (w / m).write_text((ROOT / m).read_text())
+            print(f"baseline {m}: {st} in {dt:.0f} s", flush=True)
+            if st != "survived":
+                print(tail)
+                print(f"SKIPPED {m}: its tests fail on the unmutated source; fix them first", flush=True)
+                continue
+            base_t[m] = dt
+        # round-robin over modules, so that a time limit still leaves every module sampled
+        queues = [[x for x in plan if x[0] == m] for m in mods if m in base_t]
+        todo = [q[i] for i in range(max(map(len, queues), default=0)) for q in queues if i < len(q)]
+        lock_free = list(works)
+
+        def one(item):
+            m, i, ln, d = item
+            if a.time_limit and time.perf_counter() - t_start > a.time_limit:
+                return None
+            w = lock_free.pop()
+            try:
+                mc = cfg["modules"][m]
+                orig = (ROOT / m).read_text()
+                try:
+                    (w / m).write_text(mutate(orig, i))
+                except Exception as exc:  # an AST change that does not unparse: not a mutant
+                    return dict(module=m, index=i, line=ln, mutation=d, status=f"invalid: {exc}")
+                st, dt, tail = _run_tests(w, mc["tests"], mc.get("jit", False), max(60.0, 4 * base_t[m]))
+                (w / m).write_text(orig)
+                src_line = orig.splitlines()[ln - 1].strip() if ln else ""
+                r = dict(module=m, index=i, line=ln, mutation=d, status=st, seconds=round(dt, 1), source=src_line)
+                print(f"{st:9s} {m}:{ln} {d}  ({dt:.0f} s)  {src_line[:80]}", flush=True)
+                return r
+            finally:
+                lock_free.append(w)
+
+        with ThreadPoolExecutor(a.jobs) as ex:
+            for r in ex.map(one, todo):
+                if r is not None:
+                    results.append(r)
+    finally:
+        for w in works:
+            shutil.rmtree(w, ignore_errors=True)
+    report = summarise(earlier + results, plan, cfg)
+    report.update(seed=a.seed, sample=a.sample, wall_s=round(time.perf_counter() - t_start))
+    out = ROOT / a.out
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_suffix(".tmp")
+    tmp.write_text(json.dumps(report, indent=1))
+    tmp.replace(out)
+    print(json.dumps({k: v for k, v in report.items() if k not in ("mutants", "survivors")}, indent=1))
+    for s in report["survivors"]:
+        print(f"SURVIVED {s['module']}:{s['line']} {s['mutation']}  {s['source'][:90]}")
+    return 0
+
+
+def summarise(results, plan, cfg) -> dict:
+    """Score = killed / (run - equivalent); equivalent mutants are listed in pyproject with a reason."""
+    equiv = {(e["module"], e["line"], e["mutation"]): e["reason"] for e in cfg.get("equivalent", [])}
+    run = [r for r in results if not r["status"].startswith("invalid")]
+    for r in run:
+        key = (r["module"], r["line"], r["mutation"])
+        if r["status"] == "survived" and key in equiv:
+            r["status"] = "equivalent"
+            r["reason"] = equiv[key]
+    killed = [r for r in run if r["status"] in ("killed", "timeout") or r["status"].startswith("error")]
+    surv = [r for r in run if r["status"] == "survived"]
+    eqv = [r for r in run if r["status"] == "equivalent"]
+    per = {}
+    for r in run:
+        d = per.setdefault(r["module"], {"killed": 0, "survived": 0, "equivalent": 0})
+        key = "killed" if r in killed else r["status"]
+        d[key] += 1
+    for d in per.values():
+        n = d["killed"] + d["survived"]
+        d["score"] = round(d["killed"] / n, 3) if n else None
+    n = len(killed) + len(surv)
+    return {"score": round(len(killed) / n, 4) if n else None, "killed": len(killed), "survived": len(surv),
+            "equivalent": len(eqv), "timeouts": sum(r["status"] == "timeout" for r in run),
+            "planned": len(plan), "run": len(run), "per_module": per, "survivors": surv, "mutants": results}
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,63 @@
+"""The engine thermal fit on a log made without the model's code: the coolant temperature integrated here
+from eq. 3 of spec/model.md (explicit Euler at the log's 1 s step, the model's stated discretisation) with
+noise-free inputs. The fit must return the values used, to a tolerance far below the bias of a residual
+that compares the simulation with the wrong sample."""
+import numpy as np
+import pandas as pd
+import pytest
+
+from calib.drivelog import DriveLog, LogMeta
+from calib.fit.thermal import fit_thermal
+from calib.model.params import default_parameters
+
+LHV = 42.6e3  # J/g
+TRUE = dict(C_eng_J_per_K=95e3, gamma_exh=0.42, hA_eng_W_per_K=34.0)
+KAPPA = 0.3  # the prior: kappa is not fitted without the engine-bay temperature
+
+
+def _log(n=1500, T0=-5.0, T_amb=-8.0, bay_samples=0):
+    t = np.arange(n, dtype=float)
+    rpm = 1800.0 + 400.0 * np.sin(2 * np.pi * t / 300.0)  # off the optimal operating line: P = n tau
+    torque = 25.0 + 12.0 * np.sin(2 * np.pi * t / 170.0)
+    P = rpm * 2 * np.pi / 60.0 * torque
+    W = P / (0.33 * LHV) + 0.03 * (1 + np.sin(2 * np.pi * t / 90.0))  # g/s
+    Q_heat = np.where((t % 400) < 250, 5000.0, 0.0)  # heater on/off: separates C_eng from gamma_exh
+    T = np.empty(n)
+    T[0] = T0
+    for k in range(n - 1):  # eq. 3 with eqs. 6-8, below the thermostat (no radiator)
+        Q_fuel = LHV * W[k]
+        Q_exh = TRUE["gamma_exh"] * (Q_fuel - P[k])
+        Q_air = TRUE["hA_eng_W_per_K"] * (1.0 - KAPPA) * (T[k] - T_amb)
+        T[k + 1] = T[k] + (Q_fuel - P[k] - Q_exh - Q_air - Q_heat[k]) / TRUE["C_eng_J_per_K"]
+    data = pd.DataFrame({"engine_speed_rpm": rpm, "engine_torque_Nm": torque, "fuel_rate_g_per_s": W,
+                         "heater_power_W": Q_heat, "coolant_temp_degC": T, "ambient_temp_degC": T_amb,
+                         "speed_mps": 12.0}, index=pd.Index(t, name="time_s"))
+    if bay_samples:  # engine-bay temperature (eq. 8) logged for the last few samples only
+        bay = T_amb + KAPPA * (T - T_amb)
+        bay[:-bay_samples] = np.nan
+        data["bay_temp_degC"] = bay
+    return DriveLog(data=data, meta=LogMeta(source="independent eq. 3 integration", format="test",
+                                            synthetic=True))
+
+
+@pytest.mark.filterwarnings("ignore:rel_change")  # lmfit conf_interval on noise-free data
+def test_thermal_fit_returns_the_values_of_an_independent_integration():
+    log = _log()
+    assert log.data["coolant_temp_degC"].max() < default_parameters()["T_open_degC"] - 10
+    fit = fit_thermal([log], default_parameters())
+    for n, v in TRUE.items():
+        e = fit.estimates[n]
+        assert e.status == "estimated", (n, e.note)
+        assert e.value == pytest.approx(v, rel=1e-3), n
+    assert fit.metrics["rmse_degC"] < 1e-3
+    assert fit.nuisance["T0_0"] == pytest.approx(-5.0, abs=1e-3)
+
+
+@pytest.mark.filterwarnings("ignore:rel_change")
+def test_kappa_needs_sixty_bay_temperature_samples():
+    fit = fit_thermal([_log(bay_samples=40)], default_parameters(), allowed={"kappa"})
+    e = fit.estimates["kappa"]  # too few samples: the posterior is the prior, uninformed
+    assert e.status == "weak" and e.informed == 0.0 and e.value == default_parameters()["kappa"]
+    fit = fit_thermal([_log(bay_samples=200)], default_parameters(), allowed={"kappa"})
+    assert fit.estimates["kappa"].status == "estimated"
+    assert fit.estimates["kappa"].value == pytest.approx(KAPPA, rel=1e-9)
