@@ -9,6 +9,7 @@ SUITES = {
     "calib": "iptm.benchmarks.calib",
     "dp": "iptm.benchmarks.dp",
     "sweep": "iptm.benchmarks.sweep",
+    "causal": "iptm.benchmarks.causal",
 }
 
 
@@ -16,7 +17,8 @@ def register(sub):
     p = sub.add_parser("bench", help="run benchmarks and print time, memory and throughput",
                        description="Benchmarks: sim (simulation speed, EPA table), ingest (30-min CAN dump), "
                                    "calib (full calibration of bundled-size logs), dp (three DP formulations on "
-                                   "paper grids), sweep (distributed study speed-up).")
+                                   "paper grids), sweep (distributed study speed-up), causal (SDP and ECMS on held-out "
+                                   "drives vs DP and rule-based; policy build and step time).")
     p.add_argument("suite", nargs="*", default=["sim", "dp"], help=f"any of {', '.join(SUITES)} or 'all' "
                                                                     "(default: sim dp)")
     p.add_argument("--quick", action="store_true", help="smaller sizes, for a smoke check")

@@ -56,13 +56,13 @@ class SDPConfig:
     tcl_step: float = 1.0
     pbat_step: float = 500.0
     soc_target: float = 0.6
-    w_soc_g_per_s: float = 2.0  # g/s per unit SOC^2 of deviation from the target
-    discount: float = 0.995
+    w_soc_g_per_s: float = 20.0  # g/s per unit SOC^2 of deviation from the target
+    discount: float = 0.998
     T_cab_nominal: float = 20.0
     Ts: float = 1.0
     eval_sweeps: int = 40
     max_iter: int = 200
-    tol_g: float = 1e-3
+    tol_g: float = 1e-2
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -153,11 +153,12 @@ def _greedy(socg, tclg, A_soc, A_ok, B_tcl, B_wf, EV, Ts, gamma, w_soc, target, 
         S1[d, i, j], T1[d, i, j], C[d, i, j] = bs, bt, bc
 
 
-@njit(parallel=True, cache=True)
+@njit(cache=True)
 def _evaluate(socg, tclg, EV, gamma, S1, T1, C, V):
+    # serial: one interpolation per state is too little work to pay for a parallel region
     ns, nt, nd = socg.size, tclg.size, EV.shape[0]
     sh, th = socg[1] - socg[0], tclg[1] - tclg[0]
-    for idx in prange(nd * ns * nt):
+    for idx in range(nd * ns * nt):
         d = idx // (ns * nt)
         r = idx - d * ns * nt
         i = r // nt
@@ -263,6 +264,22 @@ class SDPPolicy:
             raise IptmError(f"{path}: not a stored SDP policy ({exc}); build one with build_policy()") from None
 
 
+def transition_tables(mp, cfg: SDPConfig, dem):
+    """Grids, control rows and the step tables of the SDP: next SOC and feasibility per (SOC, d, u);
+    next coolant and fuel rate per (T_cl, d, u)."""
+    socg = _grid(cfg.soc_min, cfg.soc_max, cfg.soc_step)
+    tclg = _grid(cfg.tcl_min, cfg.tcl_max, cfg.tcl_step)
+    U = power_controls(mp, cfg.pbat_step)
+    ns, nt, nd, nu = socg.size, tclg.size, dem.size, U.shape[0]
+    A_soc = np.empty((ns, nd, nu))
+    A_ok = np.empty((ns, nd, nu), dtype=np.bool_)
+    B_tcl = np.empty((nt, nd, nu))
+    B_wf = np.empty((nt, nd, nu))
+    _tables(mp, socg, tclg, np.ascontiguousarray(dem, float), U, cfg.Q_heat, cfg.T_amb, mp.T_bat_ref, mp.W_bl,
+            cfg.T_cab_nominal, cfg.Ts, A_soc, A_ok, B_tcl, B_wf)
+    return socg, tclg, U, A_soc, A_ok, B_tcl, B_wf
+
+
 def build_policy(params, markov, config: SDPConfig | None = None, *, threads: int | None = None,
                  progress: bool = False) -> SDPPolicy:
     """Solve the stochastic DP for the Markov chain of ``config.T_amb``'s band."""
@@ -276,24 +293,12 @@ def build_policy(params, markov, config: SDPConfig | None = None, *, threads: in
     dem, Pm = markov.chain(cfg.T_amb)
     dem = np.ascontiguousarray(dem, float)
     Pm = np.ascontiguousarray(Pm, float)
-    socg = _grid(cfg.soc_min, cfg.soc_max, cfg.soc_step)
-    tclg = _grid(cfg.tcl_min, cfg.tcl_max, cfg.tcl_step)
-    U = power_controls(mp, cfg.pbat_step)
-    ns, nt, nd, nu = socg.size, tclg.size, dem.size, U.shape[0]
-    A_soc = np.empty((ns, nd, nu))
-    A_ok = np.empty((ns, nd, nu), dtype=np.bool_)
-    B_tcl = np.empty((nt, nd, nu))
-    B_wf = np.empty((nt, nd, nu))
     old = numba.get_num_threads()
     if threads is not None:
         numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
     try:
-        _tables(mp, socg, tclg, dem, U, cfg.Q_heat, cfg.T_amb, mp.T_bat_ref, mp.W_bl, cfg.T_cab_nominal, cfg.Ts,
-                A_soc, A_ok, B_tcl, B_wf)
-        if not np.all(A_ok.any(axis=2)):
-            d_bad = np.where(~A_ok.any(axis=2))[1]
-            raise IptmError(f"SDP: no feasible control for demand {dem[d_bad[0]] / 1e3:.1f} kW at some SOC; "
-                            "narrow the demand bins or check P_e_max / P_bat limits")
+        socg, tclg, U, A_soc, A_ok, B_tcl, B_wf = transition_tables(mp, cfg, dem)
+        ns, nt, nd, nu = socg.size, tclg.size, dem.size, U.shape[0]
         t_tab = time.perf_counter() - t0
         shape = (nd, ns, nt)
         V = np.zeros(shape)
