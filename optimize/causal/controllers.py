@@ -12,7 +12,7 @@ from calib.errors import IptmError
 from calib.model.rulebased import RuleBasedController, RuleParams
 
 from .ecms import ECMSParams, co_states, ecms_choice, valuations
-from .onestep import power_controls
+from .onestep import coolant_g_per_K, power_controls
 from .sdp import PENALTY_G_PER_STEP, SDPPolicy, lookahead_choice
 
 CONTROLLERS = ("rule", "ecms", "sdp")
@@ -51,6 +51,7 @@ class SDPController(_Causal):
         super().__init__(mp, policy.controls, cfg.Q_heat, cfg.T_amb if T_amb is None else T_amb, T_bat, W_bl)
         self.policy = policy
         self.EV = np.ascontiguousarray(policy.EV)
+        self.g_cl = cfg.mu_cl * coolant_g_per_K(mp)
 
     def describe(self) -> str:
         c = self.policy.config
@@ -61,7 +62,7 @@ class SDPController(_Causal):
         c, pol = self.policy.config, self.policy
         u = lookahead_choice(self.mp, soc, T_cl, T_cab, P_trac, self.controls, self.Q_heat, self.T_amb, self.T_bat,
                              self.W_bl, Ts, pol.soc_grid, pol.tcl_grid, pol.demand_W, self.EV, c.discount,
-                             c.w_soc_g_per_s, c.soc_target, PENALTY_G_PER_STEP, self.work)
+                             c.w_soc_g_per_s, c.soc_target, PENALTY_G_PER_STEP, self.g_cl, self.work)
         return self._emit(u, k, soc, T_cl, T_cab, P_trac, Ts)
 
 

@@ -9,13 +9,14 @@ by the controller.
 
 Discounted cost (``discount`` per step, about ``1/(1-discount)`` s of look-ahead)::
 
-    V(x, d) = min_u  W_f(x, d, u) Ts + w_soc (SOC - SOC_target)^2 Ts + penalty(SOC')
+    V(x, d) = min_u  W_f(x, d, u) Ts + w_soc (SOC - SOC_target)^2 Ts + penalty(SOC') - mu_cl k_cl (T_cl' - T_cl)
                      + discount * sum_j P(d, j) V(x', j)
 
 ``x'`` comes from the model's equations (:func:`optimize.causal.onestep.step_demand`), ``V(x', j)`` by
 bilinear interpolation. The quadratic SOC term is what keeps the battery charge-sustaining without
-knowing the drive; coolant heat is valued by the fuel it saves later through ``f_cl`` (the stationary
-problem has no end). Solved by modified policy iteration: a greedy (Bellman) sweep, then
+knowing the drive; coolant heat is valued by the fuel it saves later through ``f_cl`` and, with
+``mu_cl > 0``, at ``mu_cl`` times the corrected fuel's price ``k_cl`` (g/K) per step (not a potential-based
+term: under discounting it also rewards keeping the coolant warm). Solved by modified policy iteration: a greedy (Bellman) sweep, then
 ``eval_sweeps`` sweeps evaluating the greedy policy, until the policy is unchanged and the Bellman
 residual is below ``tol_g``.
 
@@ -36,7 +37,7 @@ from numba import njit, prange
 
 from calib.errors import IptmError
 
-from .onestep import eval_controls, power_controls, step_demand
+from .onestep import coolant_g_per_K, eval_controls, power_controls, step_demand
 
 #: Penalty (g) per SOC grid step outside [soc_min, soc_max] (the DP's constraint penalty).
 PENALTY_G_PER_STEP = 1000.0
@@ -58,6 +59,7 @@ class SDPConfig:
     soc_target: float = 0.6
     w_soc_g_per_s: float = 20.0  # g/s per unit SOC^2 of deviation from the target
     discount: float = 0.998
+    mu_cl: float = 0.0  # price of coolant heat, in units of the corrected fuel's valuation (g/K)
     T_cab_nominal: float = 20.0
     Ts: float = 1.0
     eval_sweeps: int = 40
@@ -120,8 +122,8 @@ def _interp2(E, d, s0, sh, ns, t0, th, nt, s, t):
 
 
 @njit(inline="always")
-def _stage(W_f, soc, s1, Ts, w_soc, target, s_lo, s_hi, sh, pen):
-    c = W_f * Ts + w_soc * (soc - target) ** 2 * Ts
+def _stage(W_f, soc, s1, Ts, w_soc, target, s_lo, s_hi, sh, pen, T, T1, g_cl):
+    c = W_f * Ts + w_soc * (soc - target) ** 2 * Ts - g_cl * (T1 - T)
     if s1 < s_lo:
         c += pen * (s_lo - s1) / sh
     elif s1 > s_hi:
@@ -130,7 +132,7 @@ def _stage(W_f, soc, s1, Ts, w_soc, target, s_lo, s_hi, sh, pen):
 
 
 @njit(parallel=True, cache=True)
-def _greedy(socg, tclg, A_soc, A_ok, B_tcl, B_wf, EV, Ts, gamma, w_soc, target, pen, V, pol, S1, T1, C):
+def _greedy(socg, tclg, A_soc, A_ok, B_tcl, B_wf, EV, Ts, gamma, w_soc, target, pen, g_cl, V, pol, S1, T1, C):
     ns, nt, nd, nu = socg.size, tclg.size, EV.shape[0], A_soc.shape[2]
     sh, th = socg[1] - socg[0], tclg[1] - tclg[0]
     for idx in prange(nd * ns * nt):
@@ -144,7 +146,7 @@ def _greedy(socg, tclg, A_soc, A_ok, B_tcl, B_wf, EV, Ts, gamma, w_soc, target, 
                 continue
             s1 = A_soc[i, d, u]
             t1 = B_tcl[j, d, u]
-            c = _stage(B_wf[j, d, u], socg[i], s1, Ts, w_soc, target, socg[0], socg[-1], sh, pen)
+            c = _stage(B_wf[j, d, u], socg[i], s1, Ts, w_soc, target, socg[0], socg[-1], sh, pen, tclg[j], t1, g_cl)
             v = c + gamma * _interp2(EV, d, socg[0], sh, ns, tclg[0], th, nt, s1, t1)
             if v < best:
                 best, bu, bs, bt, bc = v, u, s1, t1, c
@@ -313,7 +315,7 @@ def build_policy(params, markov, config: SDPConfig | None = None, *, threads: in
             it += 1
             EV = _expect(Pm, V)
             _greedy(socg, tclg, A_soc, A_ok, B_tcl, B_wf, EV, cfg.Ts, cfg.discount, cfg.w_soc_g_per_s,
-                    cfg.soc_target, PENALTY_G_PER_STEP, Vg, pol, S1, T1, C)
+                    cfg.soc_target, PENALTY_G_PER_STEP, cfg.mu_cl * coolant_g_per_K(mp), Vg, pol, S1, T1, C)
             resid = float(np.max(np.abs(Vg - V)))
             n_changed = -1 if prev is None else int(np.sum(pol != prev))
             if progress:
@@ -342,7 +344,7 @@ def build_policy(params, markov, config: SDPConfig | None = None, *, threads: in
 # ---------------------------------------------------------------------------------------------------
 @njit(cache=True)
 def lookahead_choice(p, soc, T_cl, T_cab, P_trac, controls, Q_heat, T_amb, T_bat, W_bl, Ts, socg, tclg, dem, EV,
-                     gamma, w_soc, target, pen, work):
+                     gamma, w_soc, target, pen, g_cl, work):
     """Index of the control minimising stage cost + discount * EV(x', d(P_trac)) (EV interpolated in d)."""
     eval_controls(p, soc, T_cl, T_cab, P_trac, controls, Q_heat, T_amb, T_bat, W_bl, Ts, work)
     nd = dem.size
@@ -360,7 +362,7 @@ def lookahead_choice(p, soc, T_cl, T_cab, P_trac, controls, Q_heat, T_amb, T_bat
         if work[u, 4] == 0.0:
             continue
         s1, t1 = work[u, 0], work[u, 1]
-        c = _stage(work[u, 3], soc, s1, Ts, w_soc, target, socg[0], socg[-1], sh, pen)
+        c = _stage(work[u, 3], soc, s1, Ts, w_soc, target, socg[0], socg[-1], sh, pen, T_cl, t1, g_cl)
         ev = ((1.0 - wd) * _interp2(EV, d0, socg[0], sh, ns, tclg[0], th, nt, s1, t1)
               + wd * _interp2(EV, d0 + 1, socg[0], sh, ns, tclg[0], th, nt, s1, t1))
         v = c + gamma * ev
