@@ -1,5 +1,6 @@
 """Stochastic-DP policy: one-step composition, exhaustive check on a tiny problem, storage, controller."""
 import itertools
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -60,7 +61,7 @@ def _explicit_mdp(mp, cfg, chain):
             continue
         s1, t1 = A_soc[i, d, u], B_tcl[j, d, u]
         pen = PENALTY_G_PER_STEP * (max(socg[0] - s1, 0) + max(s1 - socg[-1], 0)) / (socg[1] - socg[0])
-        c[idx(d, i, j), u] = (B_wf[j, d, u] * cfg.Ts + cfg.w_soc_g_per_s * (socg[i] - cfg.soc_target) ** 2 + pen
+        c[idx(d, i, j), u] = (B_wf[j, d, u] * cfg.Ts + cfg.w_soc_g_per_s * (socg[i] - cfg.soc_target - cfg.soc_bias) ** 2 + pen
                               - cfg.mu_cl * coolant_g_per_K(mp) * (t1 - tclg[j]))
         x = np.clip((s1 - socg[0]) / (socg[1] - socg[0]), 0, ns - 1)
         y = np.clip((t1 - tclg[0]) / (tclg[1] - tclg[0]), 0, nt - 1)
@@ -130,3 +131,15 @@ def test_policy_load_rejects_other_files(tmp_path):
     np.savez(bad, a=np.zeros(2))
     with pytest.raises(IptmError, match="not a stored SDP policy"):
         SDPPolicy.load(bad)
+
+
+def test_coarse_warm_start_reaches_the_same_solution(mp):
+    chain = _Chain([0.0, 6e3, 20e3], [[0.8, 0.15, 0.05], [0.2, 0.6, 0.2], [0.1, 0.3, 0.6]])
+    cfg = SDPConfig(T_amb=-10.0, soc_step=0.05, tcl_step=10.0, pbat_step=5e3, discount=0.99, tol_g=1e-6,
+                    max_iter=300)
+    cold = build_policy(mp, chain, replace(cfg, coarse_levels=0))
+    warm = build_policy(mp, chain, cfg)
+    assert warm.info["coarse_iterations"] > 0
+    assert cold.info["converged"] and warm.info["converged"]
+    np.testing.assert_allclose(warm.V, cold.V, atol=1e-3)
+    assert np.mean(warm.policy == cold.policy) > 0.99

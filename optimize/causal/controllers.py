@@ -62,7 +62,7 @@ class SDPController(_Causal):
         c, pol = self.policy.config, self.policy
         u = lookahead_choice(self.mp, soc, T_cl, T_cab, P_trac, self.controls, self.Q_heat, self.T_amb, self.T_bat,
                              self.W_bl, Ts, pol.soc_grid, pol.tcl_grid, pol.demand_W, self.EV, c.discount,
-                             c.w_soc_g_per_s, c.soc_target, PENALTY_G_PER_STEP, self.g_cl, self.work)
+                             c.w_soc_g_per_s, c.soc_target + c.soc_bias, PENALTY_G_PER_STEP, self.g_cl, self.work)
         return self._emit(u, k, soc, T_cl, T_cab, P_trac, Ts)
 
 

@@ -30,7 +30,7 @@ class ECMSParams:
     -10 degC) by a small grid search for corrected fuel close to Thermal-DP and SOC close to the start; the
     held-out cycles of :mod:`optimize.causal.compare` played no part."""
 
-    s0: float = 0.7
+    s0: float = 0.6
     k_s: float = 40.0  # per unit SOC below the target
     mu0: float = 0.0
     k_mu: float = 0.03  # per kelvin below the coolant target

@@ -17,8 +17,9 @@ bilinear interpolation. The quadratic SOC term is what keeps the battery charge-
 knowing the drive; coolant heat is valued by the fuel it saves later through ``f_cl`` and, with
 ``mu_cl > 0``, at ``mu_cl`` times the corrected fuel's price ``k_cl`` (g/K) per step (not a potential-based
 term: under discounting it also rewards keeping the coolant warm). Solved by modified policy iteration: a greedy (Bellman) sweep, then
-``eval_sweeps`` sweeps evaluating the greedy policy, until the policy is unchanged and the Bellman
-residual is below ``tol_g``.
+``eval_sweeps`` sweeps evaluating the greedy policy, until at most ``policy_tol`` of the states change
+their greedy control and the Bellman residual is below ``tol_g``; warm-started from the same problem on
+grids twice as coarse (``coarse_levels``).
 
 :class:`SDPPolicy` stores the tables (value, expected next value, policy as control index, e_mode and
 P_bat_mg), prints as a long table (``.to_pandas()``), plots as maps (``.plot()``) and saves to ``.npz``
@@ -60,11 +61,16 @@ class SDPConfig:
     w_soc_g_per_s: float = 20.0  # g/s per unit SOC^2 of deviation from the target
     discount: float = 0.998
     mu_cl: float = 0.0  # price of coolant heat, in units of the corrected fuel's valuation (g/K)
+    # The anchor pulls to soc_target + soc_bias: built on the statistics of busier drives, the policy
+    # otherwise settles about 0.015 below its anchor in town (seen on the training drive UDDS).
+    soc_bias: float = 0.02
+    coarse_levels: int = 1  # warm start from the same problem on grids twice as coarse (recursively)
     T_cab_nominal: float = 20.0
     Ts: float = 1.0
     eval_sweeps: int = 40
     max_iter: int = 200
-    tol_g: float = 1e-2
+    tol_g: float = 0.05  # Bellman residual (g) at which a stable policy counts as converged
+    policy_tol: float = 1e-4  # fraction of states whose greedy control may still change at convergence
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -166,6 +172,19 @@ def _evaluate(socg, tclg, EV, gamma, S1, T1, C, V):
         i = r // nt
         j = r - i * nt
         V[d, i, j] = C[d, i, j] + gamma * _interp2(EV, d, socg[0], sh, ns, tclg[0], th, nt, S1[d, i, j], T1[d, i, j])
+
+
+def _refine(coarse: "SDPPolicy", socg, tclg) -> np.ndarray:
+    """The coarse value function, bilinearly interpolated onto finer grids (a warm start)."""
+    from scipy.interpolate import RegularGridInterpolator
+
+    S, T = np.meshgrid(np.clip(socg, coarse.soc_grid[0], coarse.soc_grid[-1]),
+                       np.clip(tclg, coarse.tcl_grid[0], coarse.tcl_grid[-1]), indexing="ij")
+    pts = np.column_stack([S.ravel(), T.ravel()])
+    out = np.empty((coarse.V.shape[0], socg.size, tclg.size))
+    for d in range(coarse.V.shape[0]):
+        out[d] = RegularGridInterpolator((coarse.soc_grid, coarse.tcl_grid), coarse.V[d])(pts).reshape(S.shape)
+    return out
 
 
 def _expect(Pm, V):
@@ -304,6 +323,14 @@ def build_policy(params, markov, config: SDPConfig | None = None, *, threads: in
         t_tab = time.perf_counter() - t0
         shape = (nd, ns, nt)
         V = np.zeros(shape)
+        n_coarse = 0
+        if cfg.coarse_levels > 0 and ns >= 9 and nt >= 9:
+            from dataclasses import replace
+
+            cc = replace(cfg, soc_step=2 * cfg.soc_step, tcl_step=2 * cfg.tcl_step, coarse_levels=cfg.coarse_levels - 1)
+            coarse = build_policy(mp, markov, cc)
+            V = _refine(coarse, socg, tclg)
+            n_coarse = coarse.info["iterations"]
         Vg = np.empty(shape)
         pol = np.full(shape, -1, dtype=np.int64)
         S1, T1, C = np.empty(shape), np.empty(shape), np.empty(shape)
@@ -315,12 +342,12 @@ def build_policy(params, markov, config: SDPConfig | None = None, *, threads: in
             it += 1
             EV = _expect(Pm, V)
             _greedy(socg, tclg, A_soc, A_ok, B_tcl, B_wf, EV, cfg.Ts, cfg.discount, cfg.w_soc_g_per_s,
-                    cfg.soc_target, PENALTY_G_PER_STEP, cfg.mu_cl * coolant_g_per_K(mp), Vg, pol, S1, T1, C)
+                    cfg.soc_target + cfg.soc_bias, PENALTY_G_PER_STEP, cfg.mu_cl * coolant_g_per_K(mp), Vg, pol, S1, T1, C)
             resid = float(np.max(np.abs(Vg - V)))
             n_changed = -1 if prev is None else int(np.sum(pol != prev))
             if progress:
                 print(f"SDP iteration {it}: Bellman residual {resid:.2e} g, policy changes {n_changed}", flush=True)
-            if n_changed == 0 and resid < cfg.tol_g:
+            if 0 <= n_changed <= cfg.policy_tol * pol.size and resid < cfg.tol_g:
                 V = Vg.copy()
                 break
             prev = pol.copy()
@@ -331,10 +358,10 @@ def build_policy(params, markov, config: SDPConfig | None = None, *, threads: in
         EV = _expect(Pm, V)
     finally:
         numba.set_num_threads(old)
+    ok = 0 <= n_changed <= cfg.policy_tol * pol.size and resid < cfg.tol_g
     info = {"t_build_s": time.perf_counter() - t0, "t_tables_s": t_tab, "iterations": it,
-            "bellman_residual_g": resid, "policy_changes_last": n_changed, "converged": bool(n_changed == 0
-                                                                                              and resid < cfg.tol_g),
-            "n_states": int(ns * nt * nd), "n_controls": int(nu), "threads": int(threads or old),
+            "bellman_residual_g": resid, "policy_changes_last": n_changed, "converged": bool(ok),
+            "n_states": int(ns * nt * nd), "n_controls": int(nu), "coarse_iterations": n_coarse, "threads": int(threads or old),
             "markov_band": int(markov.band(cfg.T_amb))}
     return SDPPolicy(cfg, socg, tclg, dem, Pm, U, V, EV, pol, info)
 
