@@ -98,7 +98,7 @@ class DemandMarkov:
 
     @classmethod
     def estimate(cls, params, sources, *, edges_W=None, bands_degC=DEFAULT_BANDS_DEGC, alpha: float = 0.1,
-                 Ts: float = 1.0) -> "DemandMarkov":
+                 Ts: float = 1.0) -> DemandMarkov:
         """Count transitions of every source (cycle names, CSV paths, Cycles, DriveLogs)."""
         edges = np.asarray(DEFAULT_EDGES_W if edges_W is None else edges_W, float)
         if np.any(np.diff(edges) <= 0):
@@ -172,7 +172,7 @@ class DemandMarkov:
                 "alpha": self.alpha}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "DemandMarkov":
+    def from_dict(cls, d: dict) -> DemandMarkov:
         try:
             return cls(np.asarray(d["edges_W"], float), np.asarray(d["values_W"], float),
                        np.asarray(d["P"], float), np.asarray(d["counts"], float), tuple(d["bands_degC"]),
@@ -186,7 +186,7 @@ class DemandMarkov:
         write_json(path, self.to_dict())
 
     @classmethod
-    def load(cls, path) -> "DemandMarkov":
+    def load(cls, path) -> DemandMarkov:
         with open(path) as f:
             return cls.from_dict(json.load(f))
 

@@ -174,7 +174,7 @@ def _evaluate(socg, tclg, EV, gamma, S1, T1, C, V):
         V[d, i, j] = C[d, i, j] + gamma * _interp2(EV, d, socg[0], sh, ns, tclg[0], th, nt, S1[d, i, j], T1[d, i, j])
 
 
-def _refine(coarse: "SDPPolicy", socg, tclg) -> np.ndarray:
+def _refine(coarse: SDPPolicy, socg, tclg) -> np.ndarray:
     """The coarse value function, bilinearly interpolated onto finer grids (a warm start)."""
     from scipy.interpolate import RegularGridInterpolator
 
@@ -275,7 +275,7 @@ class SDPPolicy:
                                     meta_json=np.array(meta))
 
     @classmethod
-    def load(cls, path) -> "SDPPolicy":
+    def load(cls, path) -> SDPPolicy:
         try:
             with np.load(path, allow_pickle=False) as z:
                 meta = json.loads(str(z["meta_json"]))
