@@ -25,8 +25,10 @@ PAPER_SAVINGS = {
 
 LABELS = {"rule": "Rule-based (tuned)", "baseline_warm": "Baseline-DP (own optimum, f_cl = 1)",
           "baseline": "Baseline-DP on thermal model", "thermal": "Thermal-DP",
-          "thermal_cabin": "Thermal-Cabin-DP"}
+          "thermal_cabin": "Thermal-Cabin-DP", "ecms": "ECMS (causal)", "sdp": "SDP policy (causal)"}
 STRATEGIES = ("rule", "baseline", "thermal", "thermal_cabin")
+#: Causal strategies (:mod:`optimize.causal`), run on request: ``strategies=STRATEGIES + CAUSAL``.
+CAUSAL = ("ecms", "sdp")
 
 
 @dataclass
@@ -74,6 +76,7 @@ class CaseStudy:
                 "saving_vs_thermal_pct": 100 * (1 - c / c_th) if key == "thermal_cabin" else np.nan,
                 "raw_saving_vs_thermal_pct": 100 * (1 - f / ref_th) if key == "thermal_cabin" else np.nan,
                 "paper_vs_thermal_pct": paper.get("vs_thermal", np.nan),
+                "gap_to_dp_pct": 100 * (s["fuel_corrected_g"] / c_th - 1),  # corrected fuel vs Thermal-DP
             })
         df = pd.DataFrame(rows).set_index("strategy")
         return df.astype({c: float for c in df.columns if c.startswith("paper")})
@@ -256,9 +259,9 @@ def run_case_study(params, scenario: DPScenario | None = None, strategies=STRATE
 
     scen = scenario or DPScenario()
     grids = grids or DPGrids()
-    bad = set(strategies) - set(STRATEGIES)
+    bad = set(strategies) - set(STRATEGIES) - set(CAUSAL)
     if bad:
-        raise ScenarioError(f"unknown strategy {sorted(bad)}; choose from {', '.join(STRATEGIES)}")
+        raise ScenarioError(f"unknown strategy {sorted(bad)}; choose from {', '.join(STRATEGIES + CAUSAL)}")
     say = print if progress else (lambda *a, **k: None)
     sims, outs, timings, rule = {}, {}, {}, None
     cyc = scen.load_cycle()
@@ -289,7 +292,13 @@ def run_case_study(params, scenario: DPScenario | None = None, strategies=STRATE
             sims[key] = o.sim
         say(f"{LABELS[key]}: {sims[key].fuel_g:.2f} g, SOC_N {sims[key].soc[-1]:.4f} "
             f"[{o.t_total:.1f} s, backward {o.t_backward:.2f} s]", flush=True)
-    # order: rule, baseline (thermal), baseline warm, thermal, thermal_cabin
-    order = [k for k in ("rule", "baseline", "thermal", "thermal_cabin", "baseline_warm") if k in sims]
+    if set(CAUSAL) & set(strategies):
+        from optimize.causal.casestudy import causal_sims
+
+        t0 = time.perf_counter()
+        sims.update(causal_sims(params, scen, cyc, [k for k in CAUSAL if k in strategies], say))
+        timings["causal"] = time.perf_counter() - t0
+    # order: rule, baseline (thermal), baseline warm, thermal, thermal_cabin, causal
+    order = [k for k in ("rule", "baseline", "thermal", "thermal_cabin", "ecms", "sdp", "baseline_warm") if k in sims]
     sims = {k: sims[k] for k in order}
     return CaseStudy(sims, outs, scen, grids, rule, timings)

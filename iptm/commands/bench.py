@@ -12,6 +12,7 @@ SUITES = {
     "dp": "iptm.benchmarks.dp",
     "sweep": "iptm.benchmarks.sweep",
     "fuzz": "iptm.benchmarks.fuzz",
+    "causal": "iptm.benchmarks.causal",
 }
 
 
@@ -23,7 +24,8 @@ def register(sub):
                                    "calib-bundled (truth recovery on the bundled-size logs), dp (three DP "
                                    "formulations on paper grids), sweep (distributed study speed-up), fuzz (mutated "
                                    "inputs to every reader: read / recovered / clean error / escape counts, and "
-                                   "random truncations of valid logs).")
+                                   "random truncations of valid logs), causal (SDP and ECMS on held-out drives vs DP and "
+                                   "rule-based; policy build and step time).")
     p.add_argument("suite", nargs="*", default=["sim", "dp"], help=f"any of {', '.join(SUITES)} or 'all' "
                                                                     "(default: sim dp)")
     p.add_argument("--quick", action="store_true", help="smaller sizes, for a smoke check")

@@ -1,4 +1,4 @@
-"""``iptm simulate``: run the model over a cycle under the rule-based controller."""
+"""``iptm simulate``: run the model over a cycle under the rule-based or a causal controller."""
 from __future__ import annotations
 
 
@@ -15,6 +15,10 @@ def register(sub):
     p.add_argument("--tcl0", type=float, default=70.0, metavar="DEGC", help="initial coolant temperature (70)")
     p.add_argument("--tcab0", type=float, default=20.0, metavar="DEGC", help="initial cabin temperature (20)")
     p.add_argument("--heater", type=float, default=1500.0, metavar="W", help="heater demand (default 1500 W)")
+    p.add_argument("--controller", choices=("rule", "ecms", "sdp"), default="rule",
+                   help="rule (default), ecms (thermal-aware ECMS) or sdp (stochastic-DP policy)")
+    p.add_argument("--policy", metavar="FILE.npz", help="stored SDP policy for --controller sdp (default: build "
+                                                        "one from the bundled training cycles, about a minute)")
     p.add_argument("--plot", metavar="FILE", help="write a time-series plot (PNG/PDF/SVG)")
     p.add_argument("--csv", metavar="FILE", help="write every time series as CSV")
     p.add_argument("--json", metavar="FILE", help="write the summary figures as JSON")
@@ -32,9 +36,25 @@ def run(args) -> int:
     from calib.model.simulate import simulate
 
     ps = load_params(args.params)
-    res = simulate(ps, args.cycle, T_amb=args.ambient, soc0=args.soc0, T_cl0=args.tcl0, T_cab0=args.tcab0,
+    ctrl = None
+    if args.controller != "rule" or args.policy:
+        from optimize.causal import DemandMarkov, SDPPolicy, make_controller
+        from optimize.causal.compare import TRAIN_CYCLES
+
+        if args.policy and args.controller != "sdp":
+            from calib.errors import IptmError
+
+            raise IptmError("--policy is for --controller sdp")
+        pol = SDPPolicy.load(args.policy) if args.policy else None
+        mk = DemandMarkov.estimate(ps, TRAIN_CYCLES) if args.controller == "sdp" and pol is None else None
+        if mk is not None:
+            print(f"building the SDP policy from {', '.join(TRAIN_CYCLES)} at {args.ambient:g} degC ...", flush=True)
+        ctrl = make_controller(args.controller, ps, T_amb=args.ambient, Q_heat=args.heater, soc_target=args.soc0,
+                               policy=pol, markov=mk)
+    res = simulate(ps, args.cycle, ctrl, T_amb=args.ambient, soc0=args.soc0, T_cl0=args.tcl0, T_cab0=args.tcab0,
                    Q_heat=args.heater)
     s = res.summary()
+    print(f"controller {s['controller'][:90]}")
     print(f"cycle {s['cycle']}: {s['distance_km']:.2f} km in {s['duration_s']:.0f} s at {args.ambient:g} degC")
     print(f"fuel            {s['fuel_g']:.1f} g ({s['L_per_100km']:.2f} L/100 km, {s['mpg']:.1f} mpg)")
     print(f"fuel corrected  {s['fuel_corrected_g']:.1f} g (for final SOC, coolant and cabin energy)")

@@ -1,0 +1,54 @@
+"""Benchmark: causal strategies (SDP, ECMS) on held-out drives against Thermal-DP and tuned rule-based,
+with the demand chain's validation, the policy build time and the controller step time."""
+from __future__ import annotations
+
+from pathlib import Path
+
+#: A training log: its drive is UDDS (see logs/README.md), a training cycle, never a held-out one.
+TRAIN_LOG = Path("logs") / "winter_cold_start.blf"
+
+
+def run(quick: bool = False) -> dict:
+    import numpy as np
+    import pandas as pd
+
+    from calib.model.params import default_parameters
+    from optimize.causal.compare import AMBIENTS, HELD_OUT, TRAIN_CYCLES, compare_causal, step_timing
+    from optimize.causal.controllers import ECMSController, SDPController
+
+    ps = default_parameters()
+    logs = []
+    if TRAIN_LOG.is_file():
+        from calib.ingest import read_log
+
+        logs = [read_log(TRAIN_LOG)]
+    print(f"training drives: {', '.join(TRAIN_CYCLES)}" + (f" + log {TRAIN_LOG} (SYNTHETIC)" if logs else "")
+          + f"; held out: {', '.join(HELD_OUT)}; ambients {', '.join(f'{a:g}' for a in AMBIENTS)} degC")
+    # compile (or load the numba cache) outside the timings: a tiny policy and one ECMS drive
+    from optimize.causal import DemandMarkov, SDPConfig, build_policy
+
+    build_policy(ps, DemandMarkov.estimate(ps, ["nycc"]), SDPConfig(soc_step=0.1, tcl_step=25.0, max_iter=3))
+    held = HELD_OUT[:1] if quick else HELD_OUT
+    amb = AMBIENTS[:1] if quick else AMBIENTS
+    cmp = compare_causal(ps, train_logs=logs, held_out=held, ambients=amb, threads=2)
+    val = pd.DataFrame(cmp.validation)
+    print("\ndemand Markov chain vs held-out drives:")
+    with pd.option_context("display.width", 200, "display.max_columns", 20):
+        print(val[["drive", "T_amb", "tv_distance_vs_training", "stay_prob_heldout", "stay_prob_model",
+                   "lag1_autocorr_heldout", "lag1_autocorr_model", "mean_demand_kW_heldout", "mean_demand_kW_model",
+                   "loglik_per_step_markov", "loglik_per_step_iid"]].to_string(index=False, float_format="%.3f"))
+    print("\ncorrected fuel (g) on held-out drives; gap to DP and saving vs tuned rule-based in %:")
+    print(cmp.format())
+    mp = ps.model_params()
+    pol = next(iter(cmp.policies.values()))
+    steps = {"sdp": step_timing(ps, SDPController(mp, pol)), "ecms": step_timing(ps, ECMSController(mp))}
+    for k, v in steps.items():
+        print(f"controller step {k}: median {v['median_s'] * 1e6:.1f} us, p99 {v['p99_s'] * 1e6:.1f} us, "
+              f"max {v['max_s'] * 1e3:.2f} ms over {v['calls']} calls (goal < 1 ms)")
+    for T, p in cmp.policies.items():
+        print(f"SDP policy build at {T:g} degC on 2 threads: {p.info['t_build_s']:.1f} s ({p.info['n_states']} states "
+              f"x {p.info['n_controls']} controls, {p.info['iterations']} iterations, converged "
+              f"{p.info['converged']}) (goal < 60 s)")
+    return {"table": cmp.rows, "goals": cmp.goals(), "validation": cmp.validation, "step": steps,
+            "build": {str(T): p.info for T, p in cmp.policies.items()},
+            "mean_abs_gap_pct": float(np.mean([abs(r["gap_to_dp_pct"]) for r in cmp.rows]))}

@@ -1,0 +1,16 @@
+"""Causal energy management learned from driving statistics, measured against the DP optimum.
+
+- :mod:`optimize.causal.markov`: Markov chain of the wheel-power demand per ambient band, from drive
+  cycles and ingested logs, with held-out validation.
+- :mod:`optimize.causal.sdp`: stationary policy over (SOC, coolant, demand) by stochastic DP.
+- :mod:`optimize.causal.ecms`: thermal-aware ECMS with adaptive co-states.
+- :mod:`optimize.causal.controllers`: both as controllers with the rule-based controller's signature.
+- :mod:`optimize.causal.compare`: corrected fuel on held-out drives against the DP and tuned rule-based.
+"""
+from optimize.causal.controllers import CONTROLLERS, ECMSController, SDPController, make_controller
+from optimize.causal.ecms import ECMSParams
+from optimize.causal.markov import DemandMarkov
+from optimize.causal.sdp import SDPConfig, SDPPolicy, build_policy
+
+__all__ = ["DemandMarkov", "SDPConfig", "SDPPolicy", "build_policy", "ECMSParams", "ECMSController",
+           "SDPController", "make_controller", "CONTROLLERS"]

@@ -1,0 +1,158 @@
+"""Causal strategies on drives they were not built from, against the DP optimum and tuned rule-based.
+
+For every ambient: the demand Markov chain is estimated from the training drives only
+(:data:`TRAIN_CYCLES` plus any training logs), the SDP policy is built for that ambient, and on each
+held-out cycle (:data:`HELD_OUT`) the table compares, in corrected fuel
+(:meth:`calib.model.simulate.SimResult.summary`, ``fuel_corrected_g``: fuel minus the fuel equivalent of
+the changes of SOC, coolant and cabin heat), the SDP and ECMS controllers with Thermal-DP
+(:func:`optimize.solve_thermal`, which knows the whole drive) and the rule-based controller tuned for
+that very drive (:func:`optimize.tune_rule_based`). The rule-based baseline thus also knows the drive
+(through its tuning); the causal controllers use fixed settings for every drive.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+
+from optimize.causal.controllers import ECMSController, SDPController
+from optimize.causal.ecms import ECMSParams
+from optimize.causal.markov import DemandMarkov
+from optimize.causal.sdp import SDPConfig, build_policy
+
+#: Drives the statistics are built from (and the only ones used to choose the controllers' settings).
+TRAIN_CYCLES = ("udds", "hwfet", "us06")
+#: Drives never used to build or tune anything.
+HELD_OUT = ("artemis_urban", "nycc", "manhattan")
+AMBIENTS = (-10.0, 0.0)
+GOAL_GAP_PCT = 3.0
+SOC_TOL = 0.01
+
+
+@dataclass
+class CausalComparison:
+    """Rows per (cycle, ambient, strategy), the Markov validation and the build / step timings."""
+
+    rows: list
+    markov: DemandMarkov
+    validation: list
+    policies: dict = field(default_factory=dict)
+    timings: dict = field(default_factory=dict)
+
+    def table(self) -> pd.DataFrame:
+        return pd.DataFrame(self.rows)
+
+    def goals(self) -> dict:
+        df = self.table()
+        c = df[df.strategy.isin(["sdp", "ecms"])]
+        out = {}
+        for s, g in c.groupby("strategy"):
+            out[s] = {"max_gap_to_dp_pct": float(g.gap_to_dp_pct.max()),
+                      "within_3pct_all": bool((g.gap_to_dp_pct <= GOAL_GAP_PCT).all()),
+                      "better_than_rule_all": bool((g.vs_rule_pct > 0).all()),
+                      "charge_sustaining_all": bool((g.dsoc.abs() <= SOC_TOL).all())}
+        return out
+
+    def format(self) -> str:
+        df = self.table()
+        cols = ["cycle", "T_amb", "strategy", "fuel_g", "fuel_corrected_g", "soc_final", "T_cl_final",
+                "gap_to_dp_pct", "vs_rule_pct"]
+        with pd.option_context("display.width", 200, "display.max_columns", 20):
+            txt = df[cols].to_string(index=False, float_format=lambda v: f"{v:.3f}" if abs(v) < 2 else f"{v:.2f}")
+        lines = [txt, ""]
+        for s, g in self.goals().items():
+            lines.append(f"{s}: max gap to DP {g['max_gap_to_dp_pct']:.2f} % (goal <= {GOAL_GAP_PCT:g} %: "
+                         f"{'met' if g['within_3pct_all'] else 'NOT met'}); better than tuned rule-based on every "
+                         f"held-out drive: {'yes' if g['better_than_rule_all'] else 'NO'}; charge sustaining "
+                         f"(|dSOC| <= {SOC_TOL}): {'yes' if g['charge_sustaining_all'] else 'NO'}")
+        return "\n".join(lines)
+
+
+def _row(cycle, T_amb, strategy, sim, dp_corr, rule_corr, t_s):
+    s = sim.summary()
+    corr = s["fuel_corrected_g"]
+    return {"cycle": cycle, "T_amb": T_amb, "strategy": strategy, "fuel_g": s["fuel_g"], "fuel_corrected_g": corr,
+            "soc_final": s["soc_final"], "dsoc": s["soc_final"] - s["soc_initial"],
+            "T_cl_final": s["T_cl_final_degC"], "T_cab_final": s["T_cab_final_degC"],
+            "gap_to_dp_pct": 100.0 * (corr / dp_corr - 1.0) if dp_corr else np.nan,
+            "vs_rule_pct": 100.0 * (1.0 - corr / rule_corr) if rule_corr else np.nan, "time_s": t_s}
+
+
+def compare_causal(params, *, train=TRAIN_CYCLES, train_logs=(), held_out=HELD_OUT, ambients=AMBIENTS,
+                   sdp_config: SDPConfig | None = None, ecms: ECMSParams | None = None, grids=None,
+                   scenario=None, threads: int | None = 2, progress: bool = True) -> CausalComparison:
+    """Build statistics and policies from ``train`` (+ ``train_logs``) and compare on ``held_out``."""
+    from dataclasses import replace
+
+    from calib.model.simulate import simulate
+    from optimize.formulations.scenario import DPScenario
+    from optimize.formulations.solve import solve_thermal
+    from optimize.tuning import tune_rule_based
+
+    say = print if progress else (lambda *a, **k: None)
+    overlap = set(train) & set(held_out)
+    if overlap:
+        from calib.errors import IptmError
+
+        raise IptmError(f"causal comparison: {sorted(overlap)} both trains and tests the controllers; "
+                        "held-out drives must not be training drives")
+    base = scenario or DPScenario()
+    mp = params.model_params() if hasattr(params, "model_params") else params
+    markov = DemandMarkov.estimate(params, list(train) + list(train_logs))
+    validation = []
+    rows, policies, timings = [], {}, {}
+    for T_amb in ambients:
+        validation += [{**r, "T_amb": T_amb} for r in markov.validate(params, held_out, T_amb=T_amb)]
+        cfg = replace(sdp_config or SDPConfig(), T_amb=T_amb, Q_heat=base.Q_heat, soc_target=base.soc0)
+        pol = build_policy(params, markov, cfg, threads=threads)
+        policies[T_amb] = pol
+        timings[f"sdp_build_s@{T_amb:g}"] = pol.info["t_build_s"]
+        say(f"SDP policy at {T_amb:g} degC: {pol.info['t_build_s']:.1f} s, {pol.info['iterations']} iterations",
+            flush=True)
+        ep = replace(ecms or ECMSParams(), Q_heat_W=base.Q_heat, soc_target=base.soc0)
+        for cyc in held_out:
+            scen = replace(base, cycle=cyc, T_amb=T_amb)
+            t0 = time.perf_counter()
+            dp = solve_thermal(params, scen, grids)
+            t_dp = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            tr = tune_rule_based(params, scen.load_cycle(), T_amb=T_amb, soc0=scen.soc0, T_cl0=scen.T_cl0,
+                                 T_cab0=scen.T_cab0, Q_heat=scen.Q_heat)
+            t_rule = time.perf_counter() - t0
+            dp_corr = dp.sim.summary()["fuel_corrected_g"]
+            rule_corr = tr.result.summary()["fuel_corrected_g"]
+            kw = dict(T_amb=T_amb, soc0=scen.soc0, T_cl0=scen.T_cl0, T_cab0=scen.T_cab0, Q_heat=scen.Q_heat)
+            rows.append(_row(cyc, T_amb, "dp_thermal", dp.sim, dp_corr, rule_corr, t_dp))
+            rows.append(_row(cyc, T_amb, "rule_tuned", tr.result, dp_corr, rule_corr, t_rule))
+            for name, ctrl in (("sdp", SDPController(mp, pol, T_amb)), ("ecms", ECMSController(mp, ep, T_amb))):
+                t0 = time.perf_counter()
+                sim = simulate(params, scen.load_cycle(), ctrl, **kw)
+                rows.append(_row(cyc, T_amb, name, sim, dp_corr, rule_corr, time.perf_counter() - t0))
+            say(f"  {cyc} at {T_amb:g} degC: DP {dp_corr:.2f} g, rule {rule_corr:.2f} g, SDP "
+                f"{rows[-2]['fuel_corrected_g']:.2f} g, ECMS {rows[-1]['fuel_corrected_g']:.2f} g (corrected)",
+                flush=True)
+    return CausalComparison(rows, markov, validation, policies, timings)
+
+
+def step_timing(params, controller, cycle="artemis_urban", T_amb=-10.0, reps: int = 3) -> dict:
+    """Per-call time of a controller (s): median and 99th percentile over ``reps`` drives."""
+    from calib.model.cycles import load_cycle
+    from calib.model.equations import traction_power
+
+    mp = params.model_params() if hasattr(params, "model_params") else params
+    cyc = load_cycle(cycle)
+    P = [traction_power(mp, cyc.v[k], cyc.v[k + 1], 0.0, cyc.Ts) for k in range(cyc.n_steps)]
+    ts = []
+    for _ in range(reps):
+        if hasattr(controller, "reset"):
+            controller.reset()
+        soc, tcl, tcab = 0.6, 70.0, 20.0
+        for k, Pt in enumerate(P):
+            t0 = time.perf_counter()
+            controller(k, soc, tcl, tcab, Pt, cyc.Ts)
+            ts.append(time.perf_counter() - t0)
+    ts = np.array(ts[len(P):] if reps > 1 else ts)  # the first drive warms caches
+    return {"median_s": float(np.median(ts)), "p99_s": float(np.percentile(ts, 99)), "max_s": float(ts.max()),
+            "calls": int(ts.size)}

@@ -1,0 +1,63 @@
+"""One model step from a wheel-power demand, for every candidate control (compiled).
+
+:func:`calib.model.equations.step` takes speeds; a causal controller (and the stochastic DP) knows the
+demand ``P_trac`` instead. :func:`step_demand` chains the same equation functions as ``step`` after the
+traction power (power split, battery, fuel rate, heater limit, coolant and cabin rates, Euler update),
+so no equation is written twice; ``tests/test_causal_sdp.py`` checks it against ``step``.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from calib.model.equations import (ENGINE_POWER, IDLE, OFF, ON, battery, battery_ocv_r, cabin_rate, coolant_flows,
+                                   fuel_rate, heater_limit, power_split)
+
+
+@njit(cache=True)
+def step_demand(p, soc, T_cl, T_cab, e_mode, P_bat_mg, Q_heat_cmd, P_trac, T_amb, T_bat, W_bl, Ts):
+    """Returns (soc_next, T_cl_next, T_cab_next, W_f, code) of one step with wheel power ``P_trac``."""
+    P_e, Pbm, P_em, P_brake, ok_e = power_split(p, e_mode, P_bat_mg, P_trac)
+    I, V, U, R, code = battery(p, soc, Pbm + p.P_aux, T_bat)
+    if not ok_e:
+        code = ENGINE_POWER
+    W_f = fuel_rate(p, e_mode, P_e, T_cl)
+    Q_max = heater_limit(p, T_cl, T_cab, T_amb, W_bl)
+    Q_heat = Q_heat_cmd if Q_heat_cmd < Q_max else Q_max
+    if Q_heat < 0.0:
+        Q_heat = 0.0
+    dT_cl, Q_exh, Q_air, Q_rad, T_com = coolant_flows(p, T_cl, T_amb, p.LHV * W_f, P_e, Q_heat)
+    dT_cab, Q_load = cabin_rate(p, T_cab, T_amb, Q_heat)
+    if code != 0:
+        return np.nan, np.nan, np.nan, np.nan, code
+    return soc - I * Ts / p.C_bat_As, T_cl + Ts * dT_cl, T_cab + Ts * dT_cab, W_f, code
+
+
+@njit(cache=True)
+def eval_controls(p, soc, T_cl, T_cab, P_trac, controls, Q_heat_cmd, T_amb, T_bat, W_bl, Ts, out):
+    """Every control row ``(e_mode, P_bat_mg)`` -> out[i] = (soc', T_cl', T_cab', W_f, feasible)."""
+    for i in range(controls.shape[0]):
+        r = step_demand(p, soc, T_cl, T_cab, int(controls[i, 0]), controls[i, 1], Q_heat_cmd, P_trac, T_amb,
+                        T_bat, W_bl, Ts)
+        out[i, 0], out[i, 1], out[i, 2], out[i, 3] = r[0], r[1], r[2], r[3]
+        out[i, 4] = 1.0 if r[4] == 0 else 0.0
+
+
+def power_controls(mp, pbat_step: float = 500.0) -> np.ndarray:
+    """Control rows (e_mode, P_bat_mg): off, idle, and on with the battery-terminal power on the grid
+    ``P_bat_min : pbat_step : P_bat_max`` (the DP's power controls)."""
+    n = int(np.floor((mp.P_bat_max - mp.P_bat_min) / pbat_step + 1e-9)) + 1
+    P_bat = mp.P_bat_min + pbat_step * np.arange(n)
+    rows = [(OFF, 0.0), (IDLE, 0.0)] + [(ON, pb - mp.P_aux) for pb in P_bat]
+    return np.array(rows, dtype=np.float64)
+
+
+def electric_g_per_soc(mp, soc: float) -> float:
+    """Fuel (g) worth one unit of SOC: the valuation of :meth:`calib.model.simulate.SimResult.fuel_equivalents`."""
+    U, _ = battery_ocv_r(mp, soc, mp.T_bat_ref)
+    return float(mp.C_bat_As * U / (mp.LHV * float(np.max(mp.eta_ool)) * mp.eta_mech * mp.eta_em))
+
+
+def coolant_g_per_K(mp) -> float:
+    """Fuel (g) worth one kelvin of coolant (the same valuation as the corrected fuel)."""
+    return float(mp.C_eng / (mp.LHV * (1.0 - mp.gamma_exh)))
