@@ -22,6 +22,10 @@ run: $(STAMP)
 test: $(STAMP)
 	MPLBACKEND=Agg $(BIN)/python -m pytest -q -m "not slow and not browser"
 
+## static checks (ruff, configured in pyproject.toml); CI runs them before the tests
+lint: $(STAMP)
+	$(BIN)/ruff check .
+
 test-slow: $(STAMP)
 	MPLBACKEND=Agg $(BIN)/python -m pytest -q -m slow
 

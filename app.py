@@ -10,7 +10,6 @@ matplotlib.use("Agg")
 
 import streamlit as st  # noqa: E402
 
-from iptm import dashboard as dash  # noqa: E402
 
 st.set_page_config(page_title="iptm - Prius winter workbench", layout="wide")
 

@@ -18,7 +18,8 @@ only that the code agrees with itself. This plant (its own 1 s Euler loop; no eq
 The truth is written beside the logs in two parts: the plant's own parameters (``structure``) and, for
 the fitter's parameters that have a counterpart in this plant, the value a perfect fit would find
 (``comparable``: e.g. ``W_idle_g_per_s`` as the fuel meter reads it, ``f_cl`` and the battery tables
-evaluated at the fitter's breakpoints, ``f_cl`` relative to its value at the fitter's warm reference). Parameters without a counterpart (``k_rad``, ``T_open``,
+evaluated at the fitter's breakpoints, ``f_cl`` relative to its value at the fitter's warm reference).
+Parameters without a counterpart (``k_rad``, ``T_open``,
 ``fuel_scale``) are listed as such and never scored.
 """
 from __future__ import annotations
@@ -384,4 +385,5 @@ def write_perturbed_logs(out_dir, seed: int = 0, drives=None, progress=print) ->
 
 
 __all__ = ["PLANT", "Drive", "CALIBRATION", "HELD_OUT", "ENGINE_CHANNELS", "HEATER_CHANNELS", "draw_plant",
-           "simulate_plant", "comparable_truth", "SCORED", "param_at", "truth_at", "score", "synthesise_perturbed", "perturbed_logs", "write_perturbed_logs"]
+           "simulate_plant", "comparable_truth", "SCORED", "param_at", "truth_at", "score", "synthesise_perturbed",
+           "perturbed_logs", "write_perturbed_logs"]

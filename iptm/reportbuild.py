@@ -224,7 +224,7 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
         opt.pre(cs.format_value_check())
     if cs.rule:
         opt.p("Tuned rule-based thresholds: " + ", ".join(f"{k} = {v:g}" for k, v in cs.rule["thresholds"].items()))
-    for png in cs.plot_figures(out / "figures"):
+    for png in cs.plot(out / "figures"):
         opt.figure(png, Path(png).stem.replace("_", " "))
 
     # --- provenance

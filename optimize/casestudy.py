@@ -17,15 +17,8 @@ import pandas as pd
 from optimize.formulations.scenario import DPGrids, DPScenario
 from optimize.formulations.solve import solve_baseline, solve_thermal, solve_thermal_cabin
 
-#: The paper's reported savings (%): vs rule-based and vs Baseline-DP on the thermal model.
-PAPER_SAVINGS = {
-    "thermal": {"vs_rule": 6.0, "vs_baseline": 2.7},
-    "thermal_cabin": {"vs_rule": 6.85, "vs_baseline": None, "vs_thermal": 1.0},
-}
+from optimize.labels import LABELS, PAPER_SAVINGS  # noqa: F401 - re-exported
 
-LABELS = {"rule": "Rule-based (tuned)", "baseline_warm": "Baseline-DP (own optimum, f_cl = 1)",
-          "baseline": "Baseline-DP on thermal model", "thermal": "Thermal-DP",
-          "thermal_cabin": "Thermal-Cabin-DP", "ecms": "ECMS (causal)", "sdp": "SDP policy (causal)"}
 STRATEGIES = ("rule", "baseline", "thermal", "thermal_cabin")
 #: Causal strategies (:mod:`optimize.causal`), run on request: ``strategies=STRATEGIES + CAUSAL``.
 CAUSAL = ("ecms", "sdp")
@@ -154,100 +147,12 @@ class CaseStudy:
                     "(paper: -0.5 degC)")
         return txt
 
-    def plot_figures(self, outdir) -> list:
-        """The paper's figures as PNGs in ``outdir``; returns their paths."""
-        import matplotlib
+    def plot(self, outdir) -> list:
+        """The paper's figures as PNGs in ``outdir`` (:func:`optimize.plotting.plot_case_study`); returns their
+        paths."""
+        from optimize.plotting import plot_case_study
 
-        matplotlib.use("Agg", force=False)
-        import matplotlib.pyplot as plt
-        from pathlib import Path
-
-        from calib.fileio import save_figure
-
-        outdir = Path(outdir)
-        keys = [k for k in ("rule", "baseline", "thermal", "thermal_cabin") if k in self.sims]
-        colors = {"rule": "k", "baseline": "C0", "thermal": "C3", "thermal_cabin": "C2"}
-        paths = []
-
-        def save(fig, name):
-            p = outdir / f"{name}.png"
-            save_figure(fig, p)
-            paths.append(str(p))
-
-        series = [
-            ("soc", "SOC [-]", lambda s: (s.t, s.soc), "plot"),
-            ("coolant", "coolant temperature [degC]", lambda s: (s.t, s.T_cl), "plot"),
-            ("engine_power", "engine power [kW]", lambda s: (s.t[:-1], s.flows["P_e"] / 1e3), "plot"),
-            ("battery_power", "battery power [kW]", lambda s: (s.t[:-1], s.flows["P_bat"] / 1e3), "plot"),
-            ("engine_mode", "engine mode (1 off, 2 idle, 3 on)", lambda s: (s.t[:-1], s.e_mode), "step"),
-            ("cumulative_fuel", "cumulative fuel [g]",
-             lambda s: (s.t, np.concatenate([[0], np.cumsum(s.flows["W_f"]) * s.Ts])), "plot"),
-            ("cabin", "cabin temperature [degC]", lambda s: (s.t, s.T_cab), "plot"),
-            ("heater_power", "heater power delivered [W]", lambda s: (s.t[:-1], s.flows["Q_heat"]), "plot"),
-        ]
-        title = f"{self.sims[keys[0]].info.get('cycle', '')}, {self.scenario.T_amb:g} degC"
-        for name, ylabel, get, kind in series:
-            use = keys if name not in ("cabin", "heater_power") else [k for k in keys if k in ("thermal",
-                                                                                               "thermal_cabin")]
-            if name == "engine_mode":
-                fig, axs = plt.subplots(len(use), 1, figsize=(9, 1.6 * len(use) + 0.6), sharex=True,
-                                        squeeze=False)
-                for ax, k in zip(axs[:, 0], use):
-                    t, y = get(self.sims[k])
-                    ax.step(t, y, where="post", color=colors[k], lw=0.8)
-                    ax.set_yticks([1, 2, 3], ["off", "idle", "on"])
-                    ax.set_ylabel(LABELS[k].split(" on ")[0], fontsize=8)
-                axs[-1, 0].set_xlabel("time [s]")
-                fig.suptitle(f"engine mode - {title}", fontsize=10)
-            else:
-                fig, ax = plt.subplots(figsize=(9, 3.6))
-                for k in use:
-                    t, y = get(self.sims[k])
-                    ax.plot(t, y, color=colors[k], lw=0.9, label=LABELS[k])
-                if name == "cabin" and "thermal_cabin" in self.outcomes:
-                    ex = self.outcomes["thermal_cabin"].extra
-                    ax.axhline(ex.get("T_cab_ub", np.nan), color="0.5", ls=":", lw=0.8, label="upper bound")
-                    if self.scenario.terminal == "free":
-                        ax.axhline(ex.get("T_cab_terminal_min", np.nan), color="0.5", ls="--", lw=0.8,
-                                   label="terminal minimum")
-                ax.set_xlabel("time [s]")
-                ax.set_ylabel(ylabel)
-                ax.legend(fontsize=8, loc="best")
-                ax.set_title(title, fontsize=10)
-            fig.tight_layout()
-            save(fig, name)
-        # fuel bars: the saving of each strategy against the reference (rule-based when present), on fuel and
-        # on corrected fuel, every bar labelled; differences of a few percent stay visible, unlike grams from 0
-        ref = "rule" if "rule" in keys else keys[0]
-        fuel = {k: self.sims[k].fuel_g for k in keys}
-        corr = {k: self.sims[k].summary()["fuel_corrected_g"] for k in keys}
-        sav = [100 * (1 - fuel[k] / fuel[ref]) for k in keys]
-        sav_c = [100 * (1 - corr[k] / corr[ref]) for k in keys]
-        fig, ax = plt.subplots(figsize=(8, 0.75 * len(keys) + 1.9))
-        y = np.arange(len(keys))[::-1]
-        h = 0.38
-        ax.barh(y + h / 2, sav, h, color=[colors[k] for k in keys], label="fuel")
-        ax.barh(y - h / 2, sav_c, h, color=[colors[k] for k in keys], alpha=0.45, hatch="//",
-                label="corrected fuel (final SOC, coolant and cabin energy)")
-        papers = [PAPER_SAVINGS.get(k, {}).get("vs_rule") for k in keys] if ref == "rule" else []
-        span = max([abs(v) for v in sav + sav_c] + [p for p in papers if p is not None] + [0.5])
-        for yi, k, v, vc in zip(y, keys, sav, sav_c):
-            for yy, val, g in ((yi + h / 2, v, fuel[k]), (yi - h / 2, vc, corr[k])):
-                txt = f"{g:.1f} g" + (" (reference)" if k == ref else f", {val:+.2f} %")
-                ax.text(max(val, 0) + 0.02 * span, yy, txt, va="center", ha="left", fontsize=8)
-            paper = PAPER_SAVINGS.get(k, {}).get("vs_rule") if ref == "rule" else None
-            if paper is not None:
-                ax.plot([paper], [yi + h / 2], marker="D", color="k", ms=5, ls="none",
-                        label="paper (fuel)" if k == "thermal" else None)
-        ax.axvline(0, color="0.3", lw=0.8)
-        ax.set_yticks(y, [LABELS[k].replace(" on thermal model", "\non thermal model") for k in keys], fontsize=8)
-        ax.set_xlim(min(0.0, min(sav + sav_c)) - 0.1 * span, 1.45 * span)
-        ax.set_xlabel(f"saving vs {LABELS[ref]} [%]")
-        ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=3, frameon=False)
-        ax.set_title(f"fuel saving - {title}", fontsize=10)
-        fig.tight_layout()
-        save(fig, "fuel_bars")
-        return paths
+        return plot_case_study(self, outdir)
 
 
 def run_case_study(params, scenario: DPScenario | None = None, strategies=STRATEGIES, progress: bool = True,

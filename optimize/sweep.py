@@ -57,13 +57,13 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from optimize.plotting import plot_study  # noqa: F401 - part of this module's API
+
 __all__ = ["Study", "load_study", "study_from_dict", "run_sequential", "run_case", "run_study", "results_table", "write_table", "plot_study",
            "montecarlo_draws", "STRATEGIES", "DEFAULT_STORE", "local_client"]
 
 STRATEGIES = ("rule", "baseline", "thermal", "thermal_cabin")
 #: Names in plots.
-NAMES = {"rule": "rule-based (tuned)", "baseline": "Baseline-DP on the thermal model", "thermal": "Thermal-DP",
-         "thermal_cabin": "Thermal-Cabin-DP"}
 #: Default result store (gitignored).
 DEFAULT_STORE = Path(".iptm-cache") / "sweep"
 _KIND = "sweep"
@@ -555,75 +555,6 @@ def write_table(df: pd.DataFrame, path) -> Path:
 # ---------------------------------------------------------------------------------------------------
 # plots
 # ---------------------------------------------------------------------------------------------------
-def plot_study(df: pd.DataFrame, outdir, metric="both") -> list[str]:
-    """``saving_vs_ambient.png`` (saving of each non-reference strategy vs ambient, one line per cycle;
-    median and 5-95 % band over Monte-Carlo draws) when the ambient varies, and ``saving_spread.png``
-    (boxplot over draws for each cycle and ambient) when there are Monte-Carlo draws. ``metric``:
-    ``saving_pct`` (fuel), ``saving_corrected_pct`` (fuel corrected for the final SOC, coolant and cabin
-    energy) or ``both`` (one panel each). Returns the paths."""
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
-    from calib.fileio import save_figure
-
-    outdir = Path(outdir)
-    paths = []
-    ok = df[(df["status"] == "ok") & (df["strategy"] != df["reference"])]
-    if ok.empty:
-        return paths
-    metrics = ["saving_pct", "saving_corrected_pct"] if metric == "both" else [metric]
-    labels = {"saving_pct": "fuel saving vs {ref} [%]",
-              "saving_corrected_pct": "corrected-fuel saving vs {ref} [%]"}
-    ref = NAMES.get(df["reference"].iloc[0], df["reference"].iloc[0])
-    name = df["study"].iloc[0] if "study" in df else ""
-
-    def save(fig, fname):
-        p = outdir / fname
-        save_figure(fig, p)
-        paths.append(str(p))
-
-    if ok["T_amb"].nunique() > 1:
-        fig, axs = plt.subplots(1, len(metrics), figsize=(6.2 * len(metrics), 4.2), squeeze=False)
-        groups = list(ok.groupby(["cycle", "strategy", "params"], sort=True))
-        for ax, m in zip(axs[0], metrics):
-            for i, ((cyc, strat, plabel), g) in enumerate(groups):
-                st = g.groupby("T_amb")[m]
-                med = st.median()
-                lab = f"{cyc}, {NAMES.get(strat, strat)}" + (f" ({plabel})" if ok["params"].nunique() > 1 else "")
-                line, = ax.plot(med.index, med.values, marker="o", lw=1.4, label=lab, color=f"C{i % 10}")
-                if g["draw"].notna().any() and st.size().max() > 1:
-                    ax.fill_between(med.index, st.quantile(0.05).values, st.quantile(0.95).values,
-                                    color=line.get_color(), alpha=0.2, lw=0)
-            ax.axhline(0, color="0.6", lw=0.7)
-            ax.set_xlabel("ambient temperature [degC]")
-            ax.set_ylabel(labels[m].format(ref=ref))
-            ax.grid(alpha=0.3)
-            ax.legend(fontsize=8)
-        plabels = sorted(ok["params"].unique())
-        fig.suptitle(f"{name}: saving vs ambient (parameters: {', '.join(plabels[:3])}"
-                     f"{', ...' if len(plabels) > 3 else ''})", fontsize=10)
-        fig.tight_layout()
-        save(fig, "saving_vs_ambient.png")
-    draws = ok[ok["draw"].notna()]
-    if not draws.empty and draws.groupby(["cycle", "T_amb", "strategy"]).size().max() > 1:
-        keys = sorted(draws.groupby(["strategy", "cycle", "T_amb"]).groups)
-        fig, axs = plt.subplots(len(metrics), 1, figsize=(max(6.0, 0.55 * len(keys) + 2), 3.6 * len(metrics)),
-                                squeeze=False)
-        for ax, m in zip(axs[:, 0], metrics):
-            data = [draws[(draws["strategy"] == s) & (draws["cycle"] == c) & (draws["T_amb"] == t)][m].values
-                    for s, c, t in keys]
-            ax.boxplot(data, showfliers=True)
-            ax.set_xticks(range(1, len(keys) + 1),
-                          [f"{c}\n{t:g} degC" + (f"\n{NAMES.get(s, s)}" if draws["strategy"].nunique() > 1 else "")
-                           for s, c, t in keys], fontsize=7)
-            ax.set_ylabel(labels[m].format(ref=ref))
-            ax.grid(alpha=0.3, axis="y")
-        axs[0, 0].set_title(f"{name}: spread over {draws['draw'].nunique()} parameter draws", fontsize=10)
-        fig.tight_layout()
-        save(fig, "saving_spread.png")
-    return paths
 
 
 def summary_pivot(df: pd.DataFrame, metric: str = "saving_pct") -> pd.DataFrame:

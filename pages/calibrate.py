@@ -166,7 +166,7 @@ def _page():
 
     tabs = st.tabs([f"{lbl} ({'held out' if held_out else 'fitted'})" for lbl, _, held_out in cal["plots"]]
                    + ["residuals"])
-    for tab, (lbl, rep, held_out) in zip(tabs, cal["plots"]):
+    for tab, (_lbl, rep, _held_out) in zip(tabs, cal["plots"]):
         with tab:
             m = rep.metrics()
             st.caption(", ".join(f"{k} RMSE {v['rmse']:.3g} {v['unit']}" for k, v in m.items() if "rmse" in v)

@@ -159,7 +159,6 @@ def _page():
 
     st.markdown("**DP grid steps** (the paper's Table II: SOC 0.01, coolant 1 degC, cabin 1 degC, battery 500 W, "
                 "heater 50 W; coarser runs faster)")
-    g = DPGrids()
     g1, g2, g3, g4, g5 = st.columns(5)
     gs = g1.number_input("SOC [-]", 0.001, 0.1, 0.02, 0.005, format="%.3f", key="opt_g_soc")
     gt = g2.number_input("coolant [degC]", 0.1, 10.0, 2.0, 0.5, key="opt_g_tcl")
@@ -191,7 +190,7 @@ def _page():
             cyc = scenario.load_cycle()  # a bad cycle or duration fails here, before any DP
             base_key = content_key(params.to_dict()["parameters"], dash.scenario_key(scenario), grids.to_dict())
             parts = []
-            for i, s in enumerate(order):
+            for s in order:
                 bars[s].progress(0.0, text=f"{STRATS[s]}: solving on {cyc.n_steps} steps ...")
                 t0 = time.perf_counter()
                 part = _solve(content_key(base_key, s), params, scenario, grids, s)

@@ -28,7 +28,8 @@ FIGS = ROOT / "reports" / "figures"
 CHROMIUM = os.environ.get("IPTM_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
         "--disable-component-update", "--disable-sync", "--no-first-run"]
-LONG = 900_000 if os.environ.get("IPTM_README_SHOTS") == "1" else 240_000  # ms: one calibration / optimisation / report step (the first compiles the numba kernels; README mode: paper grids)
+# ms: one calibration / optimisation / report step (the first compiles the numba kernels; README mode: paper grids)
+LONG = 900_000 if os.environ.get("IPTM_README_SHOTS") == "1" else 240_000
 
 
 def _free_port() -> int:

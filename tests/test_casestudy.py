@@ -53,7 +53,7 @@ def test_table_columns(cs):
 
 
 def test_figures(cs, tmp_path):
-    paths = cs.plot_figures(tmp_path / "figs")
+    paths = cs.plot(tmp_path / "figs")
     names = {p.rsplit("/", 1)[-1] for p in paths}
     assert names == {f"{n}.png" for n in ("soc", "coolant", "engine_power", "battery_power", "engine_mode",
                                           "cumulative_fuel", "cabin", "heater_power", "fuel_bars")}

@@ -59,7 +59,8 @@ def _explicit_mdp(mp, cfg, chain):
     socg, tclg, U, A_soc, A_ok, B_tcl, B_wf = transition_tables(mp, cfg, chain.values)
     ns, nt, nd, nu = socg.size, tclg.size, chain.values.size, U.shape[0]
     S = nd * ns * nt
-    idx = lambda d, i, j: (d * ns + i) * nt + j
+    def idx(d, i, j):
+        return (d * ns + i) * nt + j
     c = np.full((S, nu), np.inf)
     T = np.zeros((nu, S, S))
     for d, i, j, u in itertools.product(range(nd), range(ns), range(nt), range(nu)):

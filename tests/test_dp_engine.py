@@ -295,6 +295,15 @@ def test_deterministic_across_thread_counts_and_dataframe():
     assert r1.solve_time > 0 and r1.evals_per_second > 0
 
 
+def test_result_plot(tmp_path):
+    """The result draws itself: one panel per state and control plus the cumulative cost, saved atomically."""
+    r = solve(_twostate_problem(11), [0.05, 0.02])
+    fig = r.plot(tmp_path / "dp.png")
+    assert len(fig.axes) == 2 + 2 + 1 and (tmp_path / "dp.png").stat().st_size > 0
+    line = fig.axes[-1].lines[0]
+    assert line.get_ydata()[-1] == pytest.approx(r.cost - r.terminal_cost)
+
+
 def test_input_validation():
     with pytest.raises(ValueError):
         DPProblem(grids=[np.array([0.0, 0.0, 1.0])], controls=np.zeros((1, 1)), N=1, transition=twostatesys)

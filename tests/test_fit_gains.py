@@ -1,6 +1,5 @@
 """Synthetic truths with solar gain and recirculation (``draw_truth(gains=True)``; the default truths have 0,
 where a wrong sign or weight would go unnoticed): the cabin fit is not biased by them."""
-import pytest
 
 from calib.fit.cabin import fit_cabin
 from calib.ingest import to_drivelog

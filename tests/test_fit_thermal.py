@@ -42,7 +42,7 @@ def test_thermal_recovers_truth(seed):
     for n in ("C_eng_J_per_K", "gamma_exh", "kappa"):
         assert fit.estimates[n].status == "estimated", (n, fit.estimates[n].note)
     assert recovery_failures(fit, truth) == []
-    for n, e in fit.estimates.items():
+    for e in fit.estimates.values():
         assert e.stderr is not None and e.prior_sd is not None and 0 <= e.informed <= 1
     assert fit.metrics["rmse_degC"] < 0.6
 

@@ -112,7 +112,7 @@ def test_fuel_chart_labels_every_bar(tmp_path, monkeypatch):
     real = fio.save_figure
     monkeypatch.setattr(fio, "save_figure", lambda fig, path, **kw: (figs.__setitem__(path.stem, fig),
                                                                        real(fig, path, **kw)))
-    cs.plot_figures(tmp_path)
+    cs.plot(tmp_path)
     ax = figs["fuel_bars"].axes[0]
     bars = list(ax.patches)
     texts = [t.get_text() for t in ax.texts]

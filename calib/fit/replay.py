@@ -7,7 +7,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
-from calib.model.equations import IDLE, OFF, ON, battery, coolant_flows, cabin_rate, fuel_rate, power_split, traction_power
+from calib.model.equations import (IDLE, OFF, ON, battery, coolant_flows, cabin_rate, fuel_rate, power_split,
+                                   traction_power)
 from calib.units import RPM
 
 

@@ -130,7 +130,7 @@ def fit_thermal(logs, base, *, allowed=None) -> SubsystemFit:
     kappa_known = "kappa" in fit.estimates and fit.estimates["kappa"].status == "estimated"
     mp0 = work.model_params()
     data = []
-    for i, (lg, la) in enumerate(use):
+    for i, (_lg, la) in enumerate(use):
         c = la.ch
         T = c["coolant_temp_degC"]
         data.append(dict(T=T, ok=np.isfinite(T), dt=la.dt, T_amb=_fill(c["ambient_temp_degC"], 0.0),

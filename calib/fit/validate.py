@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from calib.plotting import plot_residual_comparison, plot_residuals, plot_validation  # noqa: F401 - re-exported
 from calib.fit.replay import (CHANNEL_METRICS, _fill, _split_battery_power, first_valid_mean, fuel_replay, full_replay,
                               log_arrays)
 
@@ -45,6 +46,11 @@ class Replay:
     refused: dict = field(default_factory=dict)  # channel -> why it was not simulated
     inferred: dict = field(default_factory=dict)  # input -> how it was inferred
     regimes: dict = field(default_factory=dict)  # regime name -> boolean mask
+
+    def plot(self, path=None, title=None):
+        """Measured vs simulated, paper Fig. 3 style (:func:`calib.plotting.plot_validation`). Returns the
+        Figure."""
+        return plot_validation(self, path, title)
 
     def metrics(self) -> dict:
         """Per channel RMSE, max abs error, bias (sim - meas) and sample count; cumulative fuel error."""
@@ -210,135 +216,10 @@ def diagnostics(rep: Replay, lags=(1, 10, 60)) -> dict:
     return out
 
 
-def plot_residuals(rep: Replay, path=None, title=None):
-    """Per simulated channel: measured vs simulated, residual over time, residual autocorrelation.
-    Written atomically when ``path`` is given. Returns the Figure."""
-    import matplotlib
-
-    if path is not None:
-        matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
-    keys = [k for k in CHANNEL_METRICS if k in rep.measured and k in rep.simulated]
-    fig, ax = plt.subplots(max(len(keys), 1), 3, figsize=(12, 2.6 * max(len(keys), 1)), squeeze=False)
-    t = rep.t / 60.0
-    for i, k in enumerate(keys):
-        m, s = rep.measured[k], rep.simulated[k]
-        ok = np.isfinite(m) & np.isfinite(s)
-        unit = CHANNEL_METRICS[k][1]
-        a = ax[i, 0]
-        a.plot(m[ok], s[ok], ".", ms=1.5, alpha=0.5)
-        lo, hi = float(np.nanmin(m[ok])), float(np.nanmax(m[ok]))
-        a.plot([lo, hi], [lo, hi], "k-", lw=0.8)
-        a.set_xlabel(f"measured {k} [{unit}]")
-        a.set_ylabel("simulated")
-        a = ax[i, 1]
-        a.plot(t[ok], (s - m)[ok], "-", lw=0.6)
-        a.axhline(0, color="k", lw=0.6)
-        a.set_ylabel(f"residual [{unit}]")
-        a.set_xlabel("time [min]")
-        a = ax[i, 2]
-        r = (s - m)[ok]
-        r = r - r.mean()
-        nl = min(300, max(r.size // 3, 2))
-        den = float(r @ r) or 1.0
-        acf = [1.0] + [float(r[j:] @ r[:-j] / den) for j in range(1, nl)]
-        a.plot(np.arange(nl), acf, "-")
-        a.axhline(0, color="k", lw=0.6)
-        a.set_xlabel("lag [samples]")
-        a.set_ylabel("residual ACF")
-    if rep.refused:
-        fig.text(0.01, 0.005, "not checked: " + "; ".join(f"{k} ({v})" for k, v in rep.refused.items())[:220],
-                 fontsize=7)
-    fig.suptitle(title or f"Residual diagnostics: {rep.name}", fontsize=9)
-    fig.tight_layout(rect=(0, 0.03, 1, 1))
-    if path is not None:
-        from calib.fileio import save_figure
-
-        save_figure(fig, path)
-    return fig
 
 
-def plot_validation(rep: Replay, path=None, title=None):
-    """Measured vs simulated (paper Fig. 3 style): SOC, coolant, cabin, fuel rate and cumulative fuel.
-
-    Written atomically when ``path`` is given (Agg backend). Returns the Figure.
-    """
-    import matplotlib
-
-    if path is not None:
-        matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
-    t = rep.t / 60.0
-    fig, ax = plt.subplots(5, 1, figsize=(8, 11), sharex=True)
-    panels = [("soc", "SOC [-]"), ("coolant_temp", "coolant temp. [degC]"), ("cabin_temp", "cabin temp. [degC]"),
-              ("fuel_rate", "fuel rate [g/s]")]
-    for a, (k, lab) in zip(ax, panels):
-        if k in rep.measured:
-            a.plot(t, rep.measured[k], "k-", lw=0.8, label="measured")
-        if k in rep.simulated:
-            a.plot(t, rep.simulated[k], "r--", lw=1.0, label="simulated")
-        a.set_ylabel(lab)
-        a.grid(alpha=0.3)
-    ax[0].legend(loc="best", fontsize=8)
-    dt = float(np.median(np.diff(rep.t))) if rep.t.size > 1 else 1.0
-    if "fuel_rate" in rep.measured:
-        ax[4].plot(t, np.cumsum(_fill(rep.measured["fuel_rate"], 0.0)) * dt, "k-", lw=0.8, label="measured")
-    if "fuel_rate" in rep.simulated:
-        ax[4].plot(t, np.cumsum(np.nan_to_num(rep.simulated["fuel_rate"])) * dt, "r--", lw=1.0, label="simulated")
-    for a, (k, _lab) in zip(ax, panels + [("fuel_rate", "")]):
-        if k in rep.refused:
-            a.text(0.5, 0.5, f"not simulated: {rep.refused[k]}"[:110], transform=a.transAxes, ha="center",
-                   fontsize=7, color="r")
-    ax[4].set_ylabel("cumulative fuel [g]")
-    ax[4].set_xlabel("time [min]")
-    ax[4].grid(alpha=0.3)
-    m = rep.metrics()
-    sub = ", ".join(f"{k} RMSE {v['rmse']:.3g}" for k, v in m.items() if "rmse" in v)
-    fig.suptitle((title or f"Validation: {rep.name}") + "\n" + sub, fontsize=9)
-    fig.tight_layout()
-    if path is not None:
-        from calib.fileio import save_figure
-
-        save_figure(fig, path)
-    return fig
 
 
-def plot_residual_comparison(reps, path=None, title=None):
-    """Residuals (simulated - measured) of SOC, coolant, cabin temperature and fuel rate, one line per log.
-
-    ``reps`` is a list of ``(label, Replay)``; fitted and held-out logs side by side show whether the fit
-    only follows the logs it was fitted on. Written atomically when ``path`` is given. Returns the Figure.
-    """
-    import matplotlib
-
-    if path is not None:
-        matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
-    panels = [("soc", "SOC [-]"), ("coolant_temp", "coolant [degC]"), ("cabin_temp", "cabin [degC]"),
-              ("fuel_rate", "fuel rate [g/s]")]
-    fig, ax = plt.subplots(len(panels), 1, figsize=(8, 8.5), sharex=True)
-    for i, (label, rep) in enumerate(reps):
-        for a, (k, _) in zip(ax, panels):
-            m, s = rep.measured.get(k), rep.simulated.get(k)
-            if m is None or s is None:
-                continue
-            a.plot(rep.t / 60.0, s - m, lw=0.7, color=f"C{i}", label=label)
-    for a, (_, lab) in zip(ax, panels):
-        a.axhline(0.0, color="k", lw=0.6)
-        a.set_ylabel("residual " + lab, fontsize=8)
-        a.grid(alpha=0.3)
-    ax[0].legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, 1.45), ncol=2, frameon=False)
-    ax[-1].set_xlabel("time [min]")
-    fig.suptitle(title or "residuals: simulated - measured", fontsize=9)
-    fig.tight_layout()
-    if path is not None:
-        from calib.fileio import save_figure
-
-        save_figure(fig, path)
-    return fig
 
 
 def truth_comparison(params, truth) -> list[dict]:

@@ -19,7 +19,8 @@ import pandas as pd
 from calib.drivelog import CHANNELS, DriveLog, LogMeta
 from calib.errors import LogFormatError
 from calib.fileio import atomic_path, write_json
-from calib.ingest.canlog import CAN_FORMATS, DEFAULT_SIGNAL_MAP, PRIUS_DBC, TOYOTA_2017_DBC, decode_can_signals, read_can_streams
+from calib.ingest.canlog import (CAN_FORMATS, DEFAULT_SIGNAL_MAP, PRIUS_DBC, TOYOTA_2017_DBC, decode_can_signals,
+                                 read_can_streams)
 from calib.ingest.channels import channel_report, display_report, format_report
 from calib.ingest.csvlog import read_csv_streams, sniff_is_csv
 from calib.ingest.damage import summarize as damage_summary

@@ -362,7 +362,7 @@ def read_mcap_streams(path, topic_map: dict | None = None, strict: bool = False)
                 scan.bad("message is not valid JSON", where)
                 return False
             vals = []
-            for field, (ch, _unit) in fields.items():
+            for field, (_ch, _unit) in fields.items():
                 v = _get(obj, field)
                 if v is None:
                     continue

@@ -165,46 +165,11 @@ class SimResult:
         }
 
     def plot(self, path=None, title=None):
-        """States, powers and fuel over time; saves to ``path`` when given. Returns the Figure."""
-        import matplotlib
+        """States, powers and fuel over time (:func:`calib.plotting.plot_simulation`); saves to ``path`` when
+        given. Returns the Figure."""
+        from calib.plotting import plot_simulation
 
-        if path is not None:
-            matplotlib.use("Agg", force=False)
-        import matplotlib.pyplot as plt
-
-        f = self.flows
-        tt = self.t[:-1]
-        fig, ax = plt.subplots(6, 1, figsize=(9, 12), sharex=True)
-        ax[0].plot(self.t, self.v * 3.6, "k", lw=0.8)
-        ax[0].set_ylabel("speed [km/h]")
-        ax[1].plot(self.t, self.soc, "C0")
-        ax[1].set_ylabel("SOC [-]")
-        ax[2].plot(self.t, self.T_cl, "C3", label="coolant")
-        ax[2].plot(self.t, self.T_cab, "C2", label="cabin")
-        ax[2].set_ylabel("temperature [degC]")
-        ax[2].legend(loc="best", fontsize=8)
-        ax[3].plot(tt, f["P_e"] / 1e3, "C1", lw=0.8, label="engine")
-        ax[3].plot(tt, f["P_bat"] / 1e3, "C0", lw=0.8, label="battery")
-        ax[3].set_ylabel("power [kW]")
-        ax[3].legend(loc="best", fontsize=8)
-        ax[4].step(tt, self.e_mode, "C4", where="post")
-        ax[4].set_yticks([1, 2, 3], ["off", "idle", "on"])
-        ax[4].set_ylabel("engine mode")
-        ax[5].plot(self.t, np.concatenate([[0], np.cumsum(f["W_f"]) * self.Ts]), "C5")
-        ax[5].set_ylabel("cumulative fuel [g]")
-        ax[5].set_xlabel("time [s]")
-        import textwrap
-
-        text = title or (f"{self.info.get('cycle', '')} at {self.info.get('T_amb_degC', '')} degC\n"
-                         f"{self.info.get('controller', '')}")
-        text = "\n".join(textwrap.fill(line, 110) for line in str(text).splitlines())
-        fig.suptitle(text, fontsize=9)
-        fig.tight_layout()  # makes room for the suptitle
-        if path is not None:
-            from calib.fileio import save_figure
-
-            save_figure(fig, path)
-        return fig
+        return plot_simulation(self, path, title)
 
 
 def simulate(params, cycle, controller=None, *, T_amb=-10.0, soc0=0.6, T_cl0=70.0, T_cab0=20.0,

@@ -2,7 +2,8 @@
 
 Study: Thermal-DP only, 8 ambients (-25 to +10 degC, step 5) x 2 whole cycles (ARTEMIS Urban 993 s, NYCC
 598 s) on the paper's grids (Table II: SOC 0.01, T_cl 1 degC, P_bat 500 W; 1-3 s per case on one core);
-``quick``: the first 200 s of each cycle on coarse grids (SOC 0.02, T_cl 2 degC, P_bat 1000 W). Both sides are warmed up first (numba compile / disk-cache load: one short case
+``quick``: the first 200 s of each cycle on coarse grids (SOC 0.02, T_cl 2 degC, P_bat 1000 W).
+Both sides are warmed up first (numba compile / disk-cache load: one short case
 in this process and on every worker), and each timed run uses a fresh, empty result store, so nothing is
 read from a cache.
 
@@ -24,8 +25,9 @@ def _study(quick: bool):
 
     scen = {"duration_s": 200.0} if quick else {}
     grids = {"soc": 0.02, "tcl": 2.0, "pbat": 1000.0} if quick else {}  # full: the paper's Table II
-    return Study(name="bench_sweep", strategies=["thermal"], grids=grids, scenario=scen, vary={"T_amb": [-25.0, -20.0, -15.0, -10.0, -5.0, 0.0, 5.0, 10.0],
-                                      "cycle": ["artemis_urban", "nycc"]})
+    return Study(name="bench_sweep", strategies=["thermal"], grids=grids, scenario=scen,
+                 vary={"T_amb": [-25.0, -20.0, -15.0, -10.0, -5.0, 0.0, 5.0, 10.0],
+                       "cycle": ["artemis_urban", "nycc"]})
 
 
 def run(quick: bool = False) -> dict:

@@ -120,7 +120,7 @@ def run(args) -> int:
               f"({d['evals_per_second'] / 1e6:.0f} M evals/s), total {d['t_total_s']:.2f} s"
               + (" (from the cache)" if getattr(o, "cached", False) else ""))
     if args.plots:
-        paths = cs.plot_figures(args.plots)
+        paths = cs.plot(args.plots)
         print(f"figures: {len(paths)} PNG in {args.plots}")
     if args.json:
         write_json(args.json, cs.to_dict())

@@ -227,36 +227,11 @@ class SDPPolicy:
                              "P_bat_mg_W": self.P_bat_mg.ravel(), "value_g": self.V.ravel()})
 
     def plot(self, path=None, demands_W=(0.0, 5e3, 12e3, 25e3)):
-        """Maps of the chosen battery power (engine on) and engine mode over SOC x T_cl for a few demands."""
-        import matplotlib
+        """Maps of the chosen battery power (engine on) and engine mode over SOC x T_cl for a few demands
+        (:func:`optimize.plotting.plot_policy`). Returns the Figure."""
+        from optimize.plotting import plot_policy
 
-        if path is not None:
-            matplotlib.use("Agg", force=False)
-        import matplotlib.pyplot as plt
-
-        ds = sorted({int(np.argmin(np.abs(self.demand_W - x))) for x in demands_W})
-        fig, axs = plt.subplots(2, len(ds), figsize=(3.4 * len(ds), 6.2), squeeze=False)
-        ext = [self.tcl_grid[0], self.tcl_grid[-1], self.soc_grid[0], self.soc_grid[-1]]
-        for c, d in enumerate(ds):
-            e = self.e_mode[d]
-            pb = np.where(e == 3, self.P_bat_mg[d] / 1e3, np.nan)
-            im = axs[0, c].imshow(pb, origin="lower", aspect="auto", extent=ext, cmap="coolwarm",
-                                  vmin=-25, vmax=25)
-            axs[0, c].set_title(f"demand {self.demand_W[d] / 1e3:.1f} kW", fontsize=9)
-            im2 = axs[1, c].imshow(e, origin="lower", aspect="auto", extent=ext, cmap="viridis", vmin=1, vmax=3)
-            axs[1, c].set_xlabel("coolant [degC]")
-        axs[0, 0].set_ylabel("SOC [-]  (P_bat_mg when on)")
-        axs[1, 0].set_ylabel("SOC [-]  (engine mode)")
-        fig.colorbar(im, ax=axs[0, :].tolist(), label="P_bat_mg [kW] (+ discharge)")
-        cb = fig.colorbar(im2, ax=axs[1, :].tolist(), ticks=[1, 2, 3])
-        cb.ax.set_yticklabels(["off", "idle", "on"])
-        fig.suptitle(f"SDP policy at {self.config.T_amb:g} degC ambient, heater {self.config.Q_heat:g} W",
-                     fontsize=10)
-        if path is not None:
-            from calib.fileio import save_figure
-
-            save_figure(fig, path)
-        return fig
+        return plot_policy(self, path, demands_W)
 
     # --- storage: .npz arrays + JSON metadata, no pickle ----------------------------------------
     def save(self, path) -> None:

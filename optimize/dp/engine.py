@@ -317,6 +317,13 @@ class DPResult:
         """State-control evaluations per second of the backward pass."""
         return self.n_evaluations / self.t_backward if self.t_backward > 0 else float("nan")
 
+    def plot(self, path=None, title=None):
+        """States, controls and cumulative stage cost over the steps (:func:`optimize.plotting.plot_dp_result`).
+        Returns the Figure."""
+        from optimize.plotting import plot_dp_result
+
+        return plot_dp_result(self, path, title)
+
     def to_pandas(self):
         """One row per step k = 0..N: states x0.., controls u0.. and stage cost (NaN at k = N)."""
         import pandas as pd

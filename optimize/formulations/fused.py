@@ -25,7 +25,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from optimize.formulations.layout import _C_CH, _C_CHI, _C_PEN, _C_SH, _C_SHI, _C_SLO, _C_TH, _C_THI, _C_TLO, _C_TS, _C_TAMB, _C_WBL, _CCAB, _CENG, _CP, _EPS, _GAMMA, _LHV, _MS0, _QSUN, _RECIRC, _T_OK, _T_PE, _T_SOC0, _T_WF, _UACAB, _A_FCLG, _A_LOSSG
+from optimize.formulations.layout import (_C_CH, _C_CHI, _C_PEN, _C_SH, _C_SHI, _C_SLO, _C_TH, _C_THI, _C_TLO, _C_TS,
+                                          _C_TAMB, _C_WBL, _CCAB, _CENG, _CP, _EPS, _GAMMA, _LHV, _MS0, _QSUN,
+                                          _RECIRC, _T_OK, _T_PE, _T_SOC0, _T_WF, _UACAB, _A_FCLG, _A_LOSSG)
 from optimize.dp.kernels import _interp_slow as _slow  # the engine's exact multilinear interpolation
 from optimize.dp.kernels import level_better, level_needs_cost  # the engine's level-set choice rule
 from optimize.dp.engine import ValueFunctions
