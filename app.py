@@ -1,6 +1,6 @@
 """The workbench dashboard: ``streamlit run app.py``.
 
-Four pages (one file each under ``pages/``): Logs, Calibrate, Optimise, Report. The pages call the same
+Four pages (one file each under ``pages/``): Logs, Calibrate, Optimize, Report. The pages call the same
 library functions as the command line (``calib.*``, ``optimize.*``, ``iptm.pipeline``) and hold no
 physics; session state and upload handling are in :mod:`iptm.dashboard`.
 """
@@ -16,7 +16,7 @@ st.set_page_config(page_title="iptm - Prius winter workbench", layout="wide")
 pages = [
     st.Page("pages/logs.py", title="Logs", icon=":material/upload_file:", default=True),
     st.Page("pages/calibrate.py", title="Calibrate", icon=":material/tune:"),
-    st.Page("pages/optimise.py", title="Optimise", icon=":material/speed:"),
+    st.Page("pages/optimize.py", title="Optimize", icon=":material/speed:"),
     st.Page("pages/report.py", title="Report", icon=":material/description:"),
 ]
 nav = st.navigation(pages)

@@ -236,7 +236,7 @@ def _states_text(outcome: dict | None) -> str:
     return f"{outcome['n_states']:,} states x {outcome.get('n_controls', 0):,} controls, "
 
 
-def optimise_cached(params, scen, grids, strategies, store: Store | None, progress=True, cycle_log=None):
+def optimize_cached(params, scen, grids, strategies, store: Store | None, progress=True, cycle_log=None):
     """Run the case study strategy by strategy, reusing cached results keyed by parameter values,
     scenario (with the cycle file's hash), grids, strategy and software version."""
     from dataclasses import replace
@@ -365,11 +365,11 @@ def run(cfg: RunConfig) -> RunOutcome:
     # 3. optimisation
     _say(f"[3/4] optimising {', '.join(cfg.strategies)} on {scen.cycle if cyc_log is None else cyc_log.label()}",
          cfg.progress)
-    cs = optimise_cached(params, scen, grids, cfg.strategies, store, cfg.progress, cycle_log=cyc_log)
+    cs = optimize_cached(params, scen, grids, cfg.strategies, store, cfg.progress, cycle_log=cyc_log)
 
     # 4. report
     _say("[4/4] writing the report", cfg.progress)
-    from iptm.reportbuild import build_report
+    from iptm.report import build_report
 
     run_key = content_key([lg.meta.sha256 for _, lg, _ in ingested], scen.to_dict(), grids.to_dict(),
                           list(cfg.strategies))

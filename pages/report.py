@@ -1,5 +1,5 @@
 """Report page: run the whole chain (:func:`iptm.pipeline.run`: ingest -> calibrate -> optimise -> report) on
-the session's logs and the Optimise page's scenario, and download the HTML report and its JSON."""
+the session's logs and the Optimize page's scenario, and download the HTML report and its JSON."""
 import json
 import time
 from pathlib import Path
@@ -28,12 +28,12 @@ def _page():
     sc = state.get(dash.SCENARIO)
     if sc is not None:
         scenario, grids, strategies = sc["scenario"], sc["grids"], sc["strategies"]
-        st.caption("Scenario, grids and strategies: as set on the Optimise page.")
+        st.caption("Scenario, grids and strategies: as set on the Optimize page.")
     else:
         scenario = DPScenario(duration_s=120.0)
         grids = DPGrids(soc=0.02, tcl=2.0, tcab=2.0, pbat=1000.0, qheat=100.0)
         strategies = ("rule", "baseline", "thermal", "thermal_cabin")
-        st.caption("Scenario: the default (first 120 s of the cycle, coarse grids); change it on the Optimise page.")
+        st.caption("Scenario: the default (first 120 s of the cycle, coarse grids); change it on the Optimize page.")
     with st.expander("Scenario used"):
         st.json({"scenario": scenario.to_dict(), "grids": grids.to_dict(), "strategies": list(strategies)},
                 expanded=False)
@@ -71,7 +71,7 @@ def _page():
                        key="rep_dl_json")
     import pandas as pd
 
-    from iptm.reportbuild import summary_table
+    from iptm.report import summary_table
 
     full = json.loads(rep["json"])
     summ = full["summary"]

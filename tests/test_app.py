@@ -119,11 +119,11 @@ def test_every_page_renders_without_logs():
     assert at.title[0].value == "Logs"
     assert any("No logs yet" in i.value for i in at.info)
     assert not at.sidebar.warning
-    for page, title in (("pages/calibrate.py", "Calibrate"), ("pages/optimise.py", "Optimise"),
+    for page, title in (("pages/calibrate.py", "Calibrate"), ("pages/optimize.py", "Optimize"),
                         ("pages/report.py", "Report")):
         ok(at.switch_page(page).run())
         assert at.title[0].value == title
-        if title == "Optimise":
+        if title == "Optimize":
             assert at.button(key="opt_run").disabled is False  # works without logs (library cycle)
 
 
@@ -175,7 +175,7 @@ def test_bad_uploads_show_messages_and_app_keeps_working(small_csv, monkeypatch)
     upload(at, "short.csv", small_csv, "text/csv")
     assert any("short.csv" in s.value for s in at.success)
     assert list(at.session_state[dash.LOGS]) == ["short.csv"]
-    for page in ("pages/calibrate.py", "pages/optimise.py", "pages/report.py"):
+    for page in ("pages/calibrate.py", "pages/optimize.py", "pages/report.py"):
         ok(at.switch_page(page).run())
 
 
@@ -201,7 +201,7 @@ def test_bundled_sample_logs_button():
     assert any("SYNTHETIC" in w.value for w in at.sidebar.warning)
 
 
-def test_calibrate_optimise_report_flow(small_csv):
+def test_calibrate_optimize_report_flow(small_csv):
     at = new_app()
     upload(at, "short.csv", small_csv, "text/csv")
 
@@ -224,7 +224,7 @@ def test_calibrate_optimise_report_flow(small_csv):
     assert b"[parameters." in art
 
     # --- optimisation: 60 s of the library cycle, coarse grids, calibrated parameters
-    ok(at.switch_page("pages/optimise.py").run())
+    ok(at.switch_page("pages/optimize.py").run())
     assert at.radio(key="opt_params_src").value == "calibrated in this session"
     at.number_input(key="opt_duration").set_value(60.0)
     at.button(key="opt_run").click()
@@ -286,10 +286,10 @@ def test_calibrate_optimise_report_flow(small_csv):
     assert at.get("iframe") and "<table" in at.get("iframe")[0].proto.srcdoc
 
 
-def test_optimise_sweep_over_ambient():
+def test_optimize_sweep_over_ambient():
     pytest.importorskip("optimize.sweep")
     at = new_app()
-    ok(at.switch_page("pages/optimise.py").run())
+    ok(at.switch_page("pages/optimize.py").run())
     at.radio(key="opt_params_src").set_value("default 2017 Prius")
     at.number_input(key="opt_duration").set_value(60.0)
     at.multiselect(key="opt_strategies").set_value(["rule", "thermal"])

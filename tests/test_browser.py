@@ -4,7 +4,7 @@ system's headless Chromium (``scripts/install_browser.sh`` installs both).
 Uploads a corrupt log (message shown, and still shown after the next upload) and a 300-s log, runs a
 calibration, an optimisation on 60 s with coarse grids and the report (the downloaded HTML, opened in the
 browser, has a labelled row per strategy in its comparison table), and saves a screenshot of each page to
-``reports/figures/page_{logs,calibrate,optimise,report}.png`` (shown in the README).
+``reports/figures/page_{logs,calibrate,optimize,report}.png`` (shown in the README).
 
 Run: ``make test-browser`` (``pytest -q -m browser``).
 """
@@ -173,7 +173,7 @@ def test_dashboard_in_chromium(sync_playwright, server):
             _shot(page, "page_calibrate.png")
 
             # optimisation on 60 s, coarse grids (the page's defaults)
-            _goto(page, "Optimise")
+            _goto(page, "Optimize")
             fields = {"Use the first ... s of the cycle (0 = whole)": "0" if README_MODE else "60"}
             if README_MODE:
                 fields.update({"SOC [-]": "0.01", "coolant [degC]": "1", "cabin [degC]": "1", "battery [W]": "500",
@@ -190,7 +190,7 @@ def test_dashboard_in_chromium(sync_playwright, server):
             page.locator('[data-testid="stVegaLiteChart"]').first.wait_for(timeout=60_000)  # trajectories
             assert page.locator('[data-testid="stMetric"]').count() == 3
             assert page.locator('[data-testid="stException"]').count() == 0
-            _shot(page, "page_optimise.png")
+            _shot(page, "page_optimize.png")
 
             # the report (whole chain through iptm.pipeline.run, same scenario)
             _goto(page, "Report")
@@ -222,5 +222,5 @@ def test_dashboard_in_chromium(sync_playwright, server):
             rp.close()
         finally:
             browser.close()
-    for name in ("page_logs.png", "page_calibrate.png", "page_optimise.png", "page_report.png"):
+    for name in ("page_logs.png", "page_calibrate.png", "page_optimize.png", "page_report.png"):
         assert (SHOTS / name).stat().st_size > 10_000

@@ -93,7 +93,7 @@ def test_interrupted_run_leaves_no_report(first_run, monkeypatch):
     def interrupt(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr("iptm.reportbuild.render", interrupt)
+    monkeypatch.setattr("iptm.report.render", interrupt)
     with pytest.raises(KeyboardInterrupt):
         pipeline.run(cfg)
     assert set(Path(cfg.reports_dir).iterdir()) == before

@@ -91,11 +91,11 @@ def run(args) -> int:
     from pathlib import Path
 
     from calib.store import Store
-    from iptm.pipeline import optimise_cached
+    from iptm.pipeline import optimize_cached
 
     # the same store entries as `iptm run`: the identical problem is solved once
     store = None if args.no_cache else Store(Path(args.cache))
-    cs = optimise_cached(ps, scen, grids, chosen, store, progress=True)
+    cs = optimize_cached(ps, scen, grids, chosen, store, progress=True)
     cyc = scen.load_cycle()
     d = cyc.describe()
     print(f"\ncase study: {d['name']} ({d['duration_s']:.0f} s, {d['distance_km']:.2f} km), ambient "

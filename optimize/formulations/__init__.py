@@ -68,9 +68,9 @@ Common choices
 """
 from optimize.formulations.scenario import FORMULATIONS, DPGrids, DPScenario, parse_grid_spec
 from optimize.formulations.scenario import TERMINALS
-from optimize.formulations.solve import (DPOutcome, dp_objective, peak_rss_mb, replay, solve_baseline, solve_formulation,
+from optimize.formulations.solve import (DPOutcome, dp_objective, peak_rss_mb, resimulate, solve_baseline, solve_formulation,
                     solve_thermal, solve_thermal_cabin)
 
 __all__ = ["DPScenario", "DPGrids", "DPOutcome", "parse_grid_spec", "solve_baseline", "solve_thermal",
-           "solve_thermal_cabin", "solve_formulation", "FORMULATIONS", "TERMINALS", "replay", "peak_rss_mb",
+           "solve_thermal_cabin", "solve_formulation", "FORMULATIONS", "TERMINALS", "resimulate", "peak_rss_mb",
            "dp_objective"]

@@ -93,7 +93,7 @@ class _Replay:
         return self.name
 
 
-def replay(params, cycle, e_mode, P_bat_mg, Q_cmd, scen: DPScenario, name: str):
+def resimulate(params, cycle, e_mode, P_bat_mg, Q_cmd, scen: DPScenario, name: str):
     """Re-simulate a control sequence through :func:`calib.model.equations.step` from the scenario's initial state."""
     from calib.model.simulate import simulate
 
@@ -320,9 +320,9 @@ def solve_baseline(params, scenario: DPScenario | None = None, grids: DPGrids | 
     mp_warm = b.mp
     e, pbm = res.u[:, 0], res.u[:, 1]
     q = np.full(b.prob.N, scen.Q_heat)
-    sim = replay(mp_warm, b.cyc, e, pbm, q, scen, "Baseline-DP (f_cl = 1)")
+    sim = resimulate(mp_warm, b.cyc, e, pbm, q, scen, "Baseline-DP (f_cl = 1)")
     sim.info["params"] = params.meta.get("name", "") if hasattr(params, "meta") else ""
-    on = replay(params, b.cyc, e, pbm, q, scen, "Baseline-DP policy on the thermal model")
+    on = resimulate(params, b.cyc, e, pbm, q, scen, "Baseline-DP policy on the thermal model")
     return _outcome("baseline", params, b, res, scen, grids, sim, t0, on_thermal=on)
 
 
@@ -338,7 +338,7 @@ def solve_thermal(params, scenario: DPScenario | None = None, grids: DPGrids | N
         res = _solve(b, engine)
     mp_used = b.mp
     q = res.u[:, 2]
-    sim = replay(mp_used if warm else params, b.cyc, res.u[:, 0], res.u[:, 1], q, scen, "Thermal-DP")
+    sim = resimulate(mp_used if warm else params, b.cyc, res.u[:, 0], res.u[:, 1], q, scen, "Thermal-DP")
     out = _outcome("thermal", params, b, res, scen, grids, sim, t0)
     out.extra["engine"] = engine
     return out
@@ -352,7 +352,7 @@ def solve_thermal_cabin(params, scenario: DPScenario | None = None, grids: DPGri
     b = build_problem(params, scen, grids, 3)
     with _threads(threads):
         res = _solve(b, engine)
-    sim = replay(params, b.cyc, res.u[:, 0], res.u[:, 1], res.u[:, 2], scen, "Thermal-Cabin-DP")
+    sim = resimulate(params, b.cyc, res.u[:, 0], res.u[:, 1], res.u[:, 2], scen, "Thermal-Cabin-DP")
     out = _outcome("thermal_cabin", params, b, res, scen, grids, sim, t0)
     out.extra["engine"] = engine
     return out

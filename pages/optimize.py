@@ -1,4 +1,4 @@
-"""Optimise page: a scenario (cycle from the library, a file or a loaded log; ambient; heater; grids;
+"""Optimize page: a scenario (cycle from the library, a file or a loaded log; ambient; heater; grids;
 strategies), run the case study of :mod:`optimize.casestudy` with progress, and see the comparison table,
 the savings and the paper-style figures."""
 import importlib.util
@@ -11,7 +11,7 @@ from calib.store import content_key
 from iptm import dashboard as dash
 
 state = st.session_state
-st.title("Optimise")
+st.title("Optimize")
 
 STRATS = {"rule": "Rule-based (tuned)", "baseline": "Baseline-DP", "thermal": "Thermal-DP",
           "thermal_cabin": "Thermal-Cabin-DP"}
@@ -240,7 +240,7 @@ def _page():
     if not cs.ordering_ok():
         st.warning("Corrected fuel is not ordered rule >= Baseline >= Thermal >= Thermal-Cabin on these grids: refine "
                    "the grids (coarse grids cost accuracy) or compare with the valued terminal condition.")
-    from iptm.reportbuild import comparison_table
+    from iptm.report import comparison_table
 
     st.dataframe(comparison_table(tbl.reset_index()), hide_index=True, width="stretch")
     st.download_button("Download the results (JSON)", json.dumps(cs.to_dict(), indent=1, default=str),
