@@ -201,7 +201,7 @@ def _page():
             cs = dash.merge_case_studies(parts)
             bar.progress(0.5, text="drawing the figures")
             figdir = dash.session_dir(state) / "figures" / base_key
-            figs = cs.plot_figures(figdir)
+            figs = cs.plot(figdir)
             state[dash.OPT] = {"cs": cs, "figures": figs, "cycle": cyc.describe(), "key": base_key}
             bar.progress(1.0, text=f"done ({sum(cs.timings.values()):.1f} s of solver time)")
         except Exception as exc:  # noqa: BLE001
