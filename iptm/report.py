@@ -253,7 +253,7 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
                "wall_s": wall_s}
     summ.p(f"Fuel over the scenario. Terminal condition on coolant and cabin: {scenario.terminal}; corrected fuel "
            "values each strategy's final SOC, coolant and cabin heat in grams of fuel, so strategies that end in "
-           "different states compare on equal terms." + (f" {ordering}." if ordering else ""))
+           "different states compare on equal terms." + (f" {ordering[:1].upper()}{ordering[1:]}." if ordering else ""))
     summ.table(summary_table(tab), "fuel over the scenario, per strategy (corrected: valued at equal final stored "
                                    "energy; raw: as burnt)")
     partial = [f"{n}: {params.param(n).n_entries_estimated()[0]} of {params.param(n).n_entries_estimated()[1]} "
