@@ -1,13 +1,14 @@
 """The figures of the physics layer, one function per figure (matplotlib; the Agg backend is selected when
 a figure is written to a file, so nothing here needs a display). The result types delegate here:
-:meth:`calib.model.simulate.SimResult.plot` and :meth:`calib.fit.validate.Replay.plot`."""
+:meth:`calib.model.simulate.SimResult.plot`, :meth:`calib.fit.validate.Replay.plot` and
+:meth:`calib.fit.driver.CalibrationResult.plot`."""
 from __future__ import annotations
 
 import numpy as np
 
 from calib.fit.replay import CHANNEL_METRICS, _fill
 
-__all__ = ["plot_simulation", "plot_validation", "plot_residuals", "plot_residual_comparison"]
+__all__ = ["plot_simulation", "plot_validation", "plot_residuals", "plot_residual_comparison", "plot_calibration"]
 
 
 def plot_simulation(sim, path=None, title=None):
@@ -176,6 +177,48 @@ def plot_residual_comparison(reps, path=None, title=None):
     ax[0].legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, 1.45), ncol=2, frameon=False)
     ax[-1].set_xlabel("time [min]")
     fig.suptitle(title or "residuals: simulated - measured", fontsize=9)
+    fig.tight_layout()
+    if path is not None:
+        from calib.fileio import save_figure
+
+        save_figure(fig, path)
+    return fig
+
+
+def plot_calibration(res, path=None, title=None):
+    """One bar per fitted parameter (a table: the mean over its entries): the fraction of the prior
+    uncertainty the data removed, ``1 - posterior sd / prior sd``, coloured by status (estimated, weak).
+    Parameters held at their prior or fixed are listed in the title, not drawn. Returns the Figure."""
+    import matplotlib
+
+    if path is not None:
+        matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    rows, skipped = [], []
+    for sub, fit in res.fits.items():
+        for name, e in fit.estimates.items():
+            inf = e.informed
+            if e.status not in ("estimated", "weak") or inf is None:
+                skipped.append(name)
+                continue
+            val = float(np.mean(inf)) if isinstance(inf, (list, tuple, np.ndarray)) else float(inf)
+            rows.append((f"{name} ({sub})" + (" [weak]" if e.status == "weak" else ""), val, e.status))
+    fig, ax = plt.subplots(figsize=(8, 0.32 * max(len(rows), 1) + 1.6))
+    colours = {"estimated": "C0", "weak": "C1"}
+    y = np.arange(len(rows))[::-1]
+    ax.barh(y, [r[1] for r in rows], color=[colours[r[2]] for r in rows])
+    ax.set_yticks(y, [r[0] for r in rows], fontsize=8)
+    ax.set_xlim(0.0, 1.0)
+    ax.set_xlabel("informed by the data: 1 - posterior sd / prior sd")
+    from matplotlib.patches import Patch
+
+    ax.legend(handles=[Patch(color=c, label=st) for st, c in colours.items()], fontsize=8, loc="lower right")
+    ax.grid(axis="x", alpha=0.3)
+    text = title or "calibration: what the logs determined"
+    if skipped:
+        text += "\nat the prior or fixed: " + ", ".join(skipped)
+    ax.set_title(text, fontsize=9)
     fig.tight_layout()
     if path is not None:
         from calib.fileio import save_figure

@@ -94,6 +94,13 @@ class CalibrationResult:
     advice: list = None
     diagnostics: dict = None  # {"fitted": {log: ...}, "held_out": {log: ...}} (see calib.fit.validate.diagnostics)
 
+    def plot(self, path=None, title=None):
+        """How much the data informed each fitted parameter (``1 - posterior sd / prior sd``), by subsystem
+        and status (:func:`calib.plotting.plot_calibration`). Returns the Figure."""
+        from calib.plotting import plot_calibration
+
+        return plot_calibration(self, path, title)
+
     def calibration_section(self) -> dict:
         """The ``[calibration]`` section of the artifact: logs, date, software, per-subsystem metrics."""
         sec = {"software": f"iptm/calib {self.version}", "date_utc": self.date, "wall_s": round(self.wall_s, 3),
