@@ -8,7 +8,24 @@ import numpy as np
 
 from calib.fit.replay import CHANNEL_METRICS, _fill
 
-__all__ = ["plot_simulation", "plot_validation", "plot_residuals", "plot_residual_comparison", "plot_calibration"]
+__all__ = ["plot_simulation", "plot_validation", "plot_residuals", "plot_residual_comparison", "plot_calibration",
+           "finish_figure"]
+
+
+def finish_figure(fig, path=None, suptitle=None, fontsize=9, rect=None):
+    """Every figure of the project ends here: an optional suptitle, a tight layout (``rect`` leaves room for
+    a footnote) and, when ``path`` is given, an atomic save that also closes the figure. Returns ``fig``."""
+    if suptitle is not None:
+        fig.suptitle(suptitle, fontsize=fontsize)
+    if rect is None:
+        fig.tight_layout()
+    else:
+        fig.tight_layout(rect=rect)
+    if path is not None:
+        from calib.fileio import save_figure
+
+        save_figure(fig, path)
+    return fig
 
 
 def plot_simulation(sim, path=None, title=None):
@@ -45,13 +62,7 @@ def plot_simulation(sim, path=None, title=None):
     text = title or (f"{sim.info.get('cycle', '')} at {sim.info.get('T_amb_degC', '')} degC\n"
                      f"{sim.info.get('controller', '')}")
     text = "\n".join(textwrap.fill(line, 110) for line in str(text).splitlines())
-    fig.suptitle(text, fontsize=9)
-    fig.tight_layout()  # makes room for the suptitle
-    if path is not None:
-        from calib.fileio import save_figure
-
-        save_figure(fig, path)
-    return fig
+    return finish_figure(fig, path, text)
 
 
 def plot_residuals(rep, path=None, title=None):
@@ -94,13 +105,7 @@ def plot_residuals(rep, path=None, title=None):
     if rep.refused:
         fig.text(0.01, 0.005, "not checked: " + "; ".join(f"{k} ({v})" for k, v in rep.refused.items())[:220],
                  fontsize=7)
-    fig.suptitle(title or f"Residual diagnostics: {rep.name}", fontsize=9)
-    fig.tight_layout(rect=(0, 0.03, 1, 1))
-    if path is not None:
-        from calib.fileio import save_figure
-
-        save_figure(fig, path)
-    return fig
+    return finish_figure(fig, path, title or f"Residual diagnostics: {rep.name}", rect=(0, 0.03, 1, 1))
 
 
 def plot_validation(rep, path=None, title=None):
@@ -140,13 +145,7 @@ def plot_validation(rep, path=None, title=None):
     ax[4].grid(alpha=0.3)
     m = rep.metrics()
     sub = ", ".join(f"{k} RMSE {v['rmse']:.3g}" for k, v in m.items() if "rmse" in v)
-    fig.suptitle((title or f"Validation: {rep.name}") + "\n" + sub, fontsize=9)
-    fig.tight_layout()
-    if path is not None:
-        from calib.fileio import save_figure
-
-        save_figure(fig, path)
-    return fig
+    return finish_figure(fig, path, (title or f"Validation: {rep.name}") + "\n" + sub)
 
 
 def plot_residual_comparison(reps, path=None, title=None):
@@ -176,13 +175,7 @@ def plot_residual_comparison(reps, path=None, title=None):
         a.grid(alpha=0.3)
     ax[0].legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, 1.45), ncol=2, frameon=False)
     ax[-1].set_xlabel("time [min]")
-    fig.suptitle(title or "residuals: simulated - measured", fontsize=9)
-    fig.tight_layout()
-    if path is not None:
-        from calib.fileio import save_figure
-
-        save_figure(fig, path)
-    return fig
+    return finish_figure(fig, path, title or "residuals: simulated - measured")
 
 
 def plot_calibration(res, path=None, title=None):
@@ -219,9 +212,4 @@ def plot_calibration(res, path=None, title=None):
     if skipped:
         text += "\nat the prior or fixed: " + ", ".join(skipped)
     ax.set_title(text, fontsize=9)
-    fig.tight_layout()
-    if path is not None:
-        from calib.fileio import save_figure
-
-        save_figure(fig, path)
-    return fig
+    return finish_figure(fig, path)

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from calib.plotting import finish_figure
 from optimize.labels import LABELS, NAMES, PAPER_SAVINGS
 
 __all__ = ["plot_case_study", "plot_study", "plot_policy", "plot_dp_result"]
@@ -19,7 +20,6 @@ def plot_case_study(cs, outdir) -> list:
 
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
-    from calib.fileio import save_figure
 
     outdir = Path(outdir)
     keys = [k for k in ("rule", "baseline", "thermal", "thermal_cabin") if k in cs.sims]
@@ -28,7 +28,7 @@ def plot_case_study(cs, outdir) -> list:
 
     def save(fig, name):
         p = outdir / f"{name}.png"
-        save_figure(fig, p)
+        finish_figure(fig, p)
         paths.append(str(p))
 
     series = [
@@ -71,7 +71,6 @@ def plot_case_study(cs, outdir) -> list:
             ax.set_ylabel(ylabel)
             ax.legend(fontsize=8, loc="best")
             ax.set_title(title, fontsize=10)
-        fig.tight_layout()
         save(fig, name)
     # fuel bars: the saving of each strategy against the reference (rule-based when present), on fuel and
     # on corrected fuel, every bar labelled; differences of a few percent stay visible, unlike grams from 0
@@ -102,7 +101,6 @@ def plot_case_study(cs, outdir) -> list:
     ax.set_xlabel(f"saving vs {LABELS[ref]} [%]")
     ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=3, frameon=False)
     ax.set_title(f"fuel saving - {title}", fontsize=10)
-    fig.tight_layout()
     save(fig, "fuel_bars")
     return paths
 
@@ -118,8 +116,6 @@ def plot_study(df: pd.DataFrame, outdir, metric="both") -> list[str]:
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    from calib.fileio import save_figure
-
     outdir = Path(outdir)
     paths = []
     ok = df[(df["status"] == "ok") & (df["strategy"] != df["reference"])]
@@ -133,7 +129,7 @@ def plot_study(df: pd.DataFrame, outdir, metric="both") -> list[str]:
 
     def save(fig, fname):
         p = outdir / fname
-        save_figure(fig, p)
+        finish_figure(fig, p)
         paths.append(str(p))
 
     if ok["T_amb"].nunique() > 1:
@@ -156,7 +152,6 @@ def plot_study(df: pd.DataFrame, outdir, metric="both") -> list[str]:
         plabels = sorted(ok["params"].unique())
         fig.suptitle(f"{name}: saving vs ambient (parameters: {', '.join(plabels[:3])}"
                      f"{', ...' if len(plabels) > 3 else ''})", fontsize=10)
-        fig.tight_layout()
         save(fig, "saving_vs_ambient.png")
     draws = ok[ok["draw"].notna()]
     if not draws.empty and draws.groupby(["cycle", "T_amb", "strategy"]).size().max() > 1:
@@ -173,7 +168,6 @@ def plot_study(df: pd.DataFrame, outdir, metric="both") -> list[str]:
             ax.set_ylabel(labels[m].format(ref=ref))
             ax.grid(alpha=0.3, axis="y")
         axs[0, 0].set_title(f"{name}: spread over {draws['draw'].nunique()} parameter draws", fontsize=10)
-        fig.tight_layout()
         save(fig, "saving_spread.png")
     return paths
 
@@ -236,10 +230,4 @@ def plot_dp_result(res, path=None, title=None):
     for a in ax:
         a.grid(alpha=0.3)
     status = "feasible" if res.feasible else "INFEASIBLE"
-    fig.suptitle(title or f"DP solution: cost {res.cost:.4g} ({status})", fontsize=9)
-    fig.tight_layout()
-    if path is not None:
-        from calib.fileio import save_figure
-
-        save_figure(fig, path)
-    return fig
+    return finish_figure(fig, path, title or f"DP solution: cost {res.cost:.4g} ({status})")
