@@ -15,9 +15,12 @@ replayed (``mutate(data, seed, r, i)``). Each read ends in one of:
 talking past the project's own reporting); ``unclear`` counts IptmErrors whose message is not one line
 naming the file.
 
-The truncation check (``n / 20`` cuts per format, 50 to 500) cuts a larger valid log of each format at a uniformly random byte between 10 % and
-100 % of its length and requires it to be read or recovered, with every sample up to the recovered
-end time equal to the intact file's ("nothing before the cut lost").
+The truncation check (``n / 20`` cuts per format, 50 to 500) cuts a larger valid log of each format at a
+uniformly random byte between 10 % and 100 % of its length and counts the cuts read or recovered with
+every sample up to the recovered end time equal to the intact file's. For MCAP (its zstd seed, and the
+same messages rewritten with LZ4 chunks, ``mcap-lz4``) it also counts the cuts after which every message
+lying before the cut (:func:`mcap_message_positions`) was read, and the log time lost before the cut:
+a zstd block decodes only whole, so a cut inside one loses the block's records before the cut.
 
 Run: ``iptm bench fuzz`` (10,000 mutated inputs per reader; ``--quick``: 300) or
 ``python -m iptm.benchmarks.fuzz --n 200 --seed 1``.
@@ -290,6 +293,85 @@ def fuzz(n: int = 10_000, seed: int = 0, readers=READERS, folder=None, log=print
     return results
 
 
+def rewrite_mcap(src, dst, compression: str) -> Path:
+    """Copy an MCAP file with the ``mcap`` library, its chunks compressed with ``compression``."""
+    from mcap.reader import make_reader
+    from mcap.writer import CompressionType, Writer
+
+    kind = {"lz4": CompressionType.LZ4, "zstd": CompressionType.ZSTD, "": CompressionType.NONE}[compression]
+    with open(src, "rb") as fin, open(dst, "wb") as fout:
+        reader = make_reader(fin)
+        w = Writer(fout, compression=kind)
+        w.start()
+        schemas, channels = {}, {}
+        for schema, channel, msg in reader.iter_messages(log_time_order=False):
+            if channel.id not in channels:
+                sid = 0
+                if schema is not None:
+                    if schema.id not in schemas:
+                        schemas[schema.id] = w.register_schema(schema.name, schema.encoding, schema.data)
+                    sid = schemas[schema.id]
+                channels[channel.id] = w.register_channel(channel.topic, channel.message_encoding, sid,
+                                                          channel.metadata)
+            w.add_message(channels[channel.id], msg.log_time, msg.data, msg.publish_time, msg.sequence)
+        for md in reader.iter_metadata():
+            w.add_metadata(md.name, md.metadata)
+        w.finish()
+    return Path(dst)
+
+
+def mcap_message_positions(data: bytes) -> tuple[np.ndarray, np.ndarray]:
+    """(file position, log time in s) of every message of an intact MCAP, in file order.
+
+    The position is where the message's record ends in the file. Inside a compressed chunk it is placed by
+    the codec's own progress: the compressed data is fed to a streaming decompressor 64 bytes at a time,
+    which gives (compressed bytes in, records out) at every point where output appears (zstd: each block
+    end), and a message between two such points is placed linearly between them. A cut past that position
+    is "after" the message, so a reader that cannot decode the last, incomplete block is counted as losing
+    the messages the block holds before the cut. Read with the ``mcap`` library's summary, not the reader.
+    """
+    import struct
+
+    import zstandard
+    from mcap.reader import make_reader
+
+    summary = make_reader(io.BytesIO(data)).get_summary()
+    pos, times = [], []
+    for ci in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
+        c1 = ci.chunk_start_offset + ci.chunk_length
+        c0 = c1 - ci.compressed_size
+        comp = data[c0:c1]
+        if ci.compression == "zstd":
+            d = zstandard.ZstdDecompressor().decompressobj()
+        elif ci.compression == "lz4":
+            import lz4.frame
+
+            d = lz4.frame.LZ4FrameDecompressor()
+        else:
+            d = None
+        if d is None:
+            raw, e_pts, d_pts = comp, [0, len(comp)], [0, len(comp)]
+        else:
+            parts, e_pts, d_pts, got = [], [0], [0], 0
+            for i in range(0, len(comp), 64):
+                out = d.decompress(comp[i:i + 64])
+                if out:
+                    got += len(out)
+                    parts.append(out)
+                    e_pts.append(min(i + 64, len(comp)))
+                    d_pts.append(got)
+            raw = b"".join(parts)
+        q = 0
+        while q + 9 <= len(raw):
+            op, length = raw[q], struct.unpack_from("<Q", raw, q + 1)[0]
+            end = q + 9 + length
+            if op == 5:  # message: channel id u16, sequence u32, log_time u64
+                pos.append(c0 + float(np.interp(end, d_pts, e_pts)))
+                times.append(struct.unpack_from("<Q", raw, q + 9 + 6)[0] * 1e-9)
+            q = end
+    return np.asarray(pos), np.asarray(times)
+
+
 @_in_folder
 def truncation_check(n: int = 200, seed: int = 0, readers=LOG_READERS, folder=None, log=print) -> dict:
     """Random cuts of a valid 120-s log per format: read or recovered, nothing before the cut lost."""
@@ -297,19 +379,32 @@ def truncation_check(n: int = 200, seed: int = 0, readers=LOG_READERS, folder=No
     from calib.ingest import read_streams
 
     seeds = make_seed_files(folder / "seeds", duration_s=120.0, rate=10.0)
+    cases = []  # (label, reader, seed file, rng key)
+    for r, fmt in enumerate(LOG_READERS):
+        if fmt in readers and fmt in seeds:
+            cases.append((fmt, fmt, seeds[fmt], [seed, r]))
+            if fmt == "mcap":  # the same messages in LZ4 chunks (what the reader can decode differs)
+                lz4_path = rewrite_mcap(seeds[fmt], folder / "seeds" / "seed_lz4.mcap", "lz4")
+                cases.append(("mcap-lz4", fmt, lz4_path, [seed, r, 1]))
     results = {}
-    for r, name in enumerate(LOG_READERS):
-        if name not in readers or name not in seeds:
-            continue
-        data = seeds[name].read_bytes()
+    for name, fmt, seed_path, key in cases:
+        data = seed_path.read_bytes()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            ref, _ = read_streams(seeds[name], fmt=name)
-        rng = np.random.default_rng([seed, r])
+            ref, _ = read_streams(seed_path, fmt=fmt)
+        rng = np.random.default_rng(key)
         ok = lost = failed = 0
         kept = []
+        # Where each message lies in the file (MCAP only): what a cut leaves before it, to count what the
+        # reader did not give back of it. The line/object formats are read record by record.
+        msg_pos = msg_t = None
+        if fmt == "mcap":
+            msg_pos, msg_t = mcap_message_positions(data)
+            msg_t = msg_t - msg_t.min()
+        whole_before = 0
+        behind = []
         first_fail = ""
-        path = folder / f"cut.{EXT[name]}"
+        path = folder / f"cut.{EXT[fmt]}"
         t0 = time.perf_counter()
         for _ in range(n):
             cut = int(rng.integers(int(0.1 * len(data)), len(data) + 1))
@@ -317,10 +412,14 @@ def truncation_check(n: int = 200, seed: int = 0, readers=LOG_READERS, folder=No
             with warnings.catch_warnings(), contextlib.redirect_stderr(io.StringIO()):
                 warnings.simplefilter("ignore")
                 try:
-                    streams, meta = read_streams(path, fmt=name)
+                    streams, meta = read_streams(path, fmt=fmt)
                 except IptmError as exc:
                     failed += 1
                     first_fail = first_fail or f"cut at {cut} of {len(data)}: {str(exc)[:160]}"
+                    if msg_pos is not None:
+                        before = msg_t[msg_pos <= cut]
+                        behind.append(float(before.max()) if len(before) else 0.0)
+                        whole_before += not len(before)
                     continue
             t_end = (meta.damage or {}).get("last_time_s")
             if t_end is None:
@@ -333,13 +432,29 @@ def truncation_check(n: int = 200, seed: int = 0, readers=LOG_READERS, folder=No
                 same = len(a) == len(b) and np.array_equal(a.to_numpy(), b.to_numpy())
             ok += same
             lost += not same
+            if msg_pos is not None:
+                before = msg_t[msg_pos <= cut]
+                gap = max(0.0, float(before.max()) - t_end) if len(before) else 0.0
+                behind.append(gap)
+                whole_before += same and gap == 0.0
             kept.append(t_end / max(s_.index[-1] for s_ in ref.values()) / (cut / len(data)))
         wall = time.perf_counter() - t0
         results[name] = {"n": n, "read_or_recovered_whole": ok, "lost_before_cut": lost, "error": failed,
                          "median_time_kept_per_byte_kept": float(np.median(kept)) if kept else None,
                          "wall_s": wall, "first_failure": first_fail}
+        if msg_pos is not None:
+            b = np.asarray(behind)
+            results[name].update({"nothing_lost_before_cut": whole_before,
+                                  "time_lost_before_cut_s": {"median": float(np.median(b)),
+                                                             "p90": float(np.quantile(b, 0.9)),
+                                                             "max": float(b.max())}})
         log(f"{name:9s} cuts {n:5d}  read/recovered with nothing lost {ok:5d} ({100 * ok / n:5.1f} %)  "
             f"lost data before the cut {lost:4d}  error {failed:4d}  {wall:6.1f} s")
+        if msg_pos is not None:
+            tl = results[name]["time_lost_before_cut_s"]
+            log(f"    every message before the cut read: {whole_before} ({100 * whole_before / n:5.1f} %); "
+                f"log time lost before the cut: median {tl['median']:.2f} s, 90 % {tl['p90']:.2f} s, "
+                f"max {tl['max']:.2f} s (of {msg_t.max():.0f} s)")
         if first_fail:
             log(f"    {first_fail}")
     return results
