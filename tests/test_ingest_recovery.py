@@ -321,6 +321,101 @@ def test_mcap_cut_in_an_lz4_chunk_reads_to_the_cut(tmp_path):
         _same_before(streams, ref, t_last)
         whole_blocks = lz4.frame.LZ4FrameDecompressor().decompress(data[c0:cut])
         t_blocks = max(t for end, t in _message_records(full) if end <= len(whole_blocks)) - t0
-        t_before = t_msg[pos <= cut].max() - t0  # last message placed before the cut
+        t_before = t_msg[pos <= cut].max() - t0  # the last message whose sequences all lie before the cut
         assert t_last > t_blocks + 1.0, (frac, t_last, t_blocks)
-        assert t_last >= t_before - 0.5, (frac, t_last, t_before)
+        assert t_last == pytest.approx(t_before, abs=1e-6), (frac, t_last, t_before)
+
+
+def _mdf_blocks(data: bytes) -> dict:
+    """address -> (block id, length, link count) of every MDF4 block reachable from the HD block."""
+    out, todo = {}, [64]
+    while todo:
+        a = todo.pop()
+        if a and a not in out:
+            length, n_links = struct.unpack_from("<QQ", data, a + 8)
+            out[a] = (data[a:a + 4], length, n_links)
+            todo.extend(struct.unpack_from(f"<{n_links}Q", data, a + 24))
+    return dict(sorted(out.items()))
+
+
+def _streaming_layout(data: bytes) -> bytes:
+    """The same MDF4 file with its data blocks moved after every definition block, links remapped.
+
+    This is how a streaming logger lays a file out (definitions first, records appended at the end); asammdf
+    itself writes the definitions after the data.
+    """
+    blocks = _mdf_blocks(data)
+    is_data = {a: blocks[a][0] in (b"##DT", b"##DL", b"##DZ", b"##HL", b"##SD") for a in blocks}
+    order = [a for a in blocks if not is_data[a]] + [a for a in blocks if is_data[a]]
+    new, at = {}, 64
+    for a in order:
+        new[a] = at
+        at += -(-blocks[a][1] // 8) * 8
+    out = bytearray(data[:64])
+    for a in order:
+        _, length, n_links = blocks[a]
+        blk = bytearray(data[a:a + length])
+        for i in range(n_links):
+            link = struct.unpack_from("<Q", blk, 24 + 8 * i)[0]
+            if link:
+                struct.pack_into("<Q", blk, 24 + 8 * i, new[link])
+        out += blk + bytes(-length % 8)
+    return bytes(out)
+
+
+def _one_group_mf4(path):
+    """A 120-s MDF4 file, one channel group (every channel on one time base), written by asammdf."""
+    asammdf = pytest.importorskip("asammdf")
+    from calib.drivelog import CHANNELS
+    from calib.ingest.common import HUMAN_NAME
+    from calib.ingest.fabricate import fabricate_streams
+
+    streams, _ = fabricate_streams(120.0, dropout=None, rates={c: 10.0 for c in (
+        "speed_mps", "bat_current_A", "bat_voltage_V", "engine_speed_rpm", "fuel_rate_g_per_s")})
+    t = np.arange(0.0, 119.0, 0.1)
+    sigs = [asammdf.Signal(samples=np.interp(t, s.index.to_numpy(float), s.to_numpy(float)), timestamps=t,
+                           name=HUMAN_NAME.get(ch, ch), unit=CHANNELS[ch][0])
+            for ch, s in streams.items() if CHANNELS[ch][0] != "dimensionless"]
+    mdf = asammdf.MDF(version="4.10")
+    mdf.append(sigs)
+    mdf.save(path, overwrite=True)
+    mdf.close()
+    return path
+
+
+def test_cut_mdf4_with_definitions_first_reads_its_whole_records(tmp_path):
+    """A streaming logger's layout (definitions, then records) cut short: every whole record is read."""
+    asammdf = pytest.importorskip("asammdf")
+    data = _streaming_layout(_one_group_mf4(tmp_path / "one.mf4").read_bytes())
+    intact_path = tmp_path / "stream.mf4"
+    intact_path.write_bytes(data)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", LogDamageWarning)
+        ref, _ = read_streams(intact_path)
+    with asammdf.MDF(str(intact_path)) as mdf:  # record size and data start, from asammdf
+        cg = mdf.groups[0].channel_group
+        record = cg.samples_byte_nr + cg.invalidation_bytes_nr
+        n_all = cg.cycles_nr
+    dt = [a for a, b in _mdf_blocks(data).items() if b[0] == b"##DT"]
+    assert len(dt) == 1 and dt[0] > max(a for a, b in _mdf_blocks(data).items() if b[0] != b"##DT")
+    for frac in (0.3, 0.77):
+        cut = int(len(data) * frac)
+        p = tmp_path / "cut.mf4"
+        p.write_bytes(data[:cut])
+        streams, meta = _read_damaged(p)
+        n_whole = (cut - dt[0] - 24) // record  # whole records before the cut
+        assert 0 < n_whole < n_all
+        assert {len(s) for s in streams.values()} == {n_whole}
+        _same_before(streams, ref, meta.damage["last_time_s"])
+        assert meta.damage["truncated_at_byte"] == cut and "unfinalised" in meta.damage["summary"]
+        with pytest.raises(LogFormatError, match="truncated"):
+            read_streams(p, strict=True)
+
+
+def test_cut_mdf4_written_by_asammdf_names_why_nothing_is_left(tmp_path):
+    """asammdf writes the channel definitions after the data: a cut file's records cannot be decoded."""
+    data = _one_group_mf4(tmp_path / "one.mf4").read_bytes()
+    p = tmp_path / "cut.mf4"
+    p.write_bytes(data[: int(len(data) * 0.6)])
+    with pytest.raises(LogFormatError, match=r"channel definitions \(DG/CG/CN blocks\) lie after the cut"):
+        read_streams(p)

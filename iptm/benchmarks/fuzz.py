@@ -320,15 +320,72 @@ def rewrite_mcap(src, dst, compression: str) -> Path:
     return Path(dst)
 
 
+def _lz4_progress(comp: bytes) -> tuple[list[int], list[int]]:
+    """(compressed bytes in, bytes decodable) through an LZ4 frame, for ``np.interp(out, d, e)``.
+
+    An LZ4 block is a run of sequences (token, literals, offset, match), each decodable once its bytes are
+    in; a literal run gives its bytes one by one. Only the lengths are parsed, nothing is decoded.
+    """
+    e_pts, d_pts = [0], [0]
+    flg = comp[4]
+    p = 7 + (8 if flg & 0x08 else 0) + (4 if flg & 0x01 else 0)
+    block_sum = 4 if flg & 0x10 else 0
+    out = 0
+    while p + 4 <= len(comp):
+        size = int.from_bytes(comp[p:p + 4], "little")
+        if size == 0:
+            break
+        raw, size = bool(size & 0x80000000), size & 0x7FFFFFFF
+        a, b = p + 4, p + 4 + size
+        if raw:
+            e_pts += [a, b]
+            d_pts += [out, out + size]
+            out += size
+        else:
+            i = a
+            while i < b:
+                token = comp[i]
+                i += 1
+                lit = token >> 4
+                if lit == 15:
+                    while True:
+                        lit += comp[i]
+                        i += 1
+                        if comp[i - 1] != 255:
+                            break
+                e_pts += [i, i + lit]
+                d_pts += [out, out + lit]
+                i += lit
+                out += lit
+                if i >= b:
+                    break  # the last sequence has literals only
+                i += 2
+                ml = token & 15
+                if ml == 15:
+                    while True:
+                        ml += comp[i]
+                        i += 1
+                        if comp[i - 1] != 255:
+                            break
+                # the match's bytes all need its last length byte: a step, not a slope
+                e_pts += [i, i]
+                d_pts += [out + 1e-6, out + ml + 4]
+                out += ml + 4
+        p = b + block_sum
+    keep = [0] + [k for k in range(1, len(d_pts)) if d_pts[k] > d_pts[k - 1]]  # first input giving an output
+    return [e_pts[k] for k in keep], [d_pts[k] for k in keep]
+
+
 def mcap_message_positions(data: bytes) -> tuple[np.ndarray, np.ndarray]:
     """(file position, log time in s) of every message of an intact MCAP, in file order.
 
     The position is where the message's record ends in the file. Inside a compressed chunk it is placed by
-    the codec's own progress: the compressed data is fed to a streaming decompressor 64 bytes at a time,
-    which gives (compressed bytes in, records out) at every point where output appears (zstd: each block
-    end), and a message between two such points is placed linearly between them. A cut past that position
-    is "after" the message, so a reader that cannot decode the last, incomplete block is counted as losing
-    the messages the block holds before the cut. Read with the ``mcap`` library's summary, not the reader.
+    the codec's progress. zstd: the compressed data is fed to a streaming decompressor 64 bytes at a time,
+    which gives (compressed bytes in, bytes out) where output appears (each block end), and a message
+    between two such points is placed linearly between them, so a reader that cannot decode the last,
+    incomplete block is counted as losing the messages that block holds before the cut. LZ4: the exact
+    point where each byte becomes decodable, from the sequence lengths (:func:`_lz4_progress`). Read with
+    the ``mcap`` library's summary and the codecs, not with the reader.
     """
     import struct
 
@@ -343,13 +400,14 @@ def mcap_message_positions(data: bytes) -> tuple[np.ndarray, np.ndarray]:
         comp = data[c0:c1]
         if ci.compression == "zstd":
             d = zstandard.ZstdDecompressor().decompressobj()
-        elif ci.compression == "lz4":
-            import lz4.frame
-
-            d = lz4.frame.LZ4FrameDecompressor()
         else:
             d = None
-        if d is None:
+        if ci.compression == "lz4":
+            import lz4.frame
+
+            raw = lz4.frame.decompress(comp)
+            e_pts, d_pts = _lz4_progress(comp)
+        elif d is None:
             raw, e_pts, d_pts = comp, [0, len(comp)], [0, len(comp)]
         else:
             parts, e_pts, d_pts, got = [], [0], [0], 0
@@ -361,14 +419,15 @@ def mcap_message_positions(data: bytes) -> tuple[np.ndarray, np.ndarray]:
                     e_pts.append(min(i + 64, len(comp)))
                     d_pts.append(got)
             raw = b"".join(parts)
-        q = 0
+        q, ends = 0, []
         while q + 9 <= len(raw):
             op, length = raw[q], struct.unpack_from("<Q", raw, q + 1)[0]
             end = q + 9 + length
             if op == 5:  # message: channel id u16, sequence u32, log_time u64
-                pos.append(c0 + float(np.interp(end, d_pts, e_pts)))
+                ends.append(end)
                 times.append(struct.unpack_from("<Q", raw, q + 9 + 6)[0] * 1e-9)
             q = end
+        pos.extend(c0 + np.interp(np.asarray(ends, float), np.asarray(d_pts, float), np.asarray(e_pts, float)))
     return np.asarray(pos), np.asarray(times)
 
 
