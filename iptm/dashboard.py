@@ -149,13 +149,19 @@ def check_log_extension(name: str) -> None:
 
 
 def save_upload(state, name: str, data: bytes, *, subdir: str = "uploads", max_bytes: int | None = None) -> Path:
-    """Write uploaded bytes into the session folder under their original (sanitised) name."""
+    """Write uploaded bytes into the session folder under their original (sanitised) name.
+
+    The size is checked before anything is written; the file appears whole or not at all.
+    """
+    from calib.fileio import atomic_path
+
     fname = safe_name(name)
     check_size(fname, len(data), max_bytes)
     folder = session_dir(state) / subdir
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / fname
-    path.write_bytes(data)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
     return path
 
 

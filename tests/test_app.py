@@ -66,7 +66,9 @@ def test_safe_name_and_limits(monkeypatch):
     assert dash.safe_name("...") == "upload"
     monkeypatch.setenv("IPTM_MAX_UPLOAD_MB", "1")
     assert dash.max_upload_bytes() == 2**20
-    with pytest.raises(dash.IptmError, match="too large"):
+    from calib.errors import IptmError
+
+    with pytest.raises(IptmError, match="too large"):
         dash.check_size("big.blf", 2**20 + 1)
     with pytest.raises(dash.IptmError, match="empty"):
         dash.check_size("e.csv", 0)
@@ -189,6 +191,91 @@ def test_sessions_do_not_share_uploads(small_csv):
     upload(b, "other.csv", small_csv, "text/csv")
     assert a.session_state[dash.TMP] != b.session_state[dash.TMP]
     assert list(a.session_state[dash.LOGS]) == ["short.csv"] and list(b.session_state[dash.LOGS]) == ["other.csv"]
+
+
+def _csv_slice(t_end: float) -> bytes:
+    """The bundled (SYNTHETIC) warm-restart CSV up to ``t_end`` s (header comments kept)."""
+    lines = (ROOT / "logs" / "winter_warm_restart.csv").read_text().splitlines()
+    head = [ln for ln in lines[:10] if ln.startswith("#") or ln.startswith("time")]
+    body = [ln for ln in lines if ln[:1].isdigit() and float(ln.split(",", 1)[0]) < t_end]
+    return ("\n".join(head + body) + "\n").encode()
+
+
+def _files_under(folder) -> set[str]:
+    return {p.name for p in Path(folder).rglob("*") if p.is_file()}
+
+
+@pytest.mark.timeout(900)
+def test_two_sessions_upload_and_calibrate_at_the_same_time():
+    """Two sessions, each in its own thread, upload a different log and calibrate on it at the same time."""
+    import threading
+    import time
+
+    drives = {"drive_a.csv": _csv_slice(300.0), "drive_b.csv": _csv_slice(240.0)}
+    gate = threading.Barrier(len(drives), timeout=600)
+    out, failures = {}, []
+
+    def session(name, data):
+        try:
+            at = new_app()
+            gate.wait()  # both upload together
+            t0 = time.monotonic()
+            upload(at, name, data, "text/csv")
+            t1 = time.monotonic()
+            ok(at.switch_page("pages/calibrate.py").run())
+            at.multiselect(key="cal_fix_params").set_value(["kappa"])
+            gate.wait()  # both calibrate together
+            t2 = time.monotonic()
+            at.button(key="cal_run").click()
+            ok(at.run())
+            t3 = time.monotonic()
+            assert not errors(at), errors(at)
+            out[name] = {"at": at, "upload": (t0, t1), "calibrate": (t2, t3)}
+        except BaseException as exc:  # noqa: BLE001 - re-raised in the test's thread
+            failures.append((name, exc))
+            gate.abort()
+
+    threads = [threading.Thread(target=session, args=kv) for kv in drives.items()]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    assert not failures, failures
+    # the two sessions really ran at the same time: their upload and calibration intervals overlap
+    for phase in ("upload", "calibrate"):
+        (a0, a1), (b0, b1) = (out[n][phase] for n in drives)
+        assert max(a0, b0) < min(a1, b1), phase
+    a, b = (out[n]["at"].session_state for n in drives)
+    assert a[dash.TMP] != b[dash.TMP]
+    for name, state in zip(drives, (a, b)):
+        other = next(n for n in drives if n != name)
+        assert list(state[dash.LOGS]) == [name]
+        assert state[dash.LOGS][name].path.read_bytes() == drives[name]
+        files = _files_under(state[dash.TMP])
+        assert name in files and other not in files, files
+        cal = state[dash.CALIB]
+        assert cal["fit"] == [name] and cal["val"] == []
+        assert (Path(state[dash.TMP]) / "calibration" / "calibration.toml").read_bytes() == cal["artifact"]
+    assert a[dash.CALIB]["key"] != b[dash.CALIB]["key"]
+    assert a[dash.CALIB]["artifact"] != b[dash.CALIB]["artifact"]
+    assert a[dash.CALIB]["result"] is not b[dash.CALIB]["result"]
+
+
+def test_oversized_upload_is_refused_before_it_is_written(small_csv, monkeypatch):
+    monkeypatch.setenv("IPTM_MAX_UPLOAD_MB", "0.05")
+    assert len(small_csv) > 0.05 * 2**20
+    at = new_app()
+    upload(at, "big.csv", small_csv, "text/csv")
+    assert any("too large" in m and "big.csv" in m for m in errors(at))
+    folder = at.session_state[dash.TMP] if dash.TMP in at.session_state else None
+    assert folder is None or "big.csv" not in _files_under(folder)
+    # the helper that writes uploads refuses before creating anything
+    state = {}
+    from calib.errors import IptmError
+
+    with pytest.raises(IptmError, match="too large"):
+        dash.save_upload(state, "big.csv", small_csv)
+    assert "big.csv" not in _files_under(dash.session_dir(state))
 
 
 def test_bundled_sample_logs_button():

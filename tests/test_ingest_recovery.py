@@ -1,4 +1,6 @@
 """Damaged logs: read up to the damage, lose nothing before it, say what was lost; strict refuses them."""
+import io
+import struct
 import warnings
 from pathlib import Path
 
@@ -222,3 +224,198 @@ def test_blf_object_with_size_zero_does_not_hang(tmp_path):
     p.write_bytes(bytes(d))
     streams, meta = _read_damaged(p)
     assert len(streams["speed_mps"]) == 99
+
+
+def _mcap_chunks(data: bytes):
+    """The chunk indexes of an intact MCAP (the ``mcap`` library's summary), in file order."""
+    from mcap.reader import make_reader
+
+    summary = make_reader(io.BytesIO(data)).get_summary()
+    return sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset), summary.statistics
+
+
+def _message_records(raw: bytes):
+    """(record end offset, log time in s) of the message records in decompressed chunk data."""
+    out, q = [], 0
+    while q + 9 <= len(raw):
+        op, length = raw[q], struct.unpack_from("<Q", raw, q + 1)[0]
+        if op == 5:
+            out.append((q + 9 + length, struct.unpack_from("<Q", raw, q + 9 + 6)[0] * 1e-9))
+        q += 9 + length
+    return out
+
+
+def _rows(streams, t_end=np.inf):
+    return sum(int((s.index <= t_end).sum()) for s in streams.values())
+
+
+def test_mcap_cut_in_a_zstd_chunk_keeps_its_whole_blocks(tmp_path, intact):
+    """The bundled drive (four zstd chunks of 1 MB) cut 60 % into its second chunk's compressed data.
+
+    zstd decodes a block only whole, so the reader must give every record of the chunk's whole blocks (as
+    zstandard's streaming decoder yields them) and lose only the cut block. Dropping the cut chunk whole
+    would keep the first chunk's 20,728 samples (0-306 s); its whole blocks add 10,341 (to 459 s); the
+    cut block's records before the cut (about 1,970 samples, 459-488 s) cannot be decoded.
+    """
+    import zstandard
+
+    data = (LOGS / f"{DRIVE}.mcap").read_bytes()
+    chunks, stats = _mcap_chunks(data)
+    c = chunks[1]
+    c1 = c.chunk_start_offset + c.chunk_length
+    c0 = c1 - c.compressed_size
+    cut = c0 + int(0.6 * c.compressed_size)
+    p = tmp_path / "cut.mcap"
+    p.write_bytes(data[:cut])
+    streams, meta = _read_damaged(p)
+    ref, _ = intact("mcap")
+    t_last = meta.damage["last_time_s"]
+    _same_before(streams, ref, t_last)
+
+    full = zstandard.ZstdDecompressor().decompress(data[c0:c1], max_output_size=c.uncompressed_size)
+    blocks = zstandard.ZstdDecompressor().decompressobj().decompress(data[c0:cut])
+    assert full.startswith(blocks) and 0 < len(blocks) < len(full)
+    t0 = stats.message_start_time * 1e-9
+    in_blocks = [t for end, t in _message_records(full) if end <= len(blocks)]
+    assert t_last == pytest.approx(max(in_blocks) - t0, abs=1e-6)
+
+    t_chunk0 = chunks[0].message_end_time * 1e-9 - t0
+    n_whole_chunk = _rows(ref, t_chunk0)
+    n_read = _rows(streams)
+    assert n_read > n_whole_chunk + 10_000, (n_read, n_whole_chunk)
+    # The lost block is named: its bytes and the time from which nothing was read.
+    assert c0 < meta.damage["truncated_at_byte"] < cut
+    assert "zstd block" in meta.damage["summary"] and f"from byte {meta.damage['truncated_at_byte']}" in \
+        ", ".join(meta.damage["where"])
+
+
+def test_mcap_cut_in_an_lz4_chunk_reads_to_the_cut(tmp_path):
+    """LZ4 sequences decode front to back, so a cut LZ4 chunk gives its records up to the cut itself.
+
+    The bundled drive rewritten with LZ4 chunks by the ``mcap`` library; each cut falls inside an LZ4
+    block, whose records ``lz4.frame`` alone would not give.
+    """
+    import lz4.frame
+
+    from iptm.benchmarks.fuzz import mcap_message_positions, rewrite_mcap
+
+    src = rewrite_mcap(LOGS / f"{DRIVE}.mcap", tmp_path / "lz4.mcap", "lz4")
+    data = src.read_bytes()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", LogDamageWarning)
+        ref, _ = read_streams(src)
+    chunks, stats = _mcap_chunks(data)
+    assert {c.compression for c in chunks} == {"lz4"}
+    t0 = stats.message_start_time * 1e-9
+    pos, t_msg = mcap_message_positions(data)
+    c = chunks[1]
+    c1 = c.chunk_start_offset + c.chunk_length
+    c0 = c1 - c.compressed_size
+    full = lz4.frame.decompress(data[c0:c1])
+    for frac in (0.13, 0.37, 0.61, 0.89):
+        cut = c0 + int(frac * c.compressed_size)
+        p = tmp_path / "cut.mcap"
+        p.write_bytes(data[:cut])
+        streams, meta = _read_damaged(p)
+        t_last = meta.damage["last_time_s"]
+        _same_before(streams, ref, t_last)
+        whole_blocks = lz4.frame.LZ4FrameDecompressor().decompress(data[c0:cut])
+        t_blocks = max(t for end, t in _message_records(full) if end <= len(whole_blocks)) - t0
+        t_before = t_msg[pos <= cut].max() - t0  # the last message whose sequences all lie before the cut
+        assert t_last > t_blocks + 1.0, (frac, t_last, t_blocks)
+        assert t_last == pytest.approx(t_before, abs=1e-6), (frac, t_last, t_before)
+
+
+def _mdf_blocks(data: bytes) -> dict:
+    """address -> (block id, length, link count) of every MDF4 block reachable from the HD block."""
+    out, todo = {}, [64]
+    while todo:
+        a = todo.pop()
+        if a and a not in out:
+            length, n_links = struct.unpack_from("<QQ", data, a + 8)
+            out[a] = (data[a:a + 4], length, n_links)
+            todo.extend(struct.unpack_from(f"<{n_links}Q", data, a + 24))
+    return dict(sorted(out.items()))
+
+
+def _streaming_layout(data: bytes) -> bytes:
+    """The same MDF4 file with its data blocks moved after every definition block, links remapped.
+
+    This is how a streaming logger lays a file out (definitions first, records appended at the end); asammdf
+    itself writes the definitions after the data.
+    """
+    blocks = _mdf_blocks(data)
+    is_data = {a: blocks[a][0] in (b"##DT", b"##DL", b"##DZ", b"##HL", b"##SD") for a in blocks}
+    order = [a for a in blocks if not is_data[a]] + [a for a in blocks if is_data[a]]
+    new, at = {}, 64
+    for a in order:
+        new[a] = at
+        at += -(-blocks[a][1] // 8) * 8
+    out = bytearray(data[:64])
+    for a in order:
+        _, length, n_links = blocks[a]
+        blk = bytearray(data[a:a + length])
+        for i in range(n_links):
+            link = struct.unpack_from("<Q", blk, 24 + 8 * i)[0]
+            if link:
+                struct.pack_into("<Q", blk, 24 + 8 * i, new[link])
+        out += blk + bytes(-length % 8)
+    return bytes(out)
+
+
+def _one_group_mf4(path):
+    """A 120-s MDF4 file, one channel group (every channel on one time base), written by asammdf."""
+    asammdf = pytest.importorskip("asammdf")
+    from calib.drivelog import CHANNELS
+    from calib.ingest.common import HUMAN_NAME
+    from calib.ingest.fabricate import fabricate_streams
+
+    streams, _ = fabricate_streams(120.0, dropout=None, rates={c: 10.0 for c in (
+        "speed_mps", "bat_current_A", "bat_voltage_V", "engine_speed_rpm", "fuel_rate_g_per_s")})
+    t = np.arange(0.0, 119.0, 0.1)
+    sigs = [asammdf.Signal(samples=np.interp(t, s.index.to_numpy(float), s.to_numpy(float)), timestamps=t,
+                           name=HUMAN_NAME.get(ch, ch), unit=CHANNELS[ch][0])
+            for ch, s in streams.items() if CHANNELS[ch][0] != "dimensionless"]
+    mdf = asammdf.MDF(version="4.10")
+    mdf.append(sigs)
+    mdf.save(path, overwrite=True)
+    mdf.close()
+    return path
+
+
+def test_cut_mdf4_with_definitions_first_reads_its_whole_records(tmp_path):
+    """A streaming logger's layout (definitions, then records) cut short: every whole record is read."""
+    asammdf = pytest.importorskip("asammdf")
+    data = _streaming_layout(_one_group_mf4(tmp_path / "one.mf4").read_bytes())
+    intact_path = tmp_path / "stream.mf4"
+    intact_path.write_bytes(data)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", LogDamageWarning)
+        ref, _ = read_streams(intact_path)
+    with asammdf.MDF(str(intact_path)) as mdf:  # record size and data start, from asammdf
+        cg = mdf.groups[0].channel_group
+        record = cg.samples_byte_nr + cg.invalidation_bytes_nr
+        n_all = cg.cycles_nr
+    dt = [a for a, b in _mdf_blocks(data).items() if b[0] == b"##DT"]
+    assert len(dt) == 1 and dt[0] > max(a for a, b in _mdf_blocks(data).items() if b[0] != b"##DT")
+    for frac in (0.3, 0.77):
+        cut = int(len(data) * frac)
+        p = tmp_path / "cut.mf4"
+        p.write_bytes(data[:cut])
+        streams, meta = _read_damaged(p)
+        n_whole = (cut - dt[0] - 24) // record  # whole records before the cut
+        assert 0 < n_whole < n_all
+        assert {len(s) for s in streams.values()} == {n_whole}
+        _same_before(streams, ref, meta.damage["last_time_s"])
+        assert meta.damage["truncated_at_byte"] == cut and "unfinalised" in meta.damage["summary"]
+        with pytest.raises(LogFormatError, match="truncated"):
+            read_streams(p, strict=True)
+
+
+def test_cut_mdf4_written_by_asammdf_names_why_nothing_is_left(tmp_path):
+    """asammdf writes the channel definitions after the data: a cut file's records cannot be decoded."""
+    data = _one_group_mf4(tmp_path / "one.mf4").read_bytes()
+    p = tmp_path / "cut.mf4"
+    p.write_bytes(data[: int(len(data) * 0.6)])
+    with pytest.raises(LogFormatError, match=r"channel definitions \(DG/CG/CN blocks\) lie after the cut"):
+        read_streams(p)

@@ -91,7 +91,11 @@ _ANCHORS = {b"\x04\x00\x00\x00zstd": "zstd", b"\x03\x00\x00\x00lz4": "lz4"}
 
 
 def _decompressor(compression: str):
-    """A function bytes -> bytes that inflates a (possibly cut) chunk body as far as it goes."""
+    """A function bytes -> bytes that inflates a (possibly cut) chunk body as far as it goes.
+
+    zstd gives the output of every whole block (a compressed zstd block is decoded from both ends, so a
+    cut one gives nothing); LZ4 gives every byte up to the cut (see :func:`_lz4_prefix`).
+    """
     if compression == "":
         return lambda b: bytes(b)
     if compression == "zstd":
@@ -108,19 +112,107 @@ def _decompressor(compression: str):
             return b"".join(out)
         return run
     if compression == "lz4":
-        import lz4.frame
-
-        def run(b):
-            d = lz4.frame.LZ4FrameDecompressor()
-            out = []
-            try:
-                for i in range(0, len(b), 1 << 16):
-                    out.append(d.decompress(bytes(b[i:i + (1 << 16)])))
-            except RuntimeError:
-                pass
-            return b"".join(out)
-        return run
+        return _lz4_prefix
     raise LogFormatError("", f"unsupported MCAP chunk compression {compression[:20]!r}")
+
+
+def _zstd_whole_blocks_end(b) -> int | None:
+    """Offset in a zstd frame (maybe cut short) where its last whole block ends; None if not one frame."""
+    if len(b) < 6 or bytes(b[:4]) != b"\x28\xb5\x2f\xfd":
+        return None
+    fhd = b[4]
+    single = bool(fhd & 0x20)
+    fcs = (1 if single else 0, 2, 4, 8)[fhd >> 6]
+    p = 5 + (0 if single else 1) + (0, 1, 2, 4)[fhd & 3] + fcs
+    while p + 3 <= len(b):
+        h = b[p] | (b[p + 1] << 8) | (b[p + 2] << 16)
+        size = 1 if (h >> 1) & 3 == 1 else h >> 3  # an RLE block stores one byte
+        if p + 3 + size > len(b):
+            break
+        p += 3 + size
+        if h & 1:
+            break
+    return min(p, len(b))
+
+
+def _lz4_block_prefix(src: bytes, out: bytearray) -> None:
+    """Append to ``out`` what an LZ4 block (maybe cut short) decodes to, up to its first missing byte.
+
+    LZ4 sequences are read front to back (token, literals, offset, match), so a cut block still gives every
+    sequence before the cut; ``out`` holds the frame's earlier output, which linked blocks refer back to.
+    """
+    i, n = 0, len(src)
+    while i < n:
+        token = src[i]
+        i += 1
+        lit = token >> 4
+        if lit == 15:
+            while i < n:
+                lit += src[i]
+                i += 1
+                if src[i - 1] != 255:
+                    break
+            else:
+                return
+        out += src[i:i + lit]  # a literal run cut short is still the right bytes
+        i += lit
+        if i + 2 > n:
+            return
+        off = src[i] | (src[i + 1] << 8)
+        i += 2
+        ml = token & 15
+        if ml == 15:
+            while i < n:
+                ml += src[i]
+                i += 1
+                if src[i - 1] != 255:
+                    break
+            else:
+                return
+        ml += 4
+        if off == 0 or off > len(out):
+            return  # not LZ4 any more (damage): stop at the last good byte
+        start = len(out) - off
+        if off >= ml:
+            out += out[start:start + ml]
+        else:  # an overlapping match repeats the last ``off`` bytes
+            while ml > 0:
+                k = min(ml, off)
+                out += out[start:start + k]
+                start += k
+                ml -= k
+
+
+def _lz4_prefix(b) -> bytes:
+    """Inflate an LZ4 frame (maybe cut short): whole blocks by lz4.frame, then the cut block by hand."""
+    import lz4.frame
+
+    b = bytes(b)
+    d = lz4.frame.LZ4FrameDecompressor()
+    try:
+        whole = d.decompress(b)
+    except RuntimeError:
+        return b""  # damaged before the cut: the caller reports the chunk
+    if d.eof or len(b) < 7 or b[:4] != b"\x04\x22\x4d\x18":
+        return whole
+    flg = b[4]
+    block_sum = 4 if flg & 0x10 else 0
+    p = 4 + 2 + (8 if flg & 0x08 else 0) + (4 if flg & 0x01 else 0) + 1  # magic, FLG, BD, size, dict id, HC
+    while p + 4 <= len(b):  # skip the whole blocks (lz4.frame decoded them) to where the cut one starts
+        size = int.from_bytes(b[p:p + 4], "little")
+        if size == 0:
+            return whole
+        raw, size = bool(size & 0x80000000), size & 0x7FFFFFFF
+        if p + 4 + size + block_sum > len(b):
+            out = bytearray(whole)
+            data = b[p + 4:p + 4 + size]
+            if raw:
+                out += data
+            else:
+                _lz4_block_prefix(data, out)
+            return bytes(out)
+        p += 4 + size + block_sum
+    return whole
 
 
 class _McapScan:
@@ -137,6 +229,7 @@ class _McapScan:
         self.footer = False
         self.data_end = False  # the data section ended whole: a cut after it loses only the index
         self.cut_in_summary = False
+        self.undecoded_from = None  # first byte of a cut chunk's compressed data that gave no records
         self.i = 0  # messages seen
         self.t_last = -math.inf  # last good message time, s (file clock)
 
@@ -163,7 +256,13 @@ class _McapScan:
             if op not in _KNOWN_OPS and op < 0x80 or length > n - body:
                 if length > n - body and op == _OP_CHUNK and not ends_whole:
                     self._chunk(body, n, cut=True)
-                    self.dmg.truncated(n, None, self.t_last, f"file ends inside the chunk at byte {pos} (read up to the cut)")
+                    if self.undecoded_from is None:
+                        self.dmg.truncated(n, None, self.t_last,
+                                           f"file ends inside the chunk at byte {pos} (read up to the cut)")
+                    else:
+                        self.dmg.truncated(self.undecoded_from, n, self.t_last,
+                                           f"file ends inside a zstd block of the chunk at byte {pos} "
+                                           "(zstd decodes whole blocks only)")
                     break
                 if not ends_whole and length > n - body and op in _KNOWN_OPS:
                     if self.data_end and not self.dmg.strict:
@@ -264,6 +363,9 @@ class _McapScan:
         except LogFormatError as exc:
             raise LogFormatError(self.path, exc.problem, where) from None
         span = (t_start * 1e-9, t_end * 1e-9)
+        if cut:
+            whole = _zstd_whole_blocks_end(buf[p:stop]) if comp == "zstd" else None
+            self.undecoded_from = None if whole is None or p + whole >= stop else p + whole
         if not cut:
             if len(data) != usize or (crc and zlib.crc32(data) != crc):
                 self.bad("corrupt chunk (size or CRC does not match) dropped", where, (a - 9, b), t_span=span)
@@ -305,7 +407,10 @@ def read_mcap_streams(path, topic_map: dict | None = None, strict: bool = False)
     """Read an MCAP log of JSON messages into streams.
 
     The file's records are walked in order (as ``mcap recover`` does), so a file cut short (a recorder
-    killed mid-drive) gives every message before the cut, including those of the last, partial chunk.
+    killed mid-drive) gives every message before the cut. Of the last, cut chunk, every complete record its
+    data still decodes to is read: uncompressed and LZ4 chunks up to the cut; zstd chunks up to their last
+    whole zstd block, since a zstd block decodes only whole (its sequences are read from its end). The
+    records of that cut block (up to 128 kB uncompressed) are lost and named in the damage.
     A chunk whose CRC or size does not match is dropped whole; a message that is not JSON, or whose mapped
     field is not a number, is skipped; a garbled record header is skipped by finding the next chunk.
     What was lost is in ``meta.damage``; under ``strict`` the first damage is raised instead.
@@ -402,8 +507,8 @@ def read_mcap_streams(path, topic_map: dict | None = None, strict: bool = False)
             meta.start_time = d.get("start_time") or None
     if state["n_msgs"] == 0:
         extra = f" ({'; '.join(dmg.problems)})" if dmg else ""
-        if dmg.truncated_at is not None:
-            extra += " - a compressed chunk decodes in whole blocks (up to 128 kB of messages for zstd)"
+        if dmg.truncated_at is not None and "zstd" in extra:
+            extra += " - the cut falls in the chunk's first zstd block (up to 128 kB of records)"
         raise LogFormatError(path, "MCAP file holds no readable messages" + extra)
     mapped = [tp for tp in topics_seen if tp in tmap]
     if not mapped:

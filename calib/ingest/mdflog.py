@@ -9,6 +9,7 @@ from __future__ import annotations
 import gc
 import struct
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +35,66 @@ def _declared_size(path) -> int:
     return end
 
 
+def _cut_data_copy(path, folder) -> tuple[Path, int] | None:
+    """A copy of a cut MDF4 file that asammdf reads as an unfinalised one, or None if none can be made.
+
+    A streaming logger writes the channel definitions (DG, CG, CN blocks) first and appends records to the
+    last data block, so a file cut short still holds every definition and every complete record before the
+    cut. The copy sets each data block that runs past the end to the length that is left (a group whose
+    data block starts past the end gets none) and marks the file unfinalised with "update the cycle
+    counters" and "update the last DT length", which asammdf applies as it opens it: it keeps the whole
+    records and drops the partial last one. Returns (copy, number of groups cut). None when a definition
+    block lies past the end (asammdf's own layout, definitions after the data), when the version is below
+    4.10 (asammdf finalises only 4.10 and later) or when no data block was cut (another kind of damage).
+    """
+    data = bytearray(Path(path).read_bytes())
+    size = len(data)
+    if size < 88 or not data[8:12].startswith(b"4.") or data[8:12] < b"4.10":
+        return None
+    seen, todo, dgs = set(), [64], []
+    while todo:
+        a = todo.pop()
+        if a in seen:
+            continue
+        seen.add(a)
+        if a + 24 > size or data[a:a + 2] != b"##":
+            return None  # a definition past the cut (or a bad link): no layout to read the data with
+        length, n_links = struct.unpack_from("<QQ", data, a + 8)
+        if a + 24 + 8 * n_links > size or n_links > 1 << 16:
+            return None
+        links = struct.unpack_from(f"<{n_links}Q", data, a + 24)
+        kind = bytes(data[a:a + 4])
+        if kind == b"##DG":
+            dgs.append(a)
+            links = links[:2] + links[3:]  # the data link is handled below, not followed
+        if kind in (b"##DT", b"##DL", b"##DZ", b"##HL", b"##SD"):
+            continue
+        todo.extend(x for x in links if x)
+    cut = 0
+    for dg in dgs:
+        dt = struct.unpack_from("<Q", data, dg + 24 + 16)[0]
+        if not dt:
+            continue
+        if dt + 24 > size:
+            struct.pack_into("<Q", data, dg + 24 + 16, 0)  # its data starts past the cut: none left
+            cut += 1
+            continue
+        length = struct.unpack_from("<Q", data, dt + 8)[0]
+        if dt + length <= size:
+            continue
+        if data[dt:dt + 4] != b"##DT":
+            return None  # a cut list or compressed block: not followed
+        struct.pack_into("<Q", data, dt + 8, size - dt)
+        cut += 1
+    if not cut:
+        return None
+    data[0:8] = b"UnFinMF "
+    struct.pack_into("<H", data, 60, struct.unpack_from("<H", data, 60)[0] | 0x1 | 0x4)
+    out = Path(folder) / Path(path).name
+    out.write_bytes(bytes(data))
+    return out, cut
+
+
 def _quiet_asammdf_del(unraisable, _prev=None):
     """Drop the exception asammdf's ``__del__`` raises on a half-built object; pass any other on."""
     if str(getattr(unraisable.object, "__module__", "")).startswith("asammdf"):
@@ -41,7 +102,7 @@ def _quiet_asammdf_del(unraisable, _prev=None):
     (_prev or sys.__unraisablehook__)(unraisable)
 
 
-def _open_mdf(MDF, path):
+def _open_mdf(MDF, path, **kw):
     """Open with asammdf; a corrupt file becomes a :class:`LogFormatError` (returned, not raised).
 
     asammdf leaves a half-initialised object behind when its constructor fails, and that object's
@@ -52,7 +113,7 @@ def _open_mdf(MDF, path):
     sys.unraisablehook = lambda u: _quiet_asammdf_del(u, prev)
     try:
         try:
-            return MDF(str(path)), None
+            return MDF(str(path), **kw), None
         except Exception as exc:  # noqa: BLE001 - asammdf raises many types on a bad file
             text = str(exc).splitlines()[0][:160] if str(exc) else type(exc).__name__
             err = LogFormatError(path, f"corrupt or unreadable MDF file: {text}")
@@ -82,13 +143,28 @@ def read_mdf_streams(path, column_map: dict | None = None, strict: bool = False)
     if len(head) < 64 or not head.startswith(b"MDF "):
         raise LogFormatError(path, "not an MDF file (no 'MDF' identification block)")
     dmg = Damage(path, strict=strict, unit="block")
+    with tempfile.TemporaryDirectory(prefix="iptm-mdf-") as tmp:
+        return _read_mdf(MDF, path, column_map, dmg, meta, tmp)
+
+
+def _read_mdf(MDF, path, column_map, dmg, meta, tmp):
+    size = Path(path).stat().st_size
+    cut_groups = 0
     with quiet_libraries() as chatter:
         mdf, err = _open_mdf(MDF, path)
+        if err is not None and size < _declared_size(path):
+            copy = _cut_data_copy(path, tmp)
+            if copy is None:
+                # asammdf writes the channel definitions after the data: what is left of a cut file is
+                # records with nothing saying which channel, type, scaling or unit they hold.
+                raise LogFormatError(path, f"{err.problem}; the file is cut short and its channel definitions "
+                                           "(DG/CG/CN blocks) lie after the cut, so its records cannot be "
+                                           "decoded") from None
+            if dmg.strict:
+                dmg.truncated(size, None, None, "file ends inside its data (an unfinalised MDF4 file)")
+            mdf, err = _open_mdf(MDF, copy[0], temporary_folder=tmp)
+            cut_groups = copy[1]
     if err is not None:
-        if mdf is None and Path(path).stat().st_size < _declared_size(path):
-            # asammdf writes the channel definitions after the data: a cut file has no layout left.
-            raise LogFormatError(path, f"{err.problem}; the file is cut short and keeps its channel "
-                                       "definitions after the data, so nothing can be recovered") from None
         raise err
     parts = {}
     t_first = np.inf
@@ -124,7 +200,11 @@ def read_mdf_streams(path, column_map: dict | None = None, strict: bool = False)
         dmg.bad(LogFormatError(path, f"{text[:80].replace(':', ' -')} (reported by asammdf)", "asammdf"))
     if not parts:
         raise LogFormatError(path, "no MDF channel is a known channel", hint="pass a column map")
-    meta.damage = dmg.finish(0.0)
+    t_last = max((float(t[-1]) for t, *_ in parts.values() if len(t)), default=None)
+    if cut_groups:
+        dmg.truncated(size, None, t_last, f"file ends inside the data of {cut_groups} channel group(s), read "
+                                          "as an unfinalised MDF4 file (whole records kept)")
+    meta.damage = dmg.finish(t_first if np.isfinite(t_first) else 0.0, t_last if cut_groups else None)
     streams = {}
     for ch, (t, v, name, unit) in parts.items():
         s = make_series(t - t_first, v, ch)

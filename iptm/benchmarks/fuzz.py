@@ -15,9 +15,12 @@ replayed (``mutate(data, seed, r, i)``). Each read ends in one of:
 talking past the project's own reporting); ``unclear`` counts IptmErrors whose message is not one line
 naming the file.
 
-The truncation check (``n / 20`` cuts per format, 50 to 500) cuts a larger valid log of each format at a uniformly random byte between 10 % and
-100 % of its length and requires it to be read or recovered, with every sample up to the recovered
-end time equal to the intact file's ("nothing before the cut lost").
+The truncation check (``n / 20`` cuts per format, 50 to 500) cuts a larger valid log of each format at a
+uniformly random byte between 10 % and 100 % of its length and counts the cuts read or recovered with
+every sample up to the recovered end time equal to the intact file's. For MCAP (its zstd seed, and the
+same messages rewritten with LZ4 chunks, ``mcap-lz4``) it also counts the cuts after which every message
+lying before the cut (:func:`mcap_message_positions`) was read, and the log time lost before the cut:
+a zstd block decodes only whole, so a cut inside one loses the block's records before the cut.
 
 Run: ``iptm bench fuzz`` (10,000 mutated inputs per reader; ``--quick``: 300) or
 ``python -m iptm.benchmarks.fuzz --n 200 --seed 1``.
@@ -290,6 +293,144 @@ def fuzz(n: int = 10_000, seed: int = 0, readers=READERS, folder=None, log=print
     return results
 
 
+def rewrite_mcap(src, dst, compression: str) -> Path:
+    """Copy an MCAP file with the ``mcap`` library, its chunks compressed with ``compression``."""
+    from mcap.reader import make_reader
+    from mcap.writer import CompressionType, Writer
+
+    kind = {"lz4": CompressionType.LZ4, "zstd": CompressionType.ZSTD, "": CompressionType.NONE}[compression]
+    with open(src, "rb") as fin, open(dst, "wb") as fout:
+        reader = make_reader(fin)
+        w = Writer(fout, compression=kind)
+        w.start()
+        schemas, channels = {}, {}
+        for schema, channel, msg in reader.iter_messages(log_time_order=False):
+            if channel.id not in channels:
+                sid = 0
+                if schema is not None:
+                    if schema.id not in schemas:
+                        schemas[schema.id] = w.register_schema(schema.name, schema.encoding, schema.data)
+                    sid = schemas[schema.id]
+                channels[channel.id] = w.register_channel(channel.topic, channel.message_encoding, sid,
+                                                          channel.metadata)
+            w.add_message(channels[channel.id], msg.log_time, msg.data, msg.publish_time, msg.sequence)
+        for md in reader.iter_metadata():
+            w.add_metadata(md.name, md.metadata)
+        w.finish()
+    return Path(dst)
+
+
+def _lz4_progress(comp: bytes) -> tuple[list[int], list[int]]:
+    """(compressed bytes in, bytes decodable) through an LZ4 frame, for ``np.interp(out, d, e)``.
+
+    An LZ4 block is a run of sequences (token, literals, offset, match), each decodable once its bytes are
+    in; a literal run gives its bytes one by one. Only the lengths are parsed, nothing is decoded.
+    """
+    e_pts, d_pts = [0], [0]
+    flg = comp[4]
+    p = 7 + (8 if flg & 0x08 else 0) + (4 if flg & 0x01 else 0)
+    block_sum = 4 if flg & 0x10 else 0
+    out = 0
+    while p + 4 <= len(comp):
+        size = int.from_bytes(comp[p:p + 4], "little")
+        if size == 0:
+            break
+        raw, size = bool(size & 0x80000000), size & 0x7FFFFFFF
+        a, b = p + 4, p + 4 + size
+        if raw:
+            e_pts += [a, b]
+            d_pts += [out, out + size]
+            out += size
+        else:
+            i = a
+            while i < b:
+                token = comp[i]
+                i += 1
+                lit = token >> 4
+                if lit == 15:
+                    while True:
+                        lit += comp[i]
+                        i += 1
+                        if comp[i - 1] != 255:
+                            break
+                e_pts += [i, i + lit]
+                d_pts += [out, out + lit]
+                i += lit
+                out += lit
+                if i >= b:
+                    break  # the last sequence has literals only
+                i += 2
+                ml = token & 15
+                if ml == 15:
+                    while True:
+                        ml += comp[i]
+                        i += 1
+                        if comp[i - 1] != 255:
+                            break
+                # the match's bytes all need its last length byte: a step, not a slope
+                e_pts += [i, i]
+                d_pts += [out + 1e-6, out + ml + 4]
+                out += ml + 4
+        p = b + block_sum
+    keep = [0] + [k for k in range(1, len(d_pts)) if d_pts[k] > d_pts[k - 1]]  # first input giving an output
+    return [e_pts[k] for k in keep], [d_pts[k] for k in keep]
+
+
+def mcap_message_positions(data: bytes) -> tuple[np.ndarray, np.ndarray]:
+    """(file position, log time in s) of every message of an intact MCAP, in file order.
+
+    The position is where the message's record ends in the file. Inside a compressed chunk it is placed by
+    the codec's progress. zstd: the compressed data is fed to a streaming decompressor 64 bytes at a time,
+    which gives (compressed bytes in, bytes out) where output appears (each block end), and a message
+    between two such points is placed linearly between them, so a reader that cannot decode the last,
+    incomplete block is counted as losing the messages that block holds before the cut. LZ4: the exact
+    point where each byte becomes decodable, from the sequence lengths (:func:`_lz4_progress`). Read with
+    the ``mcap`` library's summary and the codecs, not with the reader.
+    """
+    import struct
+
+    import zstandard
+    from mcap.reader import make_reader
+
+    summary = make_reader(io.BytesIO(data)).get_summary()
+    pos, times = [], []
+    for ci in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
+        c1 = ci.chunk_start_offset + ci.chunk_length
+        c0 = c1 - ci.compressed_size
+        comp = data[c0:c1]
+        if ci.compression == "zstd":
+            d = zstandard.ZstdDecompressor().decompressobj()
+        else:
+            d = None
+        if ci.compression == "lz4":
+            import lz4.frame
+
+            raw = lz4.frame.decompress(comp)
+            e_pts, d_pts = _lz4_progress(comp)
+        elif d is None:
+            raw, e_pts, d_pts = comp, [0, len(comp)], [0, len(comp)]
+        else:
+            parts, e_pts, d_pts, got = [], [0], [0], 0
+            for i in range(0, len(comp), 64):
+                out = d.decompress(comp[i:i + 64])
+                if out:
+                    got += len(out)
+                    parts.append(out)
+                    e_pts.append(min(i + 64, len(comp)))
+                    d_pts.append(got)
+            raw = b"".join(parts)
+        q, ends = 0, []
+        while q + 9 <= len(raw):
+            op, length = raw[q], struct.unpack_from("<Q", raw, q + 1)[0]
+            end = q + 9 + length
+            if op == 5:  # message: channel id u16, sequence u32, log_time u64
+                ends.append(end)
+                times.append(struct.unpack_from("<Q", raw, q + 9 + 6)[0] * 1e-9)
+            q = end
+        pos.extend(c0 + np.interp(np.asarray(ends, float), np.asarray(d_pts, float), np.asarray(e_pts, float)))
+    return np.asarray(pos), np.asarray(times)
+
+
 @_in_folder
 def truncation_check(n: int = 200, seed: int = 0, readers=LOG_READERS, folder=None, log=print) -> dict:
     """Random cuts of a valid 120-s log per format: read or recovered, nothing before the cut lost."""
@@ -297,19 +438,32 @@ def truncation_check(n: int = 200, seed: int = 0, readers=LOG_READERS, folder=No
     from calib.ingest import read_streams
 
     seeds = make_seed_files(folder / "seeds", duration_s=120.0, rate=10.0)
+    cases = []  # (label, reader, seed file, rng key)
+    for r, fmt in enumerate(LOG_READERS):
+        if fmt in readers and fmt in seeds:
+            cases.append((fmt, fmt, seeds[fmt], [seed, r]))
+            if fmt == "mcap":  # the same messages in LZ4 chunks (what the reader can decode differs)
+                lz4_path = rewrite_mcap(seeds[fmt], folder / "seeds" / "seed_lz4.mcap", "lz4")
+                cases.append(("mcap-lz4", fmt, lz4_path, [seed, r, 1]))
     results = {}
-    for r, name in enumerate(LOG_READERS):
-        if name not in readers or name not in seeds:
-            continue
-        data = seeds[name].read_bytes()
+    for name, fmt, seed_path, key in cases:
+        data = seed_path.read_bytes()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            ref, _ = read_streams(seeds[name], fmt=name)
-        rng = np.random.default_rng([seed, r])
+            ref, _ = read_streams(seed_path, fmt=fmt)
+        rng = np.random.default_rng(key)
         ok = lost = failed = 0
         kept = []
+        # Where each message lies in the file (MCAP only): what a cut leaves before it, to count what the
+        # reader did not give back of it. The line/object formats are read record by record.
+        msg_pos = msg_t = None
+        if fmt == "mcap":
+            msg_pos, msg_t = mcap_message_positions(data)
+            msg_t = msg_t - msg_t.min()
+        whole_before = 0
+        behind = []
         first_fail = ""
-        path = folder / f"cut.{EXT[name]}"
+        path = folder / f"cut.{EXT[fmt]}"
         t0 = time.perf_counter()
         for _ in range(n):
             cut = int(rng.integers(int(0.1 * len(data)), len(data) + 1))
@@ -317,10 +471,14 @@ def truncation_check(n: int = 200, seed: int = 0, readers=LOG_READERS, folder=No
             with warnings.catch_warnings(), contextlib.redirect_stderr(io.StringIO()):
                 warnings.simplefilter("ignore")
                 try:
-                    streams, meta = read_streams(path, fmt=name)
+                    streams, meta = read_streams(path, fmt=fmt)
                 except IptmError as exc:
                     failed += 1
                     first_fail = first_fail or f"cut at {cut} of {len(data)}: {str(exc)[:160]}"
+                    if msg_pos is not None:
+                        before = msg_t[msg_pos <= cut]
+                        behind.append(float(before.max()) if len(before) else 0.0)
+                        whole_before += not len(before)
                     continue
             t_end = (meta.damage or {}).get("last_time_s")
             if t_end is None:
@@ -333,13 +491,29 @@ def truncation_check(n: int = 200, seed: int = 0, readers=LOG_READERS, folder=No
                 same = len(a) == len(b) and np.array_equal(a.to_numpy(), b.to_numpy())
             ok += same
             lost += not same
+            if msg_pos is not None:
+                before = msg_t[msg_pos <= cut]
+                gap = max(0.0, float(before.max()) - t_end) if len(before) else 0.0
+                behind.append(gap)
+                whole_before += same and gap == 0.0
             kept.append(t_end / max(s_.index[-1] for s_ in ref.values()) / (cut / len(data)))
         wall = time.perf_counter() - t0
         results[name] = {"n": n, "read_or_recovered_whole": ok, "lost_before_cut": lost, "error": failed,
                          "median_time_kept_per_byte_kept": float(np.median(kept)) if kept else None,
                          "wall_s": wall, "first_failure": first_fail}
+        if msg_pos is not None:
+            b = np.asarray(behind)
+            results[name].update({"nothing_lost_before_cut": whole_before,
+                                  "time_lost_before_cut_s": {"median": float(np.median(b)),
+                                                             "p90": float(np.quantile(b, 0.9)),
+                                                             "max": float(b.max())}})
         log(f"{name:9s} cuts {n:5d}  read/recovered with nothing lost {ok:5d} ({100 * ok / n:5.1f} %)  "
             f"lost data before the cut {lost:4d}  error {failed:4d}  {wall:6.1f} s")
+        if msg_pos is not None:
+            tl = results[name]["time_lost_before_cut_s"]
+            log(f"    every message before the cut read: {whole_before} ({100 * whole_before / n:5.1f} %); "
+                f"log time lost before the cut: median {tl['median']:.2f} s, 90 % {tl['p90']:.2f} s, "
+                f"max {tl['max']:.2f} s (of {msg_t.max():.0f} s)")
         if first_fail:
             log(f"    {first_fail}")
     return results
