@@ -6,7 +6,12 @@
   least squares over all logs. Only breakpoints the data covers (sum of hat weights >= 30 samples, and
   for R also a current spread) are unknowns; each estimate is combined with the entry's prior (precision
   weighting); the others are the prior, with the prior sd, flagged weak.
-- Capacity: Coulomb counting (with the current inferred from ``bat_power_W`` and the prior OCV/resistance
+- Logs with battery power and SOC but no current and voltage (:func:`_fit_from_power`): the SOC balance
+  of the replay fitted by maximum a posteriori gives the capacity (the energy: OCV x capacity), the level
+  of the resistance (a factor on the prior table: the losses) and its temperature coefficient; the OCV
+  table keeps its prior. Where some logs have current and voltage, the tables come from those and the
+  power-only logs join the Coulomb counting with their current inferred from the fitted tables.
+- Capacity: Coulomb counting (with the current inferred from ``bat_power_W`` and the fitted OCV/resistance
   tables, eq. 1 solved for I, for logs that have power but no current). The logged SOC (0.5 % steps) is regressed on the integrated current,
   ``SOC(t) = SOC0_log - Q(t) / (3600 C_bat)``, one intercept per log and one common slope, over every
   sample of the whole log (the quantisation averages out over long windows; the standard error is
