@@ -60,6 +60,18 @@ def main() -> None:
                 print(f"    coolant {lo:4d}-{hi:<4d} degC {int(sel.sum()):5d} s: measured {Wm[sel].sum():6.1f} g, replay "
                       f"{100 * (Ws[sel].sum() / Wm[sel].sum() - 1):+6.1f} %, with measured coolant "
                       f"{100 * (Wt[sel].sum() / Wm[sel].sum() - 1):+6.1f} %")
+    pe = ps.param("eta_ool")
+    print("  calibrated eta_ool (prior): " + ", ".join(f"{x / 1e3:g} kW {v:.3f} ({p:.3f})" for x, v, p in
+                                                    zip(pe.x, pe.value, pe.prior_value) if 5e3 <= x <= 60e3))
+    for n in names[:2]:
+        la = log_arrays(logs[n], mp)
+        Wm = replay(logs[n], ps).measured["fuel_rate"]
+        Tm = _fill(la.ch["coolant_temp_degC"], 20.0)
+        Wt = la.f_on * fuel_replay(mp, np.full(la.t.size, 3, np.int64), la.P_on, Tm)
+        sel = np.isfinite(Wm) & (la.f_on > 0.5) & (la.P_on > 17e3)
+        if sel.sum() >= 10:
+            print(f"    {n}: engine power above 17 kW, {int(sel.sum())} s: replay with the measured coolant "
+                  f"{100 * (Wt[sel].sum() / Wm[sel].sum() - 1):+.1f} %")
     errs = {n: replay(logs[n], ps).metrics()["cumulative_fuel"]["error_pct"] for n in names[2:]}
     k = 1.0 / (1.0 + errs[names[2]] / 100.0)
     print(f"  one warm fuel level for both held-out drives: scaling the calibrated fuel rate by {k:.3f} (what the "
