@@ -162,3 +162,30 @@ def test_power_without_a_moving_soc_keeps_the_prior():
     assert not fit.fitted
     assert fit.estimates["C_bat_Ah"].value == default_parameters()["C_bat_Ah"]
     assert "never changes level" in fit.estimates["C_bat_Ah"].note
+
+
+def test_replay_starts_from_the_soc_the_first_minute_implies():
+    """A drive that charges hard at once: the mean of the first quantised SOC readings is biased; the replay
+    matches its initial SOC to the first minute instead (eq. 1 written out here with numpy)."""
+    from calib.drivelog import DriveLog, LogMeta
+    from calib.fit.validate import replay
+    import pandas as pd
+
+    base = default_parameters()
+    pU, pR = base.param("U_oc_V"), base.param("R_int_ohm")
+    n = 600
+    t = np.arange(n, dtype=float)
+    P = np.where(t < 40, -15e3, 3e3 * np.sin(2 * np.pi * t / 120.0))
+    soc = np.empty(n)
+    soc[0] = 0.6012
+    for k in range(n - 1):
+        U = np.interp(soc[k], pU.x, pU.value)
+        R = np.interp(soc[k], pR.x, pR.value) * np.exp(-base["R_int_tc_per_K"] * (20.0 - base["T_bat_ref_degC"]))
+        soc[k + 1] = soc[k] - (U - np.sqrt(U * U - 4 * R * P[k])) / (2 * R) / (3600.0 * base["C_bat_Ah"])
+    data = pd.DataFrame({"bat_power_W": P, "soc": np.round(soc / 0.005) * 0.005, "bat_temp_degC": 20.0},
+                        index=pd.Index(t, name="time_s"))
+    log = DriveLog(data=data, meta=LogMeta(source="eq. 1 by hand", format="test", synthetic=True))
+    assert abs(data["soc"].iloc[:5].mean() - soc[0]) > 0.003  # what a mean of the first readings would start from
+    rep = replay(log, base)
+    assert rep.simulated["soc"][0] == pytest.approx(soc[0], abs=0.0015)
+    assert np.sqrt(np.mean((rep.simulated["soc"] - soc) ** 2)) < 0.0015
