@@ -122,6 +122,15 @@ def main() -> None:
     for n in names[2:]:
         m = replay(logs[n], ps).metrics()["soc"]
         print(f"    held out {n}: SOC RMSE {m['rmse']:.4f} (bias {m['bias']:+.4f})")
+    cal = [logs[n] for n in names[:2]]
+    variants = [("capacity only (resistance and its temperature coefficient at the prior)", base,
+                 ("R_int_ohm", "R_int_tc_per_K")),
+                ("temperature coefficient fixed at 0 (as FASTSim's pack below 23 degC)",
+                 base.with_values(R_int_tc_per_K=0.0), ("R_int_tc_per_K",))]
+    for label, b, fix in variants:
+        r = calibrate(cal, base=b, fix=fix, progress=False, diagnose=False)
+        soc = {n: replay(logs[n], r.params).metrics()["soc"]["rmse"] for n in names[2:]}
+        print(f"  calibrated with {label}: " + "; ".join(f"{n} SOC RMSE {v:.4f}" for n, v in soc.items()))
 
 
 if __name__ == "__main__":
