@@ -161,7 +161,10 @@ def fastsim_section() -> dict:
               f"{', '.join(est) or 'none, so this is the prior model ratio, not a calibrated one'}")
     print("   structure mismatch: FASTSim's radiator acts only while the car is stopped, so its engine runs to "
           "120-160 degC on a highway where our thermostat model holds ~90 degC; its engine runs at one power "
-          "(~14.8 kW), so the warm fuel map is seen at one point; its heater passes up to 15 kW from a cold engine.")
+          "(~14.8 kW), so the warm fuel map is seen at one point; its heater passes up to 15 kW from a cold engine; "
+          "its engine efficiency keeps rising above the thermostat (our f_cl is 1 from 80 degC up); its battery "
+          "losses stop growing above 5 C and do not depend on temperature below 23 degC (ours: R I^2, R falling with "
+          "temperature). Evidence: scripts/fastsim_structure.py, docs/test_cars.md.")
     return fig
 
 
