@@ -60,18 +60,22 @@ def main() -> None:
                 print(f"    coolant {lo:4d}-{hi:<4d} degC {int(sel.sum()):5d} s: measured {Wm[sel].sum():6.1f} g, replay "
                       f"{100 * (Ws[sel].sum() / Wm[sel].sum() - 1):+6.1f} %, with measured coolant "
                       f"{100 * (Wt[sel].sum() / Wm[sel].sum() - 1):+6.1f} %")
+    fm = res.fits["fuel"].metrics
+    print(f"  fuel fit: {fm['samples']} stable bins ({fm['warm_on_samples']} warm engine-on), engine power up to "
+          f"{fm['engine_power_max_W'] / 1e3:.1f} kW, RMSE {fm['rmse_g_per_s']:.3f} g/s, noise sd "
+          f"{fm['noise_sd_g_per_s']:.3f} g/s, effective sample size {fm['n_eff']:.1f}")
     pe = ps.param("eta_ool")
     print("  calibrated eta_ool (prior): " + ", ".join(f"{x / 1e3:g} kW {v:.3f} ({p:.3f})" for x, v, p in
                                                     zip(pe.x, pe.value, pe.prior_value) if 5e3 <= x <= 60e3))
-    for n in names[:2]:
+    for n in names:
         la = log_arrays(logs[n], mp)
         Wm = replay(logs[n], ps).measured["fuel_rate"]
         Tm = _fill(la.ch["coolant_temp_degC"], 20.0)
         Wt = la.f_on * fuel_replay(mp, np.full(la.t.size, 3, np.int64), la.P_on, Tm)
         sel = np.isfinite(Wm) & (la.f_on > 0.5) & (la.P_on > 17e3)
-        if sel.sum() >= 10:
-            print(f"    {n}: engine power above 17 kW, {int(sel.sum())} s: replay with the measured coolant "
-                  f"{100 * (Wt[sel].sum() / Wm[sel].sum() - 1):+.1f} %")
+        txt = (f": replay with the measured coolant {100 * (Wt[sel].sum() / Wm[sel].sum() - 1):+.1f} %"
+               if sel.sum() >= 10 else "")
+        print(f"    {n}: engine power above 17 kW for {int(sel.sum())} of {int(np.sum(la.f_on > 0.5))} engine-on s{txt}")
     errs = {n: replay(logs[n], ps).metrics()["cumulative_fuel"]["error_pct"] for n in names[2:]}
     k = 1.0 / (1.0 + errs[names[2]] / 100.0)
     print(f"  one warm fuel level for both held-out drives: scaling the calibrated fuel rate by {k:.3f} (what the "
