@@ -148,6 +148,12 @@ def _cycle(fsim, sc: FastsimScenario):
     return fsim.Cycle.from_dict(d)
 
 
+def pack_energy_J() -> float:
+    """The Sonata pack's energy capacity as FASTSim models it (``energy_capacity_joules`` of the resource)."""
+    vd = _fastsim().Vehicle.from_resource(VEHICLE_RESOURCE).to_dict()
+    return float(vd["pt_type"]["HEV"]["res"]["energy_capacity_joules"])
+
+
 def run_fastsim(sc: FastsimScenario) -> dict:
     """Drive the Sonata over a scenario; returns the true signals at FASTSim's 1 s steps (SI, degC).
 

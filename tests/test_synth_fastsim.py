@@ -89,3 +89,25 @@ def test_cli_synth_fastsim_refuses_formats_without_a_power_layout(tmp_path, caps
     assert main(["synth", "--simulator", "fastsim", "--out", str(tmp_path), "--formats", "mcap"]) == 2
     assert "--formats csv" in capsys.readouterr().err
     assert not list(tmp_path.iterdir())
+
+
+@needs_fastsim
+def test_battery_energy_from_fastsim_power_and_soc():
+    """FASTSim logs battery power and SOC, not current and voltage: the SOC balance still determines the
+    pack's energy (FASTSim's ``energy_capacity_joules``, read from its vehicle resource)."""
+    from calib.fit.battery import fit_battery
+    from calib.ingest import to_drivelog
+    from calib.model.params import default_parameters
+    from calib.synth_fastsim import SONATA, pack_energy_J, synthesise_fastsim
+
+    E_true = pack_energy_J()
+    assert E_true > 1e6
+    log = to_drivelog(*synthesise_fastsim(SONATA[0], seed=7)[1:])
+    base = default_parameters()
+    fit = fit_battery([log], base)
+    C = fit.estimates["C_bat_Ah"]
+    assert C.status == "estimated" and "bat_power_W" in fit.used[log.label()]["power"]
+    U_mid = float(np.interp(0.6, base.param("U_oc_V").x, base.param("U_oc_V").value))
+    E_prior = base["C_bat_Ah"] * U_mid * 3600.0
+    assert abs(E_prior / E_true - 1) > 0.08  # the Prius prior is not the Sonata's pack
+    assert C.value * U_mid * 3600.0 == pytest.approx(E_true, rel=0.05)

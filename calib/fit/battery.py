@@ -6,7 +6,12 @@
   least squares over all logs. Only breakpoints the data covers (sum of hat weights >= 30 samples, and
   for R also a current spread) are unknowns; each estimate is combined with the entry's prior (precision
   weighting); the others are the prior, with the prior sd, flagged weak.
-- Capacity: Coulomb counting (with the current inferred from ``bat_power_W`` and the prior OCV/resistance
+- Logs with battery power and SOC but no current and voltage (:func:`_fit_from_power`): the SOC balance
+  of the replay fitted by maximum a posteriori gives the capacity (the energy: OCV x capacity), the level
+  of the resistance (a factor on the prior table: the losses) and its temperature coefficient; the OCV
+  table keeps its prior. Where some logs have current and voltage, the tables come from those and the
+  power-only logs join the Coulomb counting with their current inferred from the fitted tables.
+- Capacity: Coulomb counting (with the current inferred from ``bat_power_W`` and the fitted OCV/resistance
   tables, eq. 1 solved for I, for logs that have power but no current). The logged SOC (0.5 % steps) is regressed on the integrated current,
   ``SOC(t) = SOC0_log - Q(t) / (3600 C_bat)``, one intercept per log and one common slope, over every
   sample of the whole log (the quantisation averages out over long windows; the standard error is
@@ -201,24 +206,14 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
     names = [n for n in PARAMS if n in allowed]
     if not names:
         return fit
-    inferred = _inferred_current_rows(logs, use, base, fit) if "C_bat_Ah" in allowed else []
-    if not use and inferred:
-        fit.logs = [r["name"] for r in inferred]
-        keep = {}
-        for n in names:
-            if n != "C_bat_Ah":
-                p = base.param(n)
-                keep[n] = ParamEstimate(n, p.value, prior_sd_of(p), "prior", "not fitted: no log has battery current "
-                                        "and voltage (the tables need both)", prior=p.value, prior_sd=prior_sd_of(p),
-                                        informed=[0.0] * len(p.value) if p.is_table else 0.0)
-        fit.estimates.update(keep)
-        rows = []
-    if not use and not inferred:
-        return not_fitted(fit, base, names, "no log has battery current, voltage and SOC ("
-                          + "; ".join(f"{k}: {v}" for k, v in fit.skipped.items()) + ")")
     if not use:
-        _fit_capacity(fit, [], inferred, base)
+        rows = _power_rows(logs, base, fit)
+        if not rows:
+            return not_fitted(fit, base, names, "no log has battery current, voltage and SOC, nor battery power and "
+                              "SOC (" + "; ".join(f"{k}: {v}" for k, v in fit.skipped.items()) + ")")
+        _fit_from_power(fit, rows, base, names)
         return fit
+    inferred = _inferred_current_rows(logs, use, base, fit) if "C_bat_Ah" in allowed else []
     fit.logs = [lg.label() for lg in use] + [r["name"] for r in inferred]
     for lg in use:
         fit.used[lg.label()] = {"current": "bat_current_A", "voltage": "bat_voltage_V", "soc": "soc"}
@@ -405,3 +400,150 @@ def _inferred_current_rows(logs, use, base, fit, which="prior"):
                                            "tables (capacity only)", "soc": "soc"}
         fit.skipped.pop(lg.label(), None)
     return out
+
+
+# ------------------------------------------------------------------------------------------------
+# logs with battery power and SOC but no current or voltage
+# ------------------------------------------------------------------------------------------------
+#: A priori sd of the logged SOC at its level crossings (the fit re-estimates it from the residuals).
+SOC_NOISE_SD = 0.002
+
+
+def _power_rows(logs, base, fit):
+    """Rows for the power/SOC balance: logs with battery power (logged, as the replay takes it) and SOC."""
+    from calib.fit.replay import _fill, log_arrays
+
+    mp = base.model_params()
+    out = []
+    for lg in logs:
+        if not lg.has("soc"):
+            continue
+        la = log_arrays(lg, mp, cabin_balance=False)
+        if not la.battery_source or not np.isfinite(la.P_bat).any():
+            continue
+        T_logged = bool(np.isfinite(la.ch["bat_temp_degC"]).any())
+        out.append(dict(name=lg.label(), P=_fill(la.P_bat, 0.0), soc=la.ch["soc"], soc_f=_fill(la.ch["soc"], 0.6),
+                        T=_fill(la.ch["bat_temp_degC"], mp.T_bat_ref), T_logged=T_logged, dt=float(lg.dt),
+                        source=la.battery_source))
+        fit.skipped.pop(lg.label(), None)
+    return out
+
+
+def current_from_power_table(P, soc, T, base, R_scale=1.0, tc=None):
+    """Eq. 1 solved for the current (vectorised) with the OCV table of ``base`` and its resistance table
+    scaled by ``R_scale``; where the power exceeds what the pack can give (``U^2 < 4 R P``) the current is
+    ``P / U``, as in the validation replay (:func:`calib.fit.replay.full_replay`)."""
+    pU, pR = base.param("U_oc_V"), base.param("R_int_ohm")
+    tc = float(base["R_int_tc_per_K"]) if tc is None else tc
+    U = np.interp(soc, pU.x, pU.value)
+    R = R_scale * np.interp(soc, pR.x, pR.value) * np.exp(-tc * (T - float(base["T_bat_ref_degC"])))
+    disc = U * U - 4.0 * R * P
+    root = 2.0 * P / (U + np.sqrt(np.maximum(disc, 0.0)))
+    return np.where(disc >= 0.0, root, P / U)
+
+
+def _fit_from_power(fit, rows, base, names):
+    """Capacity, effective resistance and its temperature coefficient from battery power and logged SOC.
+
+    The SOC balance of the replay, ``SOC(t) = SOC_0 - sum I(P, SOC, T) dt / (3600 C_bat)`` with ``I`` from eq.
+    1, is fitted to the logged SOC at its level crossings (exact for a quantised signal, see
+    :func:`_capacity`), with one initial SOC per log (nuisance), by :func:`calib.fit.toolkit.map_fit`. The net
+    charge moved is ``~ (integral P dt + R / U^2 integral P^2 dt) / U``: the first term (signed) determines the
+    energy capacity, the second (always positive) the losses, so the two separate when the battery is
+    both charged and discharged. Only the level of the resistance is identifiable (a factor on the prior
+    table; its SOC shape stays the prior's), and only the product of OCV and capacity (the energy), so the
+    OCV table keeps its prior and ``C_bat_Ah`` is the capacity at that OCV.
+    """
+    from calib.fit.toolkit import INPUT_REL_SD, confounded_pairs, map_fit, posterior_estimate
+
+    import lmfit
+
+    fit.logs = [r["name"] for r in rows]
+    for r in rows:
+        fit.used[r["name"]] = {"power": r["source"], "soc": "soc",
+                               "current": f"inferred from {r['source']} by eq. 1 solved for I (prior OCV table, fitted "
+                                          "resistance level)", "battery temperature": "bat_temp_degC" if r["T_logged"]
+                               else "not logged: T_bat_ref assumed"}
+    pR = base.param("R_int_ohm")
+    R0 = np.array(pR.value, float)
+    R_rel_sd = float(np.median(np.array(prior_sd_of(pR), float) / R0))
+    Rlo, Rhi = pR.bounds
+    tc0 = float(base["R_int_tc_per_K"])
+    tc_sd = float(prior_sd_of(base.param("R_int_tc_per_K")))
+    C0 = float(base["C_bat_Ah"])
+    C_sd = float(prior_sd_of(base.param("C_bat_Ah")))
+    T_logged = any(r["T_logged"] for r in rows)
+    vary = {"C_bat_Ah": "C_bat_Ah" in names, "R_scale": "R_int_ohm" in names,
+            "R_int_tc_per_K": "R_int_tc_per_K" in names and T_logged}
+    prior = {"C_bat_Ah": C0, "R_scale": 1.0, "R_int_tc_per_K": tc0}
+    psd = {"C_bat_Ah": C_sd, "R_scale": R_rel_sd, "R_int_tc_per_K": tc_sd}
+    bounds = {"C_bat_Ah": base.param("C_bat_Ah").bounds, "R_scale": (Rlo / R0.min(), Rhi / R0.max()),
+              "R_int_tc_per_K": base.param("R_int_tc_per_K").bounds}
+    cand = [n for n in ("C_bat_Ah", "R_scale", "R_int_tc_per_K") if vary[n]]
+    for r in rows:
+        s = r["soc"]
+        k = np.flatnonzero(np.isfinite(s[:-1]) & np.isfinite(s[1:]) & (s[1:] != s[:-1]))
+        r["k"], r["y"] = k, 0.5 * (s[k] + s[k + 1])
+    rows = [r for r in rows if r["k"].size >= 3]
+    if not rows or not cand:
+        fit.logs = []
+        not_fitted(fit, base, names, "the logged SOC never changes level (fewer than 3 level crossings in every log)"
+                   if not rows else "none of C_bat_Ah, R_int_ohm, R_int_tc_per_K may vary")
+        return
+
+    def make_params():
+        ps = lmfit.Parameters()
+        for n in ("C_bat_Ah", "R_scale", "R_int_tc_per_K"):
+            ps.add(n, value=prior[n], min=bounds[n][0], max=bounds[n][1], vary=vary[n])
+        for i, r in enumerate(rows):
+            ps.add(f"soc0_{i}", value=float(r["y"][0]), min=0.0, max=1.0)
+        return ps
+
+    def segments(ps, gain=1.0):
+        v = ps.valuesdict()
+        out = []
+        for i, r in enumerate(rows):
+            I = current_from_power_table(gain * r["P"], r["soc_f"], r["T"], base, v["R_scale"], v["R_int_tc_per_K"])
+            Q = np.concatenate([[0.0], np.cumsum(I[:-1] * r["dt"])])  # A s, as the replay steps
+            k = r["k"]
+            out.append(v[f"soc0_{i}"] - 0.5 * (Q[k] + Q[k + 1]) / (3600.0 * v["C_bat_Ah"]) - r["y"])
+        return out
+
+    out = map_fit(make_params, segments, cand, prior={n: prior[n] for n in cand}, prior_sd={n: psd[n] for n in cand},
+                  noise_sd=SOC_NOISE_SD, perturbed=[lambda ps: segments(ps, 1.0 + INPUT_REL_SD)], floor=1e-4)
+    src = (f"SOC balance of battery power ({', '.join(sorted({r['source'] for r in rows}))}) against the logged "
+           f"SOC over {len(rows)} log(s), {sum(r['k'].size for r in rows)} SOC level crossings")
+    ps = out["params"]
+    if "C_bat_Ah" in names:
+        fit.estimates["C_bat_Ah"] = (posterior_estimate("C_bat_Ah", out, src + "; capacity at the prior OCV table "
+                                                        "(the balance determines the energy, OCV x capacity)", C0)
+                                     if vary["C_bat_Ah"] else prior_only("C_bat_Ah", C0, C_sd, "not allowed to vary"))
+    if "R_int_ohm" in names:
+        if vary["R_scale"]:
+            e = posterior_estimate("R_scale", out, "", 1.0)
+            sc, sd_sc = float(ps["R_scale"].value), out["post_sd"]["R_scale"]
+            st = e.status
+            fit.estimates["R_int_ohm"] = ParamEstimate(
+                "R_int_ohm", list(map(float, sc * R0)), list(map(float, sd_sc * R0)), st,
+                f"{src}; effective resistance (all losses between terminal power and SOC): the prior table scaled by "
+                f"{sc:.3f} +- {sd_sc:.3f} (its SOC shape is the prior's: power and SOC do not separate it); {e.note}",
+                prior=list(map(float, R0)), entry_status=[st] * len(R0), prior_sd=list(map(float, prior_sd_of(pR))),
+                informed=[float(e.informed)] * len(R0))
+        else:
+            fit.estimates["R_int_ohm"] = prior_only("R_int_ohm", list(R0), prior_sd_of(pR), "not allowed to vary")
+    if "R_int_tc_per_K" in names:
+        fit.estimates["R_int_tc_per_K"] = (
+            posterior_estimate("R_int_tc_per_K", out, src, tc0) if vary["R_int_tc_per_K"]
+            else prior_only("R_int_tc_per_K", tc0, tc_sd, "no battery temperature logged"))
+    if "U_oc_V" in names:
+        pU = base.param("U_oc_V")
+        fit.estimates["U_oc_V"] = ParamEstimate(
+            "U_oc_V", pU.value, prior_sd_of(pU), "prior", "not fitted: no log has battery voltage; with power and SOC "
+            "only the energy (OCV x capacity) is determined, so the OCV table keeps its prior and C_bat_Ah is the "
+            "capacity at it", prior=pU.value, prior_sd=prior_sd_of(pU), informed=[0.0] * len(pU.value))
+    fit.correlations = {k: v for k, v in out["correl"].items()}
+    fit.confounded = confounded_pairs(out["correl"])
+    U_mid = float(np.interp(0.6, base.param("U_oc_V").x, base.param("U_oc_V").value))
+    fit.metrics.update(soc_balance_rmse=out["rmse"], soc_balance_noise_sd=out["noise_sd"], soc_crossings=out["n"],
+                       soc_crossings_eff=out["n_eff"], R_scale=float(ps["R_scale"].value),
+                       energy_capacity_kWh_at_soc_0_6=float(ps["C_bat_Ah"].value) * U_mid / 1000.0)

@@ -34,6 +34,10 @@ from calib.plotting import plot_residual_comparison, plot_residuals, plot_valida
 from calib.fit.replay import (CHANNEL_METRICS, _fill, _split_battery_power, first_valid_mean, fuel_replay, full_replay,
                               log_arrays)
 
+#: Window (s) at the start of a log over which the replay's initial SOC is matched to the logged SOC.
+SOC0_WINDOW_S = 60.0
+
+
 @dataclass
 class Replay:
     """Measured and simulated signals of one log (arrays on the log's time base)."""
@@ -123,6 +127,14 @@ def replay(log, params) -> Replay:
     T_cab0 = first_valid_mean(c["cabin_temp_degC"], 5, float(T_amb[0]))
     soc, T_cl, T_cab, W = full_replay(mp, la.dt, soc0, T_cl0, T_cab0, la.f_on, la.P_on, la.f_idle, P_bat, T_bat,
                                       T_amb, Q_heat)
+    # the initial SOC: the mean of the first samples is biased when the SOC moves at once (a cold start
+    # charging hard) and a quantised reading is off by up to half a step; the offset that makes the
+    # simulated SOC match the logged one over the first SOC0_WINDOW_S is the better initial state
+    e0 = (c["soc"] - soc)[: max(int(round(SOC0_WINDOW_S / la.dt)), 1)]
+    if np.isfinite(e0).sum() >= 5:
+        soc0 += float(np.nanmean(e0))
+        soc, T_cl, T_cab, W = full_replay(mp, la.dt, soc0, T_cl0, T_cab0, la.f_on, la.P_on, la.f_idle, P_bat, T_bat,
+                                          T_amb, Q_heat)
     fuel_note = ""
     if "coolant_temp" in refused and "fuel_rate" not in refused:
         if la.has("coolant_temp_degC"):  # the cold correction then reads the measured coolant
