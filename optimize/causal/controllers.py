@@ -12,7 +12,7 @@ from calib.errors import IptmError
 from calib.model.rulebased import RuleBasedController, RuleParams
 
 from optimize.causal.ecms import ECMSParams, co_states, ecms_choice, valuations
-from optimize.causal.onestep import coolant_g_per_K, power_controls
+from optimize.causal.onestep import coolant_g_per_K, electric_g_per_soc, kinetic_soc_per_v2, power_controls, speed_after
 from optimize.causal.sdp import PENALTY_G_PER_STEP, SDPPolicy, lookahead_choice
 
 CONTROLLERS = ("rule", "ecms", "sdp")
@@ -31,10 +31,18 @@ class _Causal:
         self.work = np.empty((self.controls.shape[0], 5))
         self._fallback = RuleBasedController(mp, RuleParams(Q_heat_W=Q_heat))
         self.n_fallback = 0
+        self.v = 0.0  # speed estimate (m/s), from standstill
 
     def reset(self) -> None:
         self._fallback.reset()
         self.n_fallback = 0
+        self.v = 0.0
+
+    def _speeds(self, P_trac, Ts):
+        """(speed now, speed at the end of this step), tracked from the wheel power."""
+        v0 = self.v
+        self.v = speed_after(self.mp, v0, P_trac, Ts)
+        return v0, self.v
 
     def _emit(self, u, k, soc, T_cl, T_cab, P_trac, Ts):
         if u < 0:  # nothing feasible on the grid (demand beyond the limits): the rule-based choice
@@ -52,17 +60,22 @@ class SDPController(_Causal):
         self.policy = policy
         self.EV = np.ascontiguousarray(policy.EV)
         self.g_cl = cfg.mu_cl * coolant_g_per_K(mp)
+        self.g_el = cfg.mu_el * electric_g_per_soc(mp, cfg.soc_target)
+        self.kin = kinetic_soc_per_v2(mp, cfg.soc_target, cfg.regen_fraction)
 
     def describe(self) -> str:
         c = self.policy.config
         return (f"SDP (stationary policy, {self.policy.demand_W.size} demand bins, discount {c.discount:g}, "
-                f"w_soc {c.w_soc_g_per_s:g} g/s, built at {c.T_amb:g} degC)")
+                f"w_soc {c.w_soc_g_per_s:g} g/s, mu_el {c.mu_el:g}, mu_cl {c.mu_cl:g}, regen_fraction {c.regen_fraction:g}, "
+                f"built at {c.T_amb:g} degC)")
 
     def __call__(self, k, soc, T_cl, T_cab, P_trac, Ts=1.0):
         c, pol = self.policy.config, self.policy
+        _, v1 = self._speeds(P_trac, Ts)
         u = lookahead_choice(self.mp, soc, T_cl, T_cab, P_trac, self.controls, self.Q_heat, self.T_amb, self.T_bat,
                              self.W_bl, Ts, pol.soc_grid, pol.tcl_grid, pol.demand_W, self.EV, c.discount,
-                             c.w_soc_g_per_s, c.soc_target + c.soc_bias, PENALTY_G_PER_STEP, self.g_cl, self.work)
+                             c.w_soc_g_per_s, c.soc_target + c.soc_bias, PENALTY_G_PER_STEP, self.g_cl,
+                             self.g_el, self.kin * v1 * v1, self.work)
         return self._emit(u, k, soc, T_cl, T_cab, P_trac, Ts)
 
 
@@ -74,12 +87,14 @@ class ECMSController(_Causal):
         super().__init__(mp, power_controls(mp, ep.pbat_step_W), ep.Q_heat_W, T_amb, T_bat, W_bl)
         self.ep = ep
         self.k_el, self.k_cl = valuations(mp, ep.soc_target)
+        self.kin = kinetic_soc_per_v2(mp, ep.soc_target, ep.regen_fraction)
 
     def describe(self) -> str:
         return "ECMS " + ", ".join(f"{k}={v:g}" for k, v in self.ep.to_dict().items())
 
     def __call__(self, k, soc, T_cl, T_cab, P_trac, Ts=1.0):
-        s, mu = co_states(self.ep, soc, T_cl)
+        v0, _ = self._speeds(P_trac, Ts)
+        s, mu = co_states(self.ep, soc, T_cl, self.kin * v0 * v0)
         u = ecms_choice(self.mp, soc, T_cl, T_cab, P_trac, self.controls, self.Q_heat, self.T_amb, self.T_bat,
                         self.W_bl, Ts, s, self.k_el, mu, self.k_cl, self.work)
         return self._emit(u, k, soc, T_cl, T_cab, P_trac, Ts)
