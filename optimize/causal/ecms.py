@@ -25,7 +25,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from numba import njit
 
-from optimize.causal.onestep import coolant_g_per_K, electric_g_per_soc, eval_controls
+from optimize.causal.onestep import coolant_g_per_K, electric_g_per_soc, eval_controls, speed_after
 
 
 @dataclass
@@ -52,8 +52,9 @@ class ECMSParams:
 
 
 @njit(cache=True)
-def ecms_choice(p, soc, T_cl, T_cab, P_trac, controls, Q_heat, T_amb, T_bat, W_bl, Ts, s, k_el, mu, k_cl, work):
-    """Index of the control minimising the Hamiltonian (-1 if none is feasible)."""
+def ecms_choice(p, soc, T_cl, T_cab, P_trac, controls, Q_heat, T_amb, T_bat, W_bl, Ts, s, k_el, mu, k_cl, v, work):
+    """(index of the control minimising the Hamiltonian (-1 if none is feasible), speed at the end of the
+    step from speed ``v``)."""
     eval_controls(p, soc, T_cl, T_cab, P_trac, controls, Q_heat, T_amb, T_bat, W_bl, Ts, work)
     best, bu = np.inf, -1
     for u in range(controls.shape[0]):
@@ -62,7 +63,7 @@ def ecms_choice(p, soc, T_cl, T_cab, P_trac, controls, Q_heat, T_amb, T_bat, W_b
         h = work[u, 3] * Ts - s * k_el * (work[u, 0] - soc) - mu * k_cl * (work[u, 1] - T_cl)
         if h < best:
             best, bu = h, u
-    return bu
+    return bu, speed_after(p, v, P_trac, Ts)
 
 
 def co_states(ep: ECMSParams, soc: float, T_cl: float, kin_soc: float = 0.0) -> tuple[float, float]:

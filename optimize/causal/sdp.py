@@ -46,7 +46,8 @@ from numba import njit, prange
 
 from calib.errors import IptmError
 
-from optimize.causal.onestep import coolant_g_per_K, electric_g_per_soc, eval_controls, power_controls, step_demand
+from optimize.causal.onestep import (coolant_g_per_K, electric_g_per_soc, eval_controls, power_controls, speed_after,
+                                     step_demand)
 
 #: Penalty (g) per SOC grid step outside [soc_min, soc_max] (the DP's constraint penalty).
 PENALTY_G_PER_STEP = 1000.0
@@ -358,9 +359,12 @@ def build_policy(params, markov, config: SDPConfig | None = None, *, threads: in
 # ---------------------------------------------------------------------------------------------------
 @njit(cache=True)
 def lookahead_choice(p, soc, T_cl, T_cab, P_trac, controls, Q_heat, T_amb, T_bat, W_bl, Ts, socg, tclg, dem, EV,
-                     gamma, w_soc, target, pen, g_cl, g_el, kin1, work):
-    """Index of the control minimising stage cost + discount * EV(x', d(P_trac)) (EV interpolated in d)."""
+                     gamma, w_soc, target, pen, g_cl, g_el, kin, v, work):
+    """(index of the control minimising stage cost + discount * EV(x', d(P_trac)), speed at the end of the
+    step from ``v``); EV is interpolated in d and looked up at SOC' + ``kin`` v'^2."""
     eval_controls(p, soc, T_cl, T_cab, P_trac, controls, Q_heat, T_amb, T_bat, W_bl, Ts, work)
+    v1 = speed_after(p, v, P_trac, Ts)
+    kin1 = kin * v1 * v1
     nd = dem.size
     if P_trac <= dem[0]:
         d0, wd = 0, 0.0
@@ -380,7 +384,7 @@ def lookahead_choice(p, soc, T_cl, T_cab, P_trac, controls, Q_heat, T_amb, T_bat
         se = s1 + kin1
         ev = ((1.0 - wd) * _interp2(EV, d0, socg[0], sh, ns, tclg[0], th, nt, se, t1)
               + wd * _interp2(EV, d0 + 1, socg[0], sh, ns, tclg[0], th, nt, se, t1))
-        v = c + gamma * ev
-        if v < best:
-            best, bu = v, u
-    return bu
+        val = c + gamma * ev
+        if val < best:
+            best, bu = val, u
+    return bu, v1
