@@ -7,7 +7,7 @@ import pytest
 
 from calib.model.equations import step, traction_power
 from calib.model.params import default_parameters
-from optimize.causal.onestep import coolant_g_per_K, step_demand
+from optimize.causal.onestep import coolant_g_per_K, electric_g_per_soc, step_demand
 from optimize.causal.sdp import (
     PENALTY_G_PER_STEP,
     SDPConfig,
@@ -69,7 +69,8 @@ def _explicit_mdp(mp, cfg, chain):
         s1, t1 = A_soc[i, d, u], B_tcl[j, d, u]
         pen = PENALTY_G_PER_STEP * (max(socg[0] - s1, 0) + max(s1 - socg[-1], 0)) / (socg[1] - socg[0])
         c[idx(d, i, j), u] = (B_wf[j, d, u] * cfg.Ts + cfg.w_soc_g_per_s * (socg[i] - cfg.soc_target - cfg.soc_bias) ** 2 + pen
-                              - cfg.mu_cl * coolant_g_per_K(mp) * (t1 - tclg[j]))
+                              - cfg.mu_cl * coolant_g_per_K(mp) * (t1 - tclg[j])
+                              - cfg.mu_el * electric_g_per_soc(mp, cfg.soc_target) * (s1 - socg[i]))
         x = np.clip((s1 - socg[0]) / (socg[1] - socg[0]), 0, ns - 1)
         y = np.clip((t1 - tclg[0]) / (tclg[1] - tclg[0]), 0, nt - 1)
         i0, j0 = min(int(x), ns - 2), min(int(y), nt - 2)
@@ -83,7 +84,7 @@ def _explicit_mdp(mp, cfg, chain):
 def test_tiny_sdp_equals_exhaustive_search_over_policies(mp):
     chain = _Chain([2e3, 12e3], [[0.7, 0.3], [0.4, 0.6]])
     cfg = SDPConfig(T_amb=-10.0, soc_min=0.5, soc_max=0.7, soc_step=0.2, tcl_min=40.0, tcl_max=80.0, tcl_step=40.0,
-                    pbat_step=50e3, discount=0.9, w_soc_g_per_s=50.0, mu_cl=0.5, tol_g=1e-10, eval_sweeps=5, max_iter=500)
+                    pbat_step=50e3, discount=0.9, w_soc_g_per_s=50.0, mu_cl=0.5, mu_el=0.7, tol_g=1e-10, eval_sweeps=5, max_iter=500)
     pol = build_policy(mp, chain, cfg)
     c, T = _explicit_mdp(mp, cfg, chain)
     S, nu = c.shape

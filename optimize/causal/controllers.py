@@ -2,6 +2,8 @@
 
 ``controller(k, soc, T_cl, T_cab, P_trac, Ts) -> (e_mode, P_bat_mg, Q_heat_cmd)``: they see only the
 present states and demand (and the ambient, a sensor reading given when built), never the drive ahead.
+Both track the vehicle speed from the wheel powers seen so far (:func:`optimize.causal.onestep.speed_after`,
+from standstill at ``reset()``) to count the kinetic energy a stop will return to the battery.
 :func:`make_controller` builds any of ``rule``, ``ecms``, ``sdp`` for :func:`calib.model.simulate.simulate`.
 """
 from __future__ import annotations
@@ -12,7 +14,7 @@ from calib.errors import IptmError
 from calib.model.rulebased import RuleBasedController, RuleParams
 
 from optimize.causal.ecms import ECMSParams, co_states, ecms_choice, valuations
-from optimize.causal.onestep import coolant_g_per_K, power_controls
+from optimize.causal.onestep import coolant_g_per_K, electric_g_per_soc, kinetic_soc_per_v2, power_controls
 from optimize.causal.sdp import PENALTY_G_PER_STEP, SDPPolicy, lookahead_choice
 
 CONTROLLERS = ("rule", "ecms", "sdp")
@@ -31,10 +33,12 @@ class _Causal:
         self.work = np.empty((self.controls.shape[0], 5))
         self._fallback = RuleBasedController(mp, RuleParams(Q_heat_W=Q_heat))
         self.n_fallback = 0
+        self.v = 0.0  # speed estimate (m/s), from standstill
 
     def reset(self) -> None:
         self._fallback.reset()
         self.n_fallback = 0
+        self.v = 0.0
 
     def _emit(self, u, k, soc, T_cl, T_cab, P_trac, Ts):
         if u < 0:  # nothing feasible on the grid (demand beyond the limits): the rule-based choice
@@ -52,17 +56,21 @@ class SDPController(_Causal):
         self.policy = policy
         self.EV = np.ascontiguousarray(policy.EV)
         self.g_cl = cfg.mu_cl * coolant_g_per_K(mp)
+        self.g_el = cfg.mu_el * electric_g_per_soc(mp, cfg.soc_target)
+        self.kin = kinetic_soc_per_v2(mp, cfg.soc_target, cfg.regen_fraction)
 
     def describe(self) -> str:
         c = self.policy.config
         return (f"SDP (stationary policy, {self.policy.demand_W.size} demand bins, discount {c.discount:g}, "
-                f"w_soc {c.w_soc_g_per_s:g} g/s, built at {c.T_amb:g} degC)")
+                f"w_soc {c.w_soc_g_per_s:g} g/s, mu_el {c.mu_el:g}, mu_cl {c.mu_cl:g}, "
+                f"regen_fraction {c.regen_fraction:g}, built at {c.T_amb:g} degC)")
 
     def __call__(self, k, soc, T_cl, T_cab, P_trac, Ts=1.0):
         c, pol = self.policy.config, self.policy
-        u = lookahead_choice(self.mp, soc, T_cl, T_cab, P_trac, self.controls, self.Q_heat, self.T_amb, self.T_bat,
-                             self.W_bl, Ts, pol.soc_grid, pol.tcl_grid, pol.demand_W, self.EV, c.discount,
-                             c.w_soc_g_per_s, c.soc_target + c.soc_bias, PENALTY_G_PER_STEP, self.g_cl, self.work)
+        u, self.v = lookahead_choice(self.mp, soc, T_cl, T_cab, P_trac, self.controls, self.Q_heat, self.T_amb,
+                                     self.T_bat, self.W_bl, Ts, pol.soc_grid, pol.tcl_grid, pol.demand_W, self.EV,
+                                     c.discount, c.w_soc_g_per_s, c.soc_target + c.soc_bias, PENALTY_G_PER_STEP,
+                                     self.g_cl, self.g_el, self.kin, self.v, self.work)
         return self._emit(u, k, soc, T_cl, T_cab, P_trac, Ts)
 
 
@@ -74,14 +82,15 @@ class ECMSController(_Causal):
         super().__init__(mp, power_controls(mp, ep.pbat_step_W), ep.Q_heat_W, T_amb, T_bat, W_bl)
         self.ep = ep
         self.k_el, self.k_cl = valuations(mp, ep.soc_target)
+        self.kin = kinetic_soc_per_v2(mp, ep.soc_target, ep.regen_fraction)
 
     def describe(self) -> str:
         return "ECMS " + ", ".join(f"{k}={v:g}" for k, v in self.ep.to_dict().items())
 
     def __call__(self, k, soc, T_cl, T_cab, P_trac, Ts=1.0):
-        s, mu = co_states(self.ep, soc, T_cl)
-        u = ecms_choice(self.mp, soc, T_cl, T_cab, P_trac, self.controls, self.Q_heat, self.T_amb, self.T_bat,
-                        self.W_bl, Ts, s, self.k_el, mu, self.k_cl, self.work)
+        s, mu = co_states(self.ep, soc, T_cl, self.kin * self.v * self.v)
+        u, self.v = ecms_choice(self.mp, soc, T_cl, T_cab, P_trac, self.controls, self.Q_heat, self.T_amb,
+                                self.T_bat, self.W_bl, Ts, s, self.k_el, mu, self.k_cl, self.v, self.work)
         return self._emit(u, k, soc, T_cl, T_cab, P_trac, Ts)
 
 

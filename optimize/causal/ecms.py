@@ -8,9 +8,13 @@ with ``k_el`` (g per unit SOC) and ``k_cl`` (g per kelvin) the valuations of the
 (:func:`optimize.causal.onestep.electric_g_per_soc`, :func:`~optimize.causal.onestep.coolant_g_per_K`), so
 ``s = mu = 1`` prices stored energy exactly as the corrected fuel does. ``s`` is the equivalence factor
 (the battery co-state over ``k_el``), ``mu`` the co-state of coolant heat. Adaptation (causal; no
-knowledge of the drive): ``s = s0 + k_s (SOC_target - SOC)`` and
+knowledge of the drive): ``s = s0 + k_s (SOC_target - SOC - r v^2)`` and
 ``mu = mu0 + k_mu * max(T_cl_target - T_cl, 0)``: a low SOC makes battery energy dearer, a cold engine
-makes heat dearer (it lowers the cold-fuel factor of every later gram). With ``k_s = k_mu = 0`` it is the
+makes heat dearer (it lowers the cold-fuel factor of every later gram). ``r v^2`` is the charge that
+braking to a stop from the present speed ``v`` would bring back
+(:func:`optimize.causal.onestep.kinetic_soc_per_v2` with ``regen_fraction``; the speed is tracked from
+the wheel power, :func:`optimize.causal.onestep.speed_after`): without it the final stop's regeneration
+ends every drive above its starting SOC. With ``k_s = k_mu = 0`` it is the
 textbook ECMS with fixed co-states, i.e. Pontryagin's minimum principle when the co-states are constant
 (``tests/test_causal_ecms.py`` checks it on a problem with an analytic optimum).
 """
@@ -21,7 +25,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from numba import njit
 
-from optimize.causal.onestep import coolant_g_per_K, electric_g_per_soc, eval_controls
+from optimize.causal.onestep import coolant_g_per_K, electric_g_per_soc, eval_controls, speed_after
 
 
 @dataclass
@@ -38,14 +42,19 @@ class ECMSParams:
     T_cl_target_degC: float = 80.0
     Q_heat_W: float = 1500.0
     pbat_step_W: float = 500.0
+    # share of the kinetic energy counted as charge in the SOC feedback (the charge a stop brings back);
+    # chosen on the same training cycles: the least largest |final SOC - start| among 0, 0.3 ... 0.75
+    regen_fraction: float = 0.4
+
 
     def to_dict(self) -> dict:
         return asdict(self)
 
 
 @njit(cache=True)
-def ecms_choice(p, soc, T_cl, T_cab, P_trac, controls, Q_heat, T_amb, T_bat, W_bl, Ts, s, k_el, mu, k_cl, work):
-    """Index of the control minimising the Hamiltonian (-1 if none is feasible)."""
+def ecms_choice(p, soc, T_cl, T_cab, P_trac, controls, Q_heat, T_amb, T_bat, W_bl, Ts, s, k_el, mu, k_cl, v, work):
+    """(index of the control minimising the Hamiltonian (-1 if none is feasible), speed at the end of the
+    step from speed ``v``)."""
     eval_controls(p, soc, T_cl, T_cab, P_trac, controls, Q_heat, T_amb, T_bat, W_bl, Ts, work)
     best, bu = np.inf, -1
     for u in range(controls.shape[0]):
@@ -54,11 +63,11 @@ def ecms_choice(p, soc, T_cl, T_cab, P_trac, controls, Q_heat, T_amb, T_bat, W_b
         h = work[u, 3] * Ts - s * k_el * (work[u, 0] - soc) - mu * k_cl * (work[u, 1] - T_cl)
         if h < best:
             best, bu = h, u
-    return bu
+    return bu, speed_after(p, v, P_trac, Ts)
 
 
-def co_states(ep: ECMSParams, soc: float, T_cl: float) -> tuple[float, float]:
-    s = ep.s0 + ep.k_s * (ep.soc_target - soc)
+def co_states(ep: ECMSParams, soc: float, T_cl: float, kin_soc: float = 0.0) -> tuple[float, float]:
+    s = ep.s0 + ep.k_s * (ep.soc_target - soc - kin_soc)
     mu = ep.mu0 + ep.k_mu * max(ep.T_cl_target_degC - T_cl, 0.0)
     return s, mu
 

@@ -11,7 +11,7 @@ import numpy as np
 from numba import njit
 
 from calib.model.equations import (ENGINE_POWER, IDLE, OFF, ON, battery, battery_ocv_r, cabin_rate, coolant_flows,
-                                   fuel_rate, heater_limit, power_split)
+                                   fuel_rate, heater_limit, power_split, traction_power)
 
 
 @njit(cache=True)
@@ -61,3 +61,34 @@ def electric_g_per_soc(mp, soc: float) -> float:
 def coolant_g_per_K(mp) -> float:
     """Fuel (g) worth one kelvin of coolant (the same valuation as the corrected fuel)."""
     return float(mp.C_eng / (mp.LHV * (1.0 - mp.gamma_exh)))
+
+
+@njit(cache=True)
+def speed_after(p, v, P_trac, Ts):
+    """Speed (m/s) at the end of a step that starts at ``v`` and asks wheel power ``P_trac`` on a flat road:
+    :func:`calib.model.equations.traction_power` inverted by bisection (it increases with the end speed).
+
+    The controllers' interface carries the wheel power, not the speed; chaining this from standstill
+    recovers the speed a car reads from its wheel sensors (exactly on a flat road; a grade makes it drift
+    until the next stop, where it clamps to 0)."""
+    if P_trac <= traction_power(p, v, 0.0, 0.0, Ts):
+        return 0.0
+    lo, hi = 0.0, v + 10.0 * Ts
+    while traction_power(p, v, hi, 0.0, Ts) < P_trac:
+        hi = 2.0 * hi + 1.0
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        if traction_power(p, v, mid, 0.0, Ts) < P_trac:
+            lo = mid
+        else:
+            hi = mid
+        if hi - lo < 1e-9:
+            break
+    return 0.5 * (lo + hi)
+
+
+def kinetic_soc_per_v2(mp, soc: float, regen_fraction: float) -> float:
+    """SOC (per (m/s)^2) that braking to a stop returns to the battery: ``regen_fraction`` of the kinetic
+    energy ``m_eq v^2 / 2`` (road load and friction brakes take the rest), over ``C_bat U_oc(soc)``."""
+    U, _ = battery_ocv_r(mp, soc, mp.T_bat_ref)
+    return float(regen_fraction * 0.5 * mp.m_eq / (mp.C_bat_As * U))
