@@ -123,6 +123,30 @@ def _open_mdf(MDF, path, **kw):
         sys.unraisablehook = prev
 
 
+def _layout_error(mdf, name) -> str | None:
+    """Why a channel's place in its record (or its group's time channel's) cannot be trusted, or None.
+
+    asammdf's compiled record slicer reads wherever a channel's byte offset points: a damaged offset or bit
+    count reads outside the record (a crash of the process, or garbage, not an exception), so such a
+    channel is refused before it is read."""
+    for gi, ci in mdf.channels_db.get(name, ()):
+        try:
+            grp = mdf.groups[gi]
+            size = int(grp.channel_group.samples_byte_nr)
+            for k, ch in enumerate(grp.channels):
+                kind = int(getattr(ch, "channel_type", 0))
+                if not (k == ci or kind == 2) or kind not in (0, 2):  # the channel and its master; fixed slots
+                    continue
+                end = int(ch.byte_offset) + (int(ch.bit_offset) + int(ch.bit_count) + 7) // 8
+                if int(ch.bit_count) <= 0 or end > size:
+                    what = "its time channel's" if k != ci else "its"
+                    return (f"{what} bytes {int(ch.byte_offset)}..{end} lie outside the {size}-byte record "
+                            f"(group {gi}, channel {k})")
+        except (AttributeError, IndexError, TypeError, ValueError):
+            continue  # not an MDF4 layout this check knows; asammdf's own checks apply
+    return None
+
+
 def read_mdf_streams(path, column_map: dict | None = None, strict: bool = False):
     """Read an MDF4 file into streams. See the module docstring.
 
@@ -180,6 +204,10 @@ def _read_mdf(MDF, path, column_map, dmg, meta, tmp):
                 ch, unit = canonical_name(base), unit_in_name
                 if ch is None:
                     continue
+            why = _layout_error(mdf, name)
+            if why is not None:
+                dmg.bad(LogFormatError(path, f"channel outside its record, skipped: {why}", f"MDF channel {name!r}"))
+                continue
             sig = mdf.get(name)
             unit = unit or (sig.unit or None)
             if not unit:
