@@ -9,7 +9,11 @@ replayed (``mutate(data, seed, r, i)``). Each read ends in one of:
 - ``read``: read, no damage reported;
 - ``recovered``: read, with a damage report (``LogMeta.damage``) and one LogDamageWarning;
 - ``error``: a clean :class:`calib.errors.IptmError` (one line, naming the file);
-- ``escape``: any other exception (a bug), listed with its case number.
+- ``escape``: any other exception (a bug), a crash of the process (a compiled library reading past a
+  buffer) or a read that does not end within ``CASE_TIMEOUT_S``, listed with its case number.
+
+Reads run in a forked worker process, so a crash or a hang is counted as an escape of that case and the
+run goes on with a fresh worker.
 
 ``printed`` counts reads that wrote anything to stdout/stderr or issued a foreign warning (a library
 talking past the project's own reporting); ``unclear`` counts IptmErrors whose message is not one line
@@ -258,6 +262,66 @@ def _in_folder(fn):
     return wrapper
 
 
+#: A read that takes longer than this (s) is a hang: counted as an escape.
+CASE_TIMEOUT_S = 120.0
+
+
+def _serve(conn, fn, data, seed, r, path):
+    """Worker loop: case number in, (outcome, detail, printed) out."""
+    import faulthandler
+
+    faulthandler.disable()  # a crash is reported by its exit code and case number (replay with ``mutate``)
+    while True:
+        i = conn.recv()
+        if i is None:
+            return
+        path.write_bytes(mutate(data, seed, r, i))
+        conn.send(classify(fn, path))
+
+
+class _Worker:
+    """A forked process that reads the mutated cases; restarted after a crash or a hang."""
+
+    def __init__(self, fn, data, seed, r, path):
+        self.args = (fn, data, seed, r, path)
+        self.proc = None
+
+    def _start(self):
+        import multiprocessing as mp
+
+        ctx = mp.get_context("fork")
+        self.conn, child = ctx.Pipe()
+        self.proc = ctx.Process(target=_serve, args=(child, *self.args), daemon=True)
+        self.proc.start()
+        child.close()
+
+    def run(self, i):
+        if self.proc is None or not self.proc.is_alive():
+            self._start()
+        self.conn.send(i)
+        try:
+            if self.conn.poll(CASE_TIMEOUT_S):
+                return self.conn.recv()
+            detail = f"no result within {CASE_TIMEOUT_S:g} s (hang)"
+        except (EOFError, ConnectionError):
+            self.proc.join(5)
+            detail = f"the reading process died (exit code {self.proc.exitcode})"
+        self.close()
+        return "escape", detail, False
+
+    def close(self):
+        if self.proc is None:
+            return
+        if self.proc.is_alive():
+            with contextlib.suppress(OSError, ValueError):
+                self.conn.send(None)
+            self.proc.join(2)
+            if self.proc.is_alive():
+                self.proc.kill()
+                self.proc.join()
+        self.proc = None
+
+
 @_in_folder
 def fuzz(n: int = 10_000, seed: int = 0, readers=READERS, folder=None, log=print) -> dict:
     """Mutated-input counts per reader (see the module docstring)."""
@@ -276,13 +340,14 @@ def fuzz(n: int = 10_000, seed: int = 0, readers=READERS, folder=None, log=print
         examples = []
         path = folder / f"case.{EXT[name]}"
         t0 = time.perf_counter()
+        worker = _Worker(fn, data, seed, r, path)
         for i in range(n):
-            path.write_bytes(mutate(data, seed, r, i))
-            outcome, detail, printed = classify(fn, path)
+            outcome, detail, printed = worker.run(i)
             counts[outcome] += 1
             counts["printed"] += printed
             if (outcome in ("escape", "unclear") or printed) and len(examples) < 5:
                 examples.append({"case": i, "outcome": outcome, "printed": printed, "detail": detail})
+        worker.close()
         wall = time.perf_counter() - t0
         results[name] = {**counts, "n": n, "wall_s": wall, "examples": examples}
         log(f"{name:9s} n={n:6d}  read {counts['read']:6d}  recovered {counts['recovered']:6d}  "
