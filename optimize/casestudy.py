@@ -104,6 +104,13 @@ class CaseStudy:
         for k, (v0, fwd, gap) in self.value_check().items():
             lines.append(f"{k}: V_0(x0) {v0:.2f} g predicted, {fwd:.2f} g forward-simulated ({gap:+.2f} %, "
                          f"{'within' if abs(gap) <= 1.0 else 'NOT within'} 1 %)")
+        for k, o in self.outcomes.items():
+            a = (getattr(o, "extra", None) or {}).get("grid_artefacts")  # cached outcomes keep it too
+            if a:
+                lines.append(f"{k}: grid artefacts: heater flipping between neighbouring grid values "
+                             f"{a['chatter_pct']:.1f} % of steps (longest {a['chatter_longest_s']:g} s); cabin on "
+                             f"a grid node above its comfort bound {a['pinned_pct']:.1f} % (longest "
+                             f"{a['pinned_longest_s']:g} s); on its comfort bound {a['at_bound_pct']:.1f} %")
         return "\n".join(lines)
 
     def to_dict(self) -> dict:

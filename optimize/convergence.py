@@ -4,18 +4,22 @@ The fuel compared is the re-simulated (true-model) fuel of each solution, raw an
 stored energy), and the mean cabin temperature; for Baseline-DP its own f_cl = 1 optimum. A grid counts
 as converged when halving every step changes the corrected fuel by less than 0.1 % and the mean cabin
 temperature by less than 0.1 degC. ``iptm optimize --convergence`` prints it.
+
+:func:`trajectory_checks` looks for the two grid artefacts a converged answer must not show: the heater
+switching between neighbouring grid values step after step (chatter), and the cabin state sitting on a
+grid node for long stretches (pinned: the interpolated cost-to-go has a kink at every node, and an
+off-grid forward pass that is drawn to the kink is a property of the grid, not of the car).
 """
 
 from __future__ import annotations
 
+from optimize.formulations.artefacts import ON_NODE_K, trajectory_checks  # noqa: F401 (re-exported)
 from optimize.formulations.scenario import DPGrids, DPScenario
 from optimize.formulations.solve import solve_formulation
 
 #: Convergence criteria: relative change of corrected fuel (%) and of the mean cabin temperature (degC).
 FUEL_TOL_PCT = 0.1
 CABIN_TOL_K = 0.1
-
-
 def convergence_study(params, scenario: DPScenario | None = None, formulations=("baseline", "thermal"),
                       grids: DPGrids | None = None, progress: bool = False) -> list:
     """One row per formulation: fuel on ``grids`` and on ``grids.halved()``, relative change (%)."""

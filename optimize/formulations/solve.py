@@ -17,6 +17,7 @@ from calib.model.equations import IDLE, OFF, ON, engine_bay_loss, f_cold, radiat
 from calib.model.simulate import fuel_equivalents_g
 
 from optimize.dp.engine import DPProblem, DPResult, backward_pass, forward_pass
+from optimize.formulations.artefacts import trajectory_checks
 from optimize.formulations.layout import (LEVEL_TOL, PENALTY_G_PER_STEP, _C_CH, _C_CHI, _C_NQ, _C_NX, _C_PEN, _C_SH, _C_SHI,
                      _C_SLO, _C_TAMB, _C_TBAT, _C_TH, _C_THI, _C_TLO, _C_TS, _C_WBL, _MS, _T_SOC0,
                      pack_params)
@@ -51,6 +52,7 @@ class DPOutcome:
     scenario: dict
     on_thermal: object = None  # Baseline-DP's controls on the full thermal model
     extra: dict = field(default_factory=dict)
+    T_cab_lb: np.ndarray | None = field(default=None, repr=False)  # cabin comfort bound at steps 1..N (Thermal-Cabin-DP)
 
     @property
     def evals_per_second(self) -> float:
@@ -241,7 +243,8 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
         x0.append(scen.T_cab0)
         Q = _grid(scen.Q_heat_min, scen.Q_heat_max, grids.qheat)
         extra.update(T_cab_lb_min=float(np.min(lb)), T_cab_ub=float(tcabg[-1]),
-                     T_cab_terminal_min=float(ref[-1]))
+                     T_cab_terminal_min=float(ref[-1]), T_cab_grid_lo=float(tcabg[0]),
+                     T_cab_grid_step=float(grids.tcab), Q_heat_step=float(grids.qheat))
     else:
         Q = np.array([scen.Q_heat if heater is None else heater])
     terminal = _terminal_cost(mp, scen, nx, cab_soft)
@@ -288,7 +291,8 @@ def _outcome(name, params, b, res, scen, grids, sim, t0, on_thermal=None):
                      t_forward=res.t_forward, t_total=time.perf_counter() - t0,
                      n_evaluations=int(res.n_evaluations), n_states=b.prob.n_states,
                      n_controls=b.prob.n_controls, peak_rss_mb=peak_rss_mb(), grids=grids.to_dict(),
-                     scenario=scen.to_dict(), on_thermal=on_thermal, extra=b.extra)
+                     scenario=scen.to_dict(), on_thermal=on_thermal, extra=b.extra,
+                     T_cab_lb=b.prob.w[:, 2].copy() if len(b.prob.grids) == 3 else None)
 
 
 @contextmanager
@@ -355,6 +359,7 @@ def solve_thermal_cabin(params, scenario: DPScenario | None = None, grids: DPGri
     sim = resimulate(params, b.cyc, res.u[:, 0], res.u[:, 1], res.u[:, 2], scen, "Thermal-Cabin-DP")
     out = _outcome("thermal_cabin", params, b, res, scen, grids, sim, t0)
     out.extra["engine"] = engine
+    out.extra["grid_artefacts"] = trajectory_checks(out)
     return out
 
 
