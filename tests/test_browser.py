@@ -94,10 +94,10 @@ def server(tmp_path_factory):
         log.close()
 
 
-def _small_csv(path: Path) -> Path:
+def _small_csv(path: Path, seconds: float = 300.0) -> Path:
     lines = (ROOT / "logs" / "winter_warm_restart.csv").read_text().splitlines()
     head = [ln for ln in lines[:10] if ln.startswith("#") or ln.startswith("time")]
-    body = [ln for ln in lines if ln[:1].isdigit() and float(ln.split(",", 1)[0]) < 300.0]
+    body = [ln for ln in lines if ln[:1].isdigit() and float(ln.split(",", 1)[0]) < seconds]
     path.write_text("\n".join(head + body) + "\n")
     return path
 
@@ -224,3 +224,43 @@ def test_dashboard_in_chromium(sync_playwright, server):
             browser.close()
     for name in ("page_logs.png", "page_calibrate.png", "page_optimize.png", "page_report.png"):
         assert (SHOTS / name).stat().st_size > 10_000
+
+
+def test_two_browser_sessions_calibrating_at_once_see_only_their_own(sync_playwright, server):
+    """Two browser contexts (two users) upload different logs and start a calibration at the same time on
+    one server: each page lists only its own log and shows a calibration of its own log only."""
+    url, tmp = server
+    files = {"a": _small_csv(tmp / "drive_user_a.csv", 300.0), "b": _small_csv(tmp / "drive_user_b.csv", 240.0)}
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
+        try:
+            pages = {}
+            for who in files:
+                ctx = browser.new_context(viewport={"width": 1400, "height": 1800})
+                page = ctx.new_page()
+                page.goto(url, wait_until="domcontentloaded")
+                page.get_by_role("heading", name="Logs").first.wait_for(timeout=60_000)
+                _idle(page)
+                pages[who] = page
+            for who, page in pages.items():
+                page.locator('[data-testid="stFileUploader"] input[type="file"]').first.set_input_files(str(files[who]))
+            for who, page in pages.items():
+                page.get_by_text(f"{files[who].name} [SYNTHETIC]").first.wait_for(timeout=120_000)
+                _idle(page)
+            for page in pages.values():
+                _goto(page, "Calibrate")
+            for page in pages.values():  # both runs start before either finishes
+                page.get_by_role("button", name="Run calibration").click()
+            for page in pages.values():
+                page.get_by_role("heading", name="Calibrated parameters").wait_for(timeout=LONG)
+                _idle(page)
+            for who, page in pages.items():
+                other = files["b" if who == "a" else "a"].name
+                assert page.locator('[data-testid="stException"]').count() == 0
+                assert page.get_by_role("tab", name=f"{files[who].name} [SYNTHETIC] (fitted)").count() == 1
+                assert page.get_by_text(other).count() == 0, f"user {who} sees {other}"
+                _goto(page, "Logs")
+                assert page.get_by_text(files[who].name).count() >= 1
+                assert page.get_by_text(other).count() == 0, f"user {who} sees {other} on the Logs page"
+        finally:
+            browser.close()
