@@ -88,7 +88,12 @@ def load_scenario(path=None):
         grids = DPGrids(**g)
     except TypeError as exc:
         raise ScenarioError(f"{path}: [grids]: {exc} (known: soc, tcl, tcab, pbat, qheat)") from None
-    strategies = tuple(d.get("run", {}).get("strategies", STRATEGIES))
+    run = d.get("run", {})
+    strategies = run.get("strategies", STRATEGIES) if isinstance(run, dict) else None
+    if not isinstance(strategies, (list, tuple)) or not all(isinstance(s, str) for s in strategies):
+        raise ScenarioError(f"{path}: [run] strategies must be a list of names ({', '.join(STRATEGIES)}), "
+                            f"got {strategies!r}")
+    strategies = tuple(strategies)
     bad = [s for s in strategies if s not in STRATEGIES]
     if bad:
         raise ScenarioError(f"{path}: unknown strategies {bad}; choose from {', '.join(STRATEGIES)}")

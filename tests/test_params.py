@@ -41,6 +41,9 @@ def test_partial_file_with_unit_conversion(tmp_path):
     ('[parameters.f_cl]\nvalue = [1.0, 1.2, 1.05, 1.0]\n', "must not increase"),
     ('[parameters.f_cl]\nvalue = 1.2\n', "must be a table"),
     ('[parameters\n', "not a valid TOML"),
+    # unit texts that pint's own parser fails on with a TokenError or a TypeError (found by the fuzz harness)
+    ('[parameters.W_bl_kg_per_s]\nvalue = 0.05\nunit = "kg/swer)"\n', "unknown unit 'kg/swer)'"),
+    ('[parameters.fuel_scale]\nvalue = 1.0\nunit = "di-ensionless"\n', "unknown unit 'di-ensionless'"),
 ])
 def test_invalid_files_give_one_clear_error(tmp_path, body, words):
     f = tmp_path / "bad.toml"

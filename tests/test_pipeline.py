@@ -109,6 +109,9 @@ def test_scenario_file(tmp_path):
     f.write_text('[scenario]\nambient = 3\n')
     with pytest.raises(IptmError, match="unknown scenario field"):
         pipeline.load_scenario(f)
+    f.write_text('[scenario]\ncycle = "nycc"\n[run]\nstrategies =-7.0\n')
+    with pytest.raises(IptmError, match="strategies must be a list of names"):
+        pipeline.load_scenario(f)
 
 
 def test_source_edit_recomputes_what_depends_on_it(first_run, monkeypatch):

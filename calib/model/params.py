@@ -506,25 +506,20 @@ def _strip_none(o):
     return o
 
 
-_UREG = None
-
-
 def _convert(val, unit: str, target: str, what: str):
     if unit == target:
         return val
-    global _UREG
-    try:
-        from calib.units import ureg as _u  # shared registry with aliases (ingestion)
-    except ImportError:  # pragma: no cover - units module is part of the package
-        _u = None
     import pint
 
-    if _u is None:
-        _UREG = _UREG or pint.UnitRegistry()
-        _u = _UREG
+    from calib.units import UnitError, parse_unit, ureg  # shared registry with aliases (ingestion)
+
+    try:
+        u = parse_unit(unit)  # garbage text is a UnitError here, whatever pint's tokenizer raises
+    except UnitError as exc:
+        raise ParameterError(f"{what}: {exc}; give a unit convertible to {target!r}") from None
     try:
         arr = np.asarray(val, dtype=float)
-        q = _u.Quantity(arr, unit).to(target).magnitude
-    except (pint.errors.UndefinedUnitError, pint.errors.DimensionalityError, ValueError) as exc:
+        q = ureg.Quantity(arr, u).to(target).magnitude
+    except (pint.errors.DimensionalityError, ValueError, TypeError) as exc:
         raise ParameterError(f"{what}: unit {unit!r} cannot be converted to {target!r} ({exc})") from None
     return q.tolist() if isinstance(val, list) else float(q)
