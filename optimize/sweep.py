@@ -104,6 +104,13 @@ class Study:
         from calib.errors import ScenarioError
         from optimize.formulations.scenario import DPGrids, DPScenario
 
+        for what, val, kinds in (("strategies", self.strategies, (list, tuple)), ("grids", self.grids, (dict, str)),
+                                 ("vary", self.vary, (dict,)), ("link", self.link, (dict,))):
+            if not isinstance(val, kinds):
+                raise ScenarioError(f"study {self.name}: {what} must be a "
+                                    f"{'list' if list in kinds else 'table'}, got {val!r}")
+        if not all(isinstance(x, str) for x in self.strategies):
+            raise ScenarioError(f"study {self.name}: strategies must be names, got {list(self.strategies)!r}")
         self.strategies = tuple(self.strategies)
         if not self.strategies:
             raise ScenarioError(f"study {self.name}: no strategies")
@@ -120,8 +127,8 @@ class Study:
             self.grids = parse_grid_spec(self.grids).to_dict()
         try:
             self.grids = DPGrids(**{k: float(v) for k, v in dict(self.grids).items()}).to_dict()
-        except TypeError:
-            raise ScenarioError(f"study {self.name}: unknown grid in {sorted(self.grids)}; known: soc, tcl, "
+        except (TypeError, ValueError):
+            raise ScenarioError(f"study {self.name}: bad grid {dict(self.grids)!r}; give numbers for soc, tcl, "
                                 "tcab, pbat, qheat") from None
         for k, v in self.vary.items():
             if not isinstance(v, list) or not v:

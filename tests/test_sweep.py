@@ -91,6 +91,13 @@ def test_expand_keys_and_validation(tmp_path):
         Study(name="bad", strategies=["dp"])
     with pytest.raises(ScenarioError, match="reference"):
         Study(name="bad", strategies=["thermal"], reference="rule")
+    # wrong types in a study file are clean errors (found by the fuzz harness: grids = 0.6)
+    with pytest.raises(ScenarioError, match="grids must be a table"):
+        Study(name="bad", grids=0.6)
+    with pytest.raises(ScenarioError, match="strategies must be a list"):
+        Study(name="bad", strategies=3.0)
+    with pytest.raises(ScenarioError, match="bad grid"):
+        Study(name="bad", grids={"soc": "fine"})
     p = tmp_path / "s.toml"
     p.write_text(SMALL_TOML)
     assert [c["key"] for c in load_study(p).expand()] == [c["key"] for c in cases]
