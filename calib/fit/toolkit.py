@@ -116,7 +116,7 @@ def not_fitted(fit: SubsystemFit, base, names, reason):
 # statistics helpers
 # ------------------------------------------------------------------------------------------------
 def neff(residual_segments) -> tuple[int, float]:
-    """(n, n_eff) over per-log residual arrays.
+    """(n, n_eff) over per-log residual arrays (of at least 3 finite samples); n_eff is at least 1.
 
     ``n_eff = n / tau`` per log with ``tau`` the largest of: the integrated autocorrelation time
     ``1 + 2 sum_k rho_k`` (summed until the autocorrelation first drops below 0.05, at most n/5 lags), the
