@@ -295,6 +295,30 @@ def test_deterministic_across_thread_counts_and_dataframe():
     assert r1.solve_time > 0 and r1.evals_per_second > 0
 
 
+@njit(cache=True)
+def counting(k, x, u, w_k, p, tab, iu, ix, x_next):
+    """x+ = x (stays on its node), cost 0; counts its calls in p[0]."""
+    p[0] += 1.0
+    x_next[0] = x[0]
+    return 0.0
+
+
+def test_backward_pass_evaluates_each_state_control_pair_once_per_step():
+    """One thread, 100 nodes: the backward pass splits the states into 8 chunks of 13; every (state,
+    control) pair is evaluated exactly once per step, as n_evaluations reports."""
+    N, n, nu = 3, 100, 2
+    p = np.zeros(1)
+    prob = DPProblem(grids=[np.linspace(0.0, 1.0, n)], controls=np.zeros((nu, 1)), N=N, transition=counting,
+                     params=p)
+    old = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        backward_pass(prob)
+    finally:
+        numba.set_num_threads(old)
+    assert p[0] == N * n * nu
+
+
 def test_result_plot(tmp_path):
     """The result draws itself: one panel per state and control plus the cumulative cost, saved atomically."""
     r = solve(_twostate_problem(11), [0.05, 0.02])

@@ -61,3 +61,18 @@ def test_kappa_needs_sixty_bay_temperature_samples():
     fit = fit_thermal([_log(bay_samples=200)], default_parameters(), allowed={"kappa"})
     assert fit.estimates["kappa"].status == "estimated"
     assert fit.estimates["kappa"].value == pytest.approx(KAPPA, rel=1e-9)
+
+
+def test_kappa_uses_samples_with_the_coolant_more_than_10_K_above_ambient():
+    """Bay temperature on 100 samples: 70 with the coolant 10.5 K above ambient (used), 30 exactly 10 K
+    above (not used; their bay temperature says kappa = 0.9, which would pull the estimate up)."""
+    log = _log(n=400, T0=-5.0, T_amb=-8.0)
+    d = log.data
+    d["coolant_temp_degC"] = np.r_[d["coolant_temp_degC"].to_numpy()[:300], np.full(70, 2.5), np.full(30, 2.0)]
+    bay = np.full(400, np.nan)
+    bay[300:370] = -8.0 + KAPPA * 10.5
+    bay[370:] = -8.0 + 0.9 * 10.0
+    d["bay_temp_degC"] = bay
+    fit = fit_thermal([log], default_parameters(), allowed={"kappa"})
+    assert fit.metrics["kappa_samples"] == 70
+    assert fit.estimates["kappa"].value == pytest.approx(KAPPA, rel=1e-9)

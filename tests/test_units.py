@@ -54,3 +54,13 @@ def test_unknown_and_incompatible_units_raise_clear_errors():
     assert not is_known_unit("bogus_unit_xyz")
     assert is_known_unit("L/h")
     assert normalize_unit(" kph ") == "km/h"
+
+
+def test_rpm_constant_is_one_revolution_per_minute_in_rad_per_s():
+    """60 rpm is one revolution (2 pi rad) per second; pint's own rpm definition agrees."""
+    import math
+
+    from calib.units import RPM
+
+    assert 60.0 * RPM == pytest.approx(2.0 * math.pi, rel=1e-15)
+    assert convert(3000.0, "rpm", "rad/s") == pytest.approx(3000.0 * RPM, rel=1e-12)

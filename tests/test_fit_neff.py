@@ -1,0 +1,47 @@
+"""The effective sample size behind the standard-error inflation of every fitter
+(:func:`calib.fit.toolkit.neff`), on sequences whose autocorrelation is worked out here with direct sums
+(the function under test uses FFTs), against the rule its docstring states: ``tau`` the largest of the
+integrated autocorrelation time, the batch-means value (only with at least 4 blocks of
+``max(20, sqrt(n))`` samples) and the AR(1) value ``(1 + rho_1) / (1 - rho_1)`` with ``rho_1`` clipped
+to [0, 0.995]."""
+import numpy as np
+import pytest
+
+from calib.fit.toolkit import inflation, neff
+
+
+def _rho1(r):
+    r0 = np.asarray(r, float) - np.mean(r)
+    return float(r0[:-1] @ r0[1:] / (r0 @ r0))
+
+
+def test_alternating_residuals_are_independent_samples():
+    """+1, -1, ...: rho_1 = -99/100 (below 0.05 at the first lag: tau_int = 1, AR(1) clipped at 0 -> 1),
+    block means of 20 alternating samples are 0: n_eff = n."""
+    r = np.tile([1.0, -1.0], 50)
+    assert _rho1(r) == pytest.approx(-0.99)
+    assert neff([r]) == (100, 100.0)
+    assert neff([r, r[:40]]) == (140, 140.0)
+    assert inflation([r], 2) == 1.0
+
+
+def test_near_unit_lag_one_correlation_is_capped_at_0_995():
+    """One sine period over 79 samples: rho_1 > 0.995, so the AR(1) factor is its cap
+    (1 + 0.995) / (1 - 0.995) = 399; the integrated time is at most 1 + 2 * 14 = 29 (79 // 5 = 15 lags) and
+    there are fewer than 4 blocks of 20, so tau = 399 and each segment counts 79 / 399 samples."""
+    m = 79
+    r = np.sin(2 * np.pi * (np.arange(m) + 1) / (m + 1))
+    assert _rho1(r) > 0.995
+    n, ne = neff([r] * 20)
+    assert n == 20 * m
+    assert ne == pytest.approx(20 * m / 399.0, rel=1e-12)
+
+
+def test_effective_sample_size_is_at_least_one():
+    """A single such segment counts 79 / 399 < 1 samples: n_eff is floored at 1 (so sqrt(n / n_eff) stays
+    finite); no usable segment (fewer than 3 finite samples) gives n = 0 and n_eff = 1."""
+    m = 79
+    r = np.sin(2 * np.pi * (np.arange(m) + 1) / (m + 1))
+    assert neff([r]) == (m, 1.0)
+    assert inflation([r]) == pytest.approx(np.sqrt(m))
+    assert neff([[1.0, np.nan, 2.0]]) == (0, 1.0)
