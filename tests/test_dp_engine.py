@@ -319,6 +319,20 @@ def test_backward_pass_evaluates_each_state_control_pair_once_per_step():
     assert p[0] == N * n * nu
 
 
+def test_result_built_without_timings_reports_none():
+    """A DPResult made by hand (not by solve) has zero times and evaluations, and no evaluation rate."""
+    import dataclasses
+
+    from optimize.dp.engine import DPResult
+
+    r = solve(_twostate_problem(11), [0.05, 0.02])
+    kw = {f.name: getattr(r, f.name) for f in dataclasses.fields(r)
+          if f.name not in ("t_backward", "t_forward", "n_evaluations")}
+    h = DPResult(**kw)
+    assert (h.t_backward, h.t_forward, h.n_evaluations, h.solve_time) == (0.0, 0.0, 0, 0.0)
+    assert np.isnan(h.evals_per_second) and h.cost == r.cost
+
+
 def test_result_plot(tmp_path):
     """The result draws itself: one panel per state and control plus the cumulative cost, saved atomically."""
     r = solve(_twostate_problem(11), [0.05, 0.02])

@@ -76,3 +76,19 @@ def test_kappa_uses_samples_with_the_coolant_more_than_10_K_above_ambient():
     fit = fit_thermal([log], default_parameters(), allowed={"kappa"})
     assert fit.metrics["kappa_samples"] == 70
     assert fit.estimates["kappa"].value == pytest.approx(KAPPA, rel=1e-9)
+
+
+@pytest.mark.filterwarnings("ignore:rel_change")
+@pytest.mark.parametrize("near", [119, 120])
+def test_thermostat_parameters_need_120_s_near_the_opening(near):
+    """T_open and k_rad are flagged as prior-only when the coolant spent less than 120 s within 5 K of the
+    prior opening temperature (1-s log: one second per sample)."""
+    T_open = default_parameters()["T_open_degC"]
+    log = _log(n=600)
+    T = log.data["coolant_temp_degC"].to_numpy().copy()
+    T[-near:] = T_open - 4.0
+    log.data["coolant_temp_degC"] = T
+    fit = fit_thermal([log], default_parameters(), allowed={"T_open_degC", "k_rad_W_per_K"})
+    assert fit.metrics["time_near_thermostat_s"] == near
+    for n in ("T_open_degC", "k_rad_W_per_K"):
+        assert ("coolant never reached the thermostat" in fit.estimates[n].note) == (near < 120), n

@@ -1,4 +1,4 @@
-"""The effective sample size behind the standard-error inflation of every fitter
+"""Statistics helpers of the fitters (:mod:`calib.fit.toolkit`). The effective sample size behind the standard-error inflation of every fitter
 (:func:`calib.fit.toolkit.neff`), on sequences whose autocorrelation is worked out here with direct sums
 (the function under test uses FFTs), against the rule its docstring states: ``tau`` the largest of the
 integrated autocorrelation time, the batch-means value (only with at least 4 blocks of
@@ -7,7 +7,7 @@ to [0, 0.995]."""
 import numpy as np
 import pytest
 
-from calib.fit.toolkit import inflation, neff
+from calib.fit.toolkit import WEAK_INFORMED, inflation, neff, posterior_estimate
 
 
 def _rho1(r):
@@ -45,3 +45,19 @@ def test_effective_sample_size_is_at_least_one():
     assert neff([r]) == (m, 1.0)
     assert inflation([r]) == pytest.approx(np.sqrt(m))
     assert neff([[1.0, np.nan, 2.0]]) == (0, 1.0)
+
+
+def _out(informed, value=1.2, prior_sd=0.5, post_sd=0.4):
+    return {"informed": {"a": informed}, "values": {"a": value}, "prior_sd": {"a": prior_sd}, "post_sd": {"a": post_sd}}
+
+
+def test_posterior_is_weak_when_the_data_narrowed_the_prior_by_less_than_30_percent():
+    assert WEAK_INFORMED == 0.3
+    e = posterior_estimate("a", _out(0.1), "", 1.0)  # moved 0.4 prior sd: no "moved" remark
+    assert (e.status, e.value, e.stderr, e.prior, e.prior_sd) == ("weak", 1.2, 0.4, 1.0, 0.5)
+    assert e.note == "data informed 10 % (prior sd 0.5, posterior sd 0.4); weakly informed: the value is mostly the prior"
+    e = posterior_estimate("a", _out(0.1, value=1.6), "n", 1.0)  # moved 1.2 prior sd
+    assert e.note == ("n; data informed 10 % (prior sd 0.5, posterior sd 0.4); moved +1.2 prior sd from the prior; "
+                      "weakly informed: the data moved it, but its sd is still close to the prior's")
+    e = posterior_estimate("a", _out(0.3), "", 1.0)
+    assert e.status == "estimated" and "weakly" not in e.note
