@@ -297,26 +297,45 @@ def test_deterministic_across_thread_counts_and_dataframe():
 
 @njit(cache=True)
 def counting(k, x, u, w_k, p, tab, iu, ix, x_next):
-    """x+ = x (stays on its node), cost 0; counts its calls in p[0]."""
+    """x+ = x, cost 0; counts its calls in p[0], records the table's shape in p[1:3] and the smallest grid
+    index it was given in p[3]."""
     p[0] += 1.0
+    p[1] = tab.shape[0]
+    p[2] = tab.shape[1]
+    if ix[0] < p[3]:
+        p[3] = ix[0]
     x_next[0] = x[0]
     return 0.0
 
 
+def _counting_problem(N=3, n=100, nu=2):
+    p = np.array([0.0, 9.0, 9.0, 0.0])
+    return DPProblem(grids=[np.linspace(0.0, 1.0, n)], controls=np.zeros((nu, 1)), N=N, transition=counting,
+                     params=p), p
+
+
 def test_backward_pass_evaluates_each_state_control_pair_once_per_step():
     """One thread, 100 nodes: the backward pass splits the states into 8 chunks of 13; every (state,
-    control) pair is evaluated exactly once per step, as n_evaluations reports."""
-    N, n, nu = 3, 100, 2
-    p = np.zeros(1)
-    prob = DPProblem(grids=[np.linspace(0.0, 1.0, n)], controls=np.zeros((nu, 1)), N=N, transition=counting,
-                     params=p)
+    control) pair is evaluated exactly once per step, as n_evaluations reports, with the node's grid
+    index; without a precompute hook the table is an empty (0, 0) array."""
+    prob, p = _counting_problem()
     old = numba.get_num_threads()
     try:
         numba.set_num_threads(1)
         backward_pass(prob)
     finally:
         numba.set_num_threads(old)
-    assert p[0] == N * n * nu
+    assert p[0] == 3 * 100 * 2
+    assert (p[1], p[2], p[3]) == (0.0, 0.0, 0.0)
+
+
+def test_forward_pass_gives_the_transition_grid_index_minus_one():
+    """The forward pass runs from the true (off-grid) state: every grid index it passes is -1."""
+    prob, p = _counting_problem()
+    res = solve(prob, [0.55])
+    assert res.feasible and p[3] == -1.0
+    # the backward pass, then per step one evaluation per control and one more of the chosen control
+    assert p[0] == res.n_evaluations + 3 * (2 + 1)
 
 
 def test_result_built_without_timings_reports_none():

@@ -45,6 +45,8 @@ def test_effective_sample_size_is_at_least_one():
     assert neff([r]) == (m, 1.0)
     assert inflation([r]) == pytest.approx(np.sqrt(m))
     assert neff([[1.0, np.nan, 2.0]]) == (0, 1.0)
+    # three samples are enough: r0 = (-4, -1, 5) / 3, rho_1 = -1/42 < 0.05, so tau = 1
+    assert neff([[1.0, 2.0, 4.0]]) == (3, 3.0)
 
 
 def _out(informed, value=1.2, prior_sd=0.5, post_sd=0.4):
