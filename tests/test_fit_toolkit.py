@@ -7,7 +7,7 @@ to [0, 0.995]."""
 import numpy as np
 import pytest
 
-from calib.fit.toolkit import WEAK_INFORMED, inflation, neff, posterior_estimate
+from calib.fit.toolkit import WEAK_INFORMED, inflation, map_fit, neff, posterior_estimate
 
 
 def _rho1(r):
@@ -63,3 +63,36 @@ def test_posterior_is_weak_when_the_data_narrowed_the_prior_by_less_than_30_perc
                       "weakly informed: the data moved it, but its sd is still close to the prior's")
     e = posterior_estimate("a", _out(0.3), "", 1.0)
     assert e.status == "estimated" and "weakly" not in e.note
+
+
+def test_map_fit_of_a_line_through_the_origin():
+    """y = a x with a Gaussian prior on a: the MAP estimate and its sd in closed form,
+    a = (x.y / s^2 + a0 / sd0^2) / (x.x / s^2 + 1 / sd0^2), sd = (x.x / s^2 + 1 / sd0^2)^-1/2, with s the
+    noise floor (the residuals here are far below it); an input perturbation that gives no residuals
+    adds nothing, one that shifts the data by dy adds the shift of the estimate it causes."""
+    import lmfit
+
+    x = np.linspace(1.0, 5.0, 40)
+    y = 2.0 * x + 0.01 * np.sin(7 * x)
+    a0, sd0, s = 1.0, 0.5, 0.1
+
+    def make():
+        ps = lmfit.Parameters()
+        ps.add("a", value=a0, min=-10, max=10)
+        return ps
+
+    def segs(ps, dy=0.0):
+        return [ps["a"].value * x - (y + dy)]
+
+    prec = x @ x / s ** 2 + 1 / sd0 ** 2
+    a_map = (x @ y / s ** 2 + a0 / sd0 ** 2) / prec
+    out = map_fit(make, segs, ["a"], prior={"a": a0}, prior_sd={"a": sd0}, noise_sd=s, floor=s)
+    assert out["values"]["a"] == pytest.approx(a_map, rel=1e-6)
+    assert out["post_sd"]["a"] == pytest.approx(prec ** -0.5, rel=1e-4)
+    out2 = map_fit(make, segs, ["a"], prior={"a": a0}, prior_sd={"a": sd0}, noise_sd=s, floor=s,
+                   perturbed=[lambda ps: []])
+    assert out2["post_sd"]["a"] == out["post_sd"]["a"]
+    out3 = map_fit(make, segs, ["a"], prior={"a": a0}, prior_sd={"a": sd0}, noise_sd=s, floor=s,
+                   perturbed=[lambda ps: segs(ps, dy=0.05)])
+    shift = (x.sum() * 0.05 / s ** 2) / prec  # moving every y by 0.05 moves a_map by this
+    assert out3["post_sd"]["a"] == pytest.approx(np.hypot(prec ** -0.5, shift), rel=1e-3)

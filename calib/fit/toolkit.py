@@ -207,7 +207,7 @@ def map_fit(make_params, data_segments, cand, *, prior, prior_sd, noise_sd, extr
         Further prior residuals (e.g. smoothness of a table), already in sd units.
     perturbed : sequence of callable(params) -> list of ndarray
         Data residuals with one logged input moved by one sd of its calibration uncertainty; the
-        linearised shift of the MAP estimate is added in quadrature to the posterior sd.
+        linearised shift of the MAP estimate is added in quadrature to the posterior sd (none if it gives no residuals).
     floor : float, optional
         Smallest ``s`` (the resolution of the measurement).
     max_tau : float, optional
