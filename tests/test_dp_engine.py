@@ -338,6 +338,12 @@ def test_forward_pass_gives_the_transition_grid_index_minus_one():
     assert p[0] == res.n_evaluations + 3 * (2 + 1)
 
 
+def test_problem_defaults_are_empty_arrays():
+    """No exogenous inputs: an (N, 0) array; no parameters: an empty float64 array."""
+    prob = DPProblem(grids=[np.linspace(0.0, 1.0, 3)], controls=np.zeros((1, 1)), N=4, transition=counting)
+    assert prob.w.shape == (4, 0) and prob.params.shape == (0,) and prob.params.dtype == np.float64
+
+
 def test_result_built_without_timings_reports_none():
     """A DPResult made by hand (not by solve) has zero times and evaluations, and no evaluation rate."""
     import dataclasses

@@ -96,3 +96,13 @@ def test_map_fit_of_a_line_through_the_origin():
                    perturbed=[lambda ps: segs(ps, dy=0.05)])
     shift = (x.sum() * 0.05 / s ** 2) / prec  # moving every y by 0.05 moves a_map by this
     assert out3["post_sd"]["a"] == pytest.approx(np.hypot(prec ** -0.5, shift), rel=1e-3)
+    assert out["at_bound"] == {}
+
+    def bounded():  # the data want a = 2.0; the upper bound 1.5 holds it there
+        ps = lmfit.Parameters()
+        ps.add("a", value=a0, min=-10, max=1.5)
+        return ps
+
+    out4 = map_fit(bounded, segs, ["a"], prior={"a": a0}, prior_sd={"a": sd0}, noise_sd=s, floor=s)
+    assert out4["values"]["a"] == pytest.approx(1.5, abs=1e-6)
+    assert list(out4["at_bound"]) == ["a"] and "at its bound [-10, 1.5]" in out4["at_bound"]["a"]

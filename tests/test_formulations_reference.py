@@ -4,7 +4,7 @@ tables) and the cheapest charge-sustaining one is the reference the DP must reac
 import numpy as np
 import pytest
 
-from calib.model.equations import evaluate, f_cold, fuel_map
+from calib.model.equations import OFF, ON, evaluate, f_cold, fuel_map
 from optimize.formulations import DPGrids, DPScenario, solve_baseline
 from optimize.formulations.layout import PENALTY_G_PER_STEP
 from optimize.formulations.solve import _power_controls
@@ -53,14 +53,14 @@ def test_baseline_dp_reaches_the_enumerated_optimum(params, tmp_path, kmh, soc_s
 # one step of the compiled transition against the model's step (calib.model.equations.evaluate) and the
 # documented penalty: PENALTY_G_PER_STEP per grid step of state-bound violation
 # ---------------------------------------------------------------------------------------------------
-def _two_state(params, tmp_path, kmh=(30, 36, 40), **scen):
+def _two_state(params, tmp_path, kmh=(30, 36, 40), nx=2, **scen):
     from optimize.formulations.solve import build_problem
 
     cyc = tmp_path / "c.csv"
     cyc.write_text("time_s,speed_kph\n" + "".join(f"{i},{s}\n" for i, s in enumerate(kmh)))
     kw = dict(cycle=str(cyc), T_amb=-5.0, soc0=0.6, T_cl0=20.0, T_cab0=15.0, Q_heat=1500.0)
     kw.update(scen)
-    return build_problem(params, DPScenario(**kw), DPGrids(pbat=1000.0), 2)
+    return build_problem(params, DPScenario(**kw), DPGrids(pbat=1000.0), nx)
 
 
 def _one_step(b, x, iu):
@@ -77,17 +77,16 @@ def _one_step(b, x, iu):
 
 
 def _model(b, x, iu):
-    """The same step by the model (cabin at the transition's reference w_k[1])."""
+    """The same step by the model (cabin: the state x[2], or the transition's reference w_k[1])."""
     e, pbm, q = b.prob.controls[iu]
     v = b.cyc.v
+    T_cab = x[2] if len(x) == 3 else b.prob.w[0, 1]
     return {k: float(np.asarray(a).ravel()[0]) for k, a in evaluate(
-        b.mp, x[0], x[1], b.prob.w[0, 1], e, pbm, q, v[0], v[1], T_amb=-5.0, Ts=b.cyc.Ts).items()}
+        b.mp, x[0], x[1], T_cab, e, pbm, q, v[0], v[1], T_amb=-5.0, Ts=b.cyc.Ts).items()}
 
 
 def _on_control(b, pbm_sign):
     """Index of an engine-on control discharging (+1) or charging (-1) the battery by the most, feasible."""
-    from calib.model.equations import ON
-
     c = b.prob.controls
     idx = [i for i in range(len(c)) if c[i, 0] == ON]
     return max(idx, key=lambda i: pbm_sign * c[i, 1])
@@ -123,8 +122,6 @@ def test_soc_below_or_above_its_grid_pays_the_penalty_per_grid_step(params, tmp_
 
 
 def test_coolant_above_or_below_its_grid_pays_the_penalty_per_grid_step(params, tmp_path):
-    from calib.model.equations import OFF
-
     b = _two_state(params, tmp_path, T_cl_min=0.0, T_cl_max=40.0)  # 1-degC coolant grid
     pen, step = PENALTY_G_PER_STEP, DPGrids().tcl
     iu = _on_control(b, -1)  # engine on, charging: the coolant warms above the top of the grid
@@ -138,3 +135,23 @@ def test_coolant_above_or_below_its_grid_pays_the_penalty_per_grid_step(params, 
     m = _model(b, (0.6, 0.0), iu)
     assert m["code"] == 0 and m["W_f"] == 0.0 and m["T_cl_next"] < -1e-4
     assert cost == pytest.approx(pen * (0.0 - m["T_cl_next"]) / step, rel=1e-9)
+
+
+def test_cabin_state_steps_like_the_model_and_pays_below_its_lower_bound(params, tmp_path):
+    """Three states: the heater-core limit sees the cabin state (recirculated inlet air), the cabin steps
+    by eq. 10, and a cabin below the step's lower bound w_k[2] pays per 1-degC grid step."""
+    sunny = params.with_values(recirc_frac=0.35, Q_sun_W=300.0)
+    b = _two_state(sunny, tmp_path, nx=3)
+    lb = b.prob.w[0, 2]
+    iu = max((i for i in range(len(b.prob.controls)) if b.prob.controls[i, 0] == ON),
+             key=lambda i: (-b.prob.controls[i, 1], b.prob.controls[i, 2]))  # charging, most heat asked
+    for T_cab, below in ((lb + 2.0, False), (lb - 3.0, True)):
+        x = (0.6, 20.0, T_cab)
+        cost, xn = _one_step(b, x, iu)
+        m = _model(b, x, iu)
+        assert m["code"] == 0 and m["Q_heat"] < b.prob.controls[iu, 2]  # the heater-core limit binds
+        assert xn[1] == pytest.approx(m["T_cl_next"], rel=1e-12)
+        assert xn[2] == pytest.approx(m["T_cab_next"], rel=1e-12)
+        pen = PENALTY_G_PER_STEP * (lb - m["T_cab_next"]) / DPGrids().tcab if below else 0.0
+        assert (m["T_cab_next"] < lb) == below
+        assert cost == pytest.approx(m["W_f"] * b.cyc.Ts + pen, rel=1e-9)
