@@ -64,18 +64,36 @@ def test_kappa_needs_sixty_bay_temperature_samples():
 
 
 def test_kappa_uses_samples_with_the_coolant_more_than_10_K_above_ambient():
-    """Bay temperature on 100 samples: 70 with the coolant 10.5 K above ambient (used), 30 exactly 10 K
-    above (not used; their bay temperature says kappa = 0.9, which would pull the estimate up)."""
-    log = _log(n=400, T0=-5.0, T_amb=-8.0)
+    """Bay temperature on 90 samples: 60 (the least that is enough) with the coolant 10.5 K above ambient
+    (used), 30 exactly 10 K above (not used; their bay temperature says kappa = 0.9, which would pull the
+    estimate up)."""
+    log = _log(n=390, T0=-5.0, T_amb=-8.0)
     d = log.data
-    d["coolant_temp_degC"] = np.r_[d["coolant_temp_degC"].to_numpy()[:300], np.full(70, 2.5), np.full(30, 2.0)]
-    bay = np.full(400, np.nan)
-    bay[300:370] = -8.0 + KAPPA * 10.5
-    bay[370:] = -8.0 + 0.9 * 10.0
+    d["coolant_temp_degC"] = np.r_[d["coolant_temp_degC"].to_numpy()[:300], np.full(60, 2.5), np.full(30, 2.0)]
+    bay = np.full(390, np.nan)
+    bay[300:360] = -8.0 + KAPPA * 10.5
+    bay[360:] = -8.0 + 0.9 * 10.0
     d["bay_temp_degC"] = bay
     fit = fit_thermal([log], default_parameters(), allowed={"kappa"})
-    assert fit.metrics["kappa_samples"] == 70
+    assert fit.metrics["kappa_samples"] == 60
+    assert fit.estimates["kappa"].status == "estimated"
     assert fit.estimates["kappa"].value == pytest.approx(KAPPA, rel=1e-9)
+
+
+@pytest.mark.filterwarnings("ignore:rel_change")
+def test_time_metrics_count_seconds_at_a_2_s_sample_step():
+    """Every other sample of the 1-s log (a 2-s log): 75 heater-off samples with the coolant 38 K above
+    ambient are 150 s; the last 20 samples within 5 K of the thermostat are 40 s."""
+    log = _log(n=600)
+    d = log.data.iloc[::2].copy()
+    T = np.full(len(d), 30.0)
+    T[-20:] = default_parameters()["T_open_degC"] - 4.0
+    d["coolant_temp_degC"] = T
+    log = DriveLog(data=d, meta=log.meta)
+    assert log.dt == 2.0 and int(np.sum(d["heater_power_W"].to_numpy() == 0.0)) == 75
+    fit = fit_thermal([log], default_parameters(), allowed={"T_open_degC", "k_rad_W_per_K"})
+    assert fit.metrics["heater_off_warm_s"] == 150.0
+    assert fit.metrics["time_near_thermostat_s"] == 40.0
 
 
 @pytest.mark.filterwarnings("ignore:rel_change")

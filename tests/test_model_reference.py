@@ -132,3 +132,12 @@ def test_battery_current_solves_the_terminal_power_equation():
         assert U * I - R * I * I == pytest.approx(P, rel=1e-12, abs=1e-9)
         assert I == pytest.approx((U - np.sqrt(U * U - 4 * R * P)) / (2 * R), rel=1e-9)
     assert np.isnan(M.battery_current(U, R, U * U / (4 * R) * 1.001))
+
+
+def test_battery_power_limits_are_inclusive():
+    """docs/model.md: P_bat is limited to [P_bat_min, P_bat_max] (-25 ... +25 kW): both ends feasible,
+    one watt beyond either infeasible."""
+    p = default_parameters().model_params()
+    assert (p.P_bat_min, p.P_bat_max) == (-25e3, 25e3)
+    codes = [M.battery(p, 0.6, P, p.T_bat_ref)[4] for P in (-25e3, 25e3, -25001.0, 25001.0)]
+    assert codes == [M.FEASIBLE, M.FEASIBLE, M.BATTERY_LIMIT, M.BATTERY_LIMIT]
