@@ -155,3 +155,24 @@ def test_cabin_state_steps_like_the_model_and_pays_below_its_lower_bound(params,
         pen = PENALTY_G_PER_STEP * (lb - m["T_cab_next"]) / DPGrids().tcab if below else 0.0
         assert (m["T_cab_next"] < lb) == below
         assert cost == pytest.approx(m["W_f"] * b.cyc.Ts + pen, rel=1e-9)
+
+
+def test_control_tables_are_feasible_exactly_where_the_models_step_is(params, tmp_path):
+    """A brisk acceleration (30 -> 38 km/h in 1 s, about 33 kW at the wheels): the per-step table marks a power control feasible exactly
+    where the model's step is (engine power within (0, P_e_max], battery power within its closed limits),
+    including the controls at P_bat_min and P_bat_max themselves."""
+    from optimize.formulations.layout import _T_OK
+    from optimize.formulations.transition import hev_precompute
+
+    b = _two_state(params, tmp_path, kmh=(30, 38, 40))
+    prob = b.prob
+    tab = np.zeros(prob.table_shape)
+    hev_precompute(0, prob.w[0], prob.params, tab)
+    pc = prob.controls[:: int(len(prob.controls) // tab.shape[0])]  # one row per power control
+    assert len(pc) == tab.shape[0]
+    m = evaluate(b.mp, 0.6, 70.0, 15.0, pc[:, 0], pc[:, 1], 0.0, b.cyc.v[0], b.cyc.v[1], T_amb=-5.0)
+    assert np.array_equal(tab[:, _T_OK] == 1.0, m["code"] == 0)
+    on = pc[:, 0] == ON
+    for limit in (b.mp.P_bat_min, b.mp.P_bat_max):
+        at = on & (m["P_bat"] == limit)
+        assert at.sum() == 1 and tab[at, _T_OK][0] == 1.0
