@@ -106,3 +106,28 @@ def test_map_fit_of_a_line_through_the_origin():
     out4 = map_fit(bounded, segs, ["a"], prior={"a": a0}, prior_sd={"a": sd0}, noise_sd=s, floor=s)
     assert out4["values"]["a"] == pytest.approx(1.5, abs=1e-6)
     assert list(out4["at_bound"]) == ["a"] and "at its bound [-10, 1.5]" in out4["at_bound"]["a"]
+
+
+def test_map_fit_posterior_correlation_of_slope_and_offset():
+    """y = a x + c with independent Gaussian priors: posterior covariance (X'X / s^2 + diag(1 / sd0^2))^-1,
+    its correlation cov_ac / sqrt(cov_aa cov_cc) (strongly negative: x is far from 0)."""
+    import lmfit
+
+    x = np.linspace(5.0, 9.0, 30)
+    y = 0.5 * x + 1.0 + 0.01 * np.cos(5 * x)
+    s = 0.2
+
+    def make():
+        ps = lmfit.Parameters()
+        ps.add("a", value=0.0, min=-10, max=10)
+        ps.add("c", value=0.0, min=-10, max=10)
+        return ps
+
+    out = map_fit(make, lambda ps: [ps["a"].value * x + ps["c"].value - y], ["a", "c"], prior={"a": 0.0, "c": 0.0},
+                  prior_sd={"a": 1.0, "c": 2.0}, noise_sd=s, floor=s)
+    X = np.column_stack([x, np.ones_like(x)])
+    cov = np.linalg.inv(X.T @ X / s ** 2 + np.diag([1.0, 0.25]))
+    r = cov[0, 1] / np.sqrt(cov[0, 0] * cov[1, 1])
+    assert r < -0.9
+    assert out["correl"]["a|c"] == pytest.approx(r, rel=1e-4)
+    assert out["post_sd"]["c"] == pytest.approx(np.sqrt(cov[1, 1]), rel=1e-4)

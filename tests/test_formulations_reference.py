@@ -53,6 +53,10 @@ def test_baseline_dp_reaches_the_enumerated_optimum(params, tmp_path, kmh, soc_s
 # one step of the compiled transition against the model's step (calib.model.equations.evaluate) and the
 # documented penalty: PENALTY_G_PER_STEP per grid step of state-bound violation
 # ---------------------------------------------------------------------------------------------------
+# half-degree coolant and cabin steps: a penalty divided by its grid step differs from one multiplied by it
+GRIDS = DPGrids(pbat=1000.0, tcl=0.5, tcab=0.5)
+
+
 def _two_state(params, tmp_path, kmh=(30, 36, 40), nx=2, **scen):
     from optimize.formulations.solve import build_problem
 
@@ -60,7 +64,7 @@ def _two_state(params, tmp_path, kmh=(30, 36, 40), nx=2, **scen):
     cyc.write_text("time_s,speed_kph\n" + "".join(f"{i},{s}\n" for i, s in enumerate(kmh)))
     kw = dict(cycle=str(cyc), T_amb=-5.0, soc0=0.6, T_cl0=20.0, T_cab0=15.0, Q_heat=1500.0)
     kw.update(scen)
-    return build_problem(params, DPScenario(**kw), DPGrids(pbat=1000.0), nx)
+    return build_problem(params, DPScenario(**kw), GRIDS, nx)
 
 
 def _one_step(b, x, iu):
@@ -111,7 +115,7 @@ def test_transition_fuel_is_the_cold_fuel_rate_and_states_are_the_models(params,
 
 def test_soc_below_or_above_its_grid_pays_the_penalty_per_grid_step(params, tmp_path):
     b = _two_state(params, tmp_path)
-    pen, step = PENALTY_G_PER_STEP, DPGrids().soc
+    pen, step = PENALTY_G_PER_STEP, GRIDS.soc
     for soc, sign, bound in ((0.4, 1, 0.4), (0.8, -1, 0.8)):  # discharge at the bottom, charge at the top
         iu = _on_control(b, sign)
         cost, xn = _one_step(b, (soc, 60.0), iu)
@@ -122,8 +126,8 @@ def test_soc_below_or_above_its_grid_pays_the_penalty_per_grid_step(params, tmp_
 
 
 def test_coolant_above_or_below_its_grid_pays_the_penalty_per_grid_step(params, tmp_path):
-    b = _two_state(params, tmp_path, T_cl_min=0.0, T_cl_max=40.0)  # 1-degC coolant grid
-    pen, step = PENALTY_G_PER_STEP, DPGrids().tcl
+    b = _two_state(params, tmp_path, T_cl_min=0.0, T_cl_max=40.0)
+    pen, step = PENALTY_G_PER_STEP, GRIDS.tcl
     iu = _on_control(b, -1)  # engine on, charging: the coolant warms above the top of the grid
     cost, xn = _one_step(b, (0.6, 40.0), iu)
     m = _model(b, (0.6, 40.0), iu)
@@ -137,24 +141,26 @@ def test_coolant_above_or_below_its_grid_pays_the_penalty_per_grid_step(params, 
     assert cost == pytest.approx(pen * (0.0 - m["T_cl_next"]) / step, rel=1e-9)
 
 
-def test_cabin_state_steps_like_the_model_and_pays_below_its_lower_bound(params, tmp_path):
+def test_cabin_state_steps_like_the_model_and_pays_outside_its_bounds(params, tmp_path):
     """Three states: the heater-core limit sees the cabin state (recirculated inlet air), the cabin steps
-    by eq. 10, and a cabin below the step's lower bound w_k[2] pays per 1-degC grid step."""
+    by eq. 10, and a cabin below the step's lower bound w_k[2] or above T_cab_ub pays per 0.5-degC grid
+    step."""
     sunny = params.with_values(recirc_frac=0.35, Q_sun_W=300.0)
     b = _two_state(sunny, tmp_path, nx=3)
-    lb = b.prob.w[0, 2]
+    lb, ub = b.prob.w[0, 2], DPScenario().T_cab_ub
     iu = max((i for i in range(len(b.prob.controls)) if b.prob.controls[i, 0] == ON),
              key=lambda i: (-b.prob.controls[i, 1], b.prob.controls[i, 2]))  # charging, most heat asked
-    for T_cab, below in ((lb + 2.0, False), (lb - 3.0, True)):
+    for T_cab in (lb + 2.0, lb - 3.0, ub + 2.0):
         x = (0.6, 20.0, T_cab)
         cost, xn = _one_step(b, x, iu)
         m = _model(b, x, iu)
         assert m["code"] == 0 and m["Q_heat"] < b.prob.controls[iu, 2]  # the heater-core limit binds
         assert xn[1] == pytest.approx(m["T_cl_next"], rel=1e-12)
-        assert xn[2] == pytest.approx(m["T_cab_next"], rel=1e-12)
-        pen = PENALTY_G_PER_STEP * (lb - m["T_cab_next"]) / DPGrids().tcab if below else 0.0
-        assert (m["T_cab_next"] < lb) == below
-        assert cost == pytest.approx(m["W_f"] * b.cyc.Ts + pen, rel=1e-9)
+        tc = m["T_cab_next"]
+        assert xn[2] == pytest.approx(tc, rel=1e-12)
+        over = lb - tc if T_cab < lb else (tc - ub if T_cab > ub else 0.0)
+        assert over > 0.5 or (T_cab == lb + 2.0 and lb < tc < ub)
+        assert cost == pytest.approx(m["W_f"] * b.cyc.Ts + PENALTY_G_PER_STEP * over / GRIDS.tcab, rel=1e-9)
 
 
 def test_control_tables_are_feasible_exactly_where_the_models_step_is(params, tmp_path):
