@@ -110,3 +110,13 @@ def test_thermostat_parameters_need_120_s_near_the_opening(near):
     assert fit.metrics["time_near_thermostat_s"] == near
     for n in ("T_open_degC", "k_rad_W_per_K"):
         assert ("coolant never reached the thermostat" in fit.estimates[n].note) == (near < 120), n
+
+
+def test_a_channel_of_only_infinite_values_counts_as_missing():
+    """An ambient channel holding only infinities (a sensor's fault value) is no ambient temperature: the
+    thermal fit names it missing instead of filling it with a default."""
+    log = _log(n=300)
+    log.data["ambient_temp_degC"] = np.inf
+    assert "ambient_temp_degC" in log.missing(["ambient_temp_degC", "coolant_temp_degC"])
+    fit = fit_thermal([log], default_parameters(), allowed={"C_eng_J_per_K"})
+    assert fit.estimates["C_eng_J_per_K"].status == "prior" and "ambient_temp_degC" in fit.skipped[log.label()]

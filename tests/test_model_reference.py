@@ -122,6 +122,9 @@ def test_engine_mode_coding_is_the_documented_one(sunny):
     assert r["P_bat_mg"][:2] == pytest.approx(r["P_trac"][:2] / p.eta_em, rel=1e-12)
     # on with P_bat_mg = 0: the engine supplies it through the mechanical efficiency
     assert P_e[2] == pytest.approx(r["P_trac"][2] / p.eta_mech, rel=1e-12) and P_e[2] > 1e3 and W_f[2] > p.W_idle
+    # torque times speed is the engine power; no torque off or idle (no power)
+    assert r["tau_e"][2] * r["omega_e"][2] == pytest.approx(P_e[2], rel=1e-12) and r["omega_e"][2] > 0
+    assert r["tau_e"][0] == 0.0 and r["tau_e"][1] == 0.0
 
 
 def test_battery_current_solves_the_terminal_power_equation():
