@@ -344,6 +344,25 @@ def test_problem_defaults_are_empty_arrays():
     assert prob.w.shape == (4, 0) and prob.params.shape == (0,) and prob.params.dtype == np.float64
 
 
+def test_terminal_level_is_the_distance_to_the_box_in_grid_steps():
+    """Grid step 0.1, box [0.3, 0.7]: 3 steps outside at 0, 0 on the boundary, -2 in the middle."""
+    prob = DPProblem(grids=[np.linspace(0.0, 1.0, 11)], controls=np.zeros((1, 1)), N=1, transition=counting,
+                     terminal_bounds=[(0.3, 0.7)])
+    np.testing.assert_allclose(prob.terminal_level([[0.0], [0.3], [0.5], [0.7], [1.0]]), [3, 0, -2, 0, 3],
+                               atol=1e-12)
+
+
+def test_levelset_terminal_boundary_reached_exactly_is_feasible():
+    """x+ = x + u on the integers 0..4, cost u^2, terminal set x >= 2 from x0 = 0 in two steps: only
+    u = (1, 1) ends in the set, exactly on its boundary (level 0): feasible, cost 2."""
+    A, B, Q, R = np.eye(1), np.eye(1), np.zeros((1, 1)), np.eye(1)
+    prob = DPProblem(grids=[np.arange(5.0)], controls=np.array([[-1.0], [0.0], [1.0]]), N=2,
+                     transition=linear_quadratic, params=(A, B, Q, R), terminal_bounds=[(2.0, None)],
+                     boundary="levelset")
+    res = solve(prob, [0.0])
+    assert res.feasible and res.cost == 2.0 and res.x[-1, 0] == 2.0
+
+
 def test_result_built_without_timings_reports_none():
     """A DPResult made by hand (not by solve) has zero times and evaluations, and no evaluation rate."""
     import dataclasses

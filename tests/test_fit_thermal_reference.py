@@ -83,16 +83,20 @@ def test_kappa_uses_samples_with_the_coolant_more_than_10_K_above_ambient():
 @pytest.mark.filterwarnings("ignore:rel_change")
 def test_time_metrics_count_seconds_at_a_2_s_sample_step():
     """Every other sample of the 1-s log (a 2-s log): 75 heater-off samples with the coolant 38 K above
-    ambient are 150 s; the last 20 samples within 5 K of the thermostat are 40 s."""
+    ambient, of which 10 at 200.5 W count as on (above 200 W): 130 s; the last 20 samples within 5 K of the
+    thermostat are 40 s."""
     log = _log(n=600)
     d = log.data.iloc[::2].copy()
+    q = d["heater_power_W"].to_numpy().copy()
+    q[np.flatnonzero(q == 0.0)[:10]] = 200.5
+    d["heater_power_W"] = q
     T = np.full(len(d), 30.0)
     T[-20:] = default_parameters()["T_open_degC"] - 4.0
     d["coolant_temp_degC"] = T
     log = DriveLog(data=d, meta=log.meta)
-    assert log.dt == 2.0 and int(np.sum(d["heater_power_W"].to_numpy() == 0.0)) == 75
+    assert log.dt == 2.0 and int(np.sum(d["heater_power_W"].to_numpy() <= 200.5)) == 75
     fit = fit_thermal([log], default_parameters(), allowed={"T_open_degC", "k_rad_W_per_K"})
-    assert fit.metrics["heater_off_warm_s"] == 150.0
+    assert fit.metrics["heater_off_warm_s"] == 130.0
     assert fit.metrics["time_near_thermostat_s"] == 40.0
 
 

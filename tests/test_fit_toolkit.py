@@ -7,7 +7,7 @@ to [0, 0.995]."""
 import numpy as np
 import pytest
 
-from calib.fit.toolkit import WEAK_INFORMED, inflation, map_fit, neff, posterior_estimate
+from calib.fit.toolkit import WEAK_INFORMED, combine_with_prior, inflation, map_fit, neff, posterior_estimate
 
 
 def _rho1(r):
@@ -47,6 +47,8 @@ def test_effective_sample_size_is_at_least_one():
     assert neff([[1.0, np.nan, 2.0]]) == (0, 1.0)
     # three samples are enough: r0 = (-4, -1, 5) / 3, rho_1 = -1/42 < 0.05, so tau = 1
     assert neff([[1.0, 2.0, 4.0]]) == (3, 3.0)
+    # and with two parameters fitted to them: sqrt((3 - 2) / (3 - 2)) = 1
+    assert inflation([[1.0, 2.0, 4.0]], 2) == 1.0
 
 
 def _out(informed, value=1.2, prior_sd=0.5, post_sd=0.4):
@@ -131,3 +133,22 @@ def test_map_fit_posterior_correlation_of_slope_and_offset():
     assert r < -0.9
     assert out["correl"]["a|c"] == pytest.approx(r, rel=1e-4)
     assert out["post_sd"]["c"] == pytest.approx(np.sqrt(cov[1, 1]), rel=1e-4)
+
+
+def test_combine_with_prior_is_precision_weighted():
+    """Estimate 2.0 (se 0.5) and prior 1.0 (sd 2.0): precisions 4 and 0.25, posterior mean 8.25 / 4.25,
+    sd 4.25^-1/2, informed 1 - sd / 2.0."""
+    e = combine_with_prior("a", 2.0, 0.5, 1.0, 2.0, "n")
+    assert e.value == pytest.approx(8.25 / 4.25, rel=1e-12)
+    assert e.stderr == pytest.approx(4.25 ** -0.5, rel=1e-12)
+    assert e.informed == pytest.approx(1 - 4.25 ** -0.5 / 2.0, rel=1e-12) and e.status == "estimated"
+
+
+def test_output_error_initial_temperature_within_5_K_of_the_first_measured_value():
+    from calib.fit.toolkit import output_error_params
+
+    make = output_error_params(["a"], {"a": (0.0, 2.0)}, {"a": 1.0}, [{"name": "T0_0", "T0": -7.5}])
+    ps = make({"a"})
+    assert (ps["T0_0"].value, ps["T0_0"].min, ps["T0_0"].max, ps["T0_0"].vary) == (-7.5, -12.5, -2.5, True)
+    assert (ps["a"].value, ps["a"].min, ps["a"].max, ps["a"].vary) == (1.0, 0.0, 2.0, True)
+    assert not make(set())["a"].vary
