@@ -124,3 +124,25 @@ def test_a_channel_of_only_infinite_values_counts_as_missing():
     assert "ambient_temp_degC" in log.missing(["ambient_temp_degC", "coolant_temp_degC"])
     fit = fit_thermal([log], default_parameters(), allowed={"C_eng_J_per_K"})
     assert fit.estimates["C_eng_J_per_K"].status == "prior" and "ambient_temp_degC" in fit.skipped[log.label()]
+
+
+def test_kappa_standard_error_from_the_regression_residuals():
+    """60 bay samples 10.5 K of coolant above ambient, bay = T_amb + 0.3 * 10.5 +- 0.1 alternating (independent
+    residuals: no inflation): k = 0.3, se = sqrt(r.r / (n - 1) / x.x); the posterior combines it with the
+    prior by precision."""
+    from calib.model.params import prior_sd_of
+
+    log = _log(n=360, T0=-5.0, T_amb=-8.0)
+    d = log.data
+    d["coolant_temp_degC"] = np.r_[d["coolant_temp_degC"].to_numpy()[:300], np.full(60, 2.5)]
+    bay = np.full(360, np.nan)
+    bay[300:] = -8.0 + KAPPA * 10.5 + 0.1 * np.tile([1.0, -1.0], 30)
+    d["bay_temp_degC"] = bay
+    base = default_parameters()
+    fit = fit_thermal([log], base, allowed={"kappa"})
+    se = np.sqrt(60 * 0.01 / 59 / (60 * 10.5 ** 2))
+    psd = float(prior_sd_of(base.param("kappa")))
+    w1, w0 = 1 / se ** 2, 1 / psd ** 2
+    e = fit.estimates["kappa"]
+    assert e.value == pytest.approx((w1 * KAPPA + w0 * base["kappa"]) / (w1 + w0), rel=1e-9)
+    assert e.stderr == pytest.approx((w1 + w0) ** -0.5, rel=1e-9)
