@@ -363,6 +363,18 @@ def test_levelset_terminal_boundary_reached_exactly_is_feasible():
     assert res.feasible and res.cost == 2.0 and res.x[-1, 0] == 2.0
 
 
+def test_levelset_boundary_reached_then_a_dearer_control_inside_keeps_the_cheaper():
+    """One step, controls +1 (cost 1) then +2 (cost 4), terminal set x >= 2: from x = 1, +1 lands on the
+    boundary (level 0) and +2 inside (level -1): both reach the set, the cheaper is kept, V = 1. From 0 only
+    +2 reaches it (V = 4); from 4 both leave the grid (V = inf)."""
+    A, B, Q, R = np.eye(1), np.eye(1), np.zeros((1, 1)), np.eye(1)
+    prob = DPProblem(grids=[np.arange(5.0)], controls=np.array([[1.0], [2.0]]), N=1,
+                     transition=linear_quadratic, params=(A, B, Q, R), terminal_bounds=[(2.0, None)],
+                     boundary="levelset")
+    vf = backward_pass(prob)
+    np.testing.assert_array_equal(np.asarray(vf.V).reshape(2, 5)[0], [4.0, 1.0, 1.0, 1.0, np.inf])
+
+
 def test_result_built_without_timings_reports_none():
     """A DPResult made by hand (not by solve) has zero times and evaluations, and no evaluation rate."""
     import dataclasses
