@@ -116,7 +116,7 @@ def test_eps_standard_error_inflated_for_correlated_residuals_and_sensor_offsets
     import numpy as np
 
     from calib.fit.cabin import _eps
-    from calib.fit.toolkit import T_SENSOR_SD, SubsystemFit
+    from calib.fit.toolkit import T_SENSOR_SD, SubsystemFit, inflation
 
     lg = _cluster_log()
     (eps, se0, _), _ = _eps([lg], default_parameters(), SubsystemFit("t", ()), _propagate=False)
@@ -126,6 +126,7 @@ def test_eps_standard_error_inflated_for_correlated_residuals_and_sensor_offsets
     tau_bm = 22 * np.var(r0[:484].reshape(22, 22).mean(axis=1)) / np.mean(r0 ** 2)
     assert tau_bm > 5
     assert se0 >= se_iid * np.sqrt(499 / (500 / tau_bm - 1)) * (1 - 1e-12)
+    assert se0 == pytest.approx(se_iid * inflation([res], 1), rel=1e-9)  # inflation: tests/test_fit_toolkit.py
     (_, se, _), _ = _eps([lg], default_parameters(), SubsystemFit("t", ()))
     d_cl = _weighted(50.0 + T_SENSOR_SD, [33.0, 35.0], [409, 91]) - eps
     d_vent = _weighted(50.0, [33.0 + T_SENSOR_SD, 35.0 + T_SENSOR_SD], [409, 91]) - eps

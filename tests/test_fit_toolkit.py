@@ -65,6 +65,8 @@ def test_posterior_is_weak_when_the_data_narrowed_the_prior_by_less_than_30_perc
                       "weakly informed: the data moved it, but its sd is still close to the prior's")
     e = posterior_estimate("a", _out(0.3), "", 1.0)
     assert e.status == "estimated" and "weakly" not in e.note
+    e = posterior_estimate("a", _out(0.9, post_sd=0.05), "", 1.0)
+    assert (e.status, e.note) == ("estimated", "data informed 90 % (prior sd 0.5, posterior sd 0.05)")
 
 
 def test_map_fit_of_a_line_through_the_origin():
