@@ -122,8 +122,9 @@ class DriveLog:
         return float(t[-1] - t[0]) if len(t) else 0.0
 
     def channels(self) -> list[str]:
-        """Canonical channels that have at least one valid sample."""
-        return [c for c in self.data.columns if c in CHANNELS and self.data[c].notna().any()]
+        """Canonical channels that have at least one valid (finite) sample."""
+        return [c for c in self.data.columns
+                if c in CHANNELS and np.isfinite(pd.to_numeric(self.data[c], errors="coerce").to_numpy(float)).any()]
 
     def has(self, *channels: str) -> bool:
         """Whether every named channel has at least one valid sample."""

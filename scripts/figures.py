@@ -1,6 +1,7 @@
 """README figures that cannot drift: the blocks between ``<!-- figures:NAME -->`` and ``<!-- /figures:NAME -->``
 in README.md are rendered from the benchmarks' JSON (``iptm bench SUITE --json``), committed under
-reports/figures/.
+reports/figures/, and from the mutation report reports/mutation.json (written by scripts/mutation.py, which
+``run`` does not re-run: it takes hours).
 
     python scripts/figures.py run      # re-run the benchmarks, write their JSON, rewrite the README blocks
     python scripts/figures.py render   # rewrite the README blocks from the committed JSON (no benchmark)
@@ -24,6 +25,7 @@ ROOT = Path(__file__).resolve().parent.parent
 README = ROOT / "README.md"
 JSON_DIR = ROOT / "reports" / "figures"
 SUITES = ("sim",)
+MUTATION_JSON = ROOT / "reports" / "mutation.json"
 
 
 def bench_json(suite: str) -> Path:
@@ -49,7 +51,15 @@ def _sim_speed(d: dict) -> str:
             f"{len(ms)} runs{load})")
 
 
-RENDER = {"epa": _epa, "sim-speed": _sim_speed}
+def _mutation(d: dict) -> str:
+    m = d["mutation"]
+    what = (f"a seeded sample of at most {m['sample']} mutants per module (seed {m['seed']})" if m.get("sample")
+            else "every mutant of the configured modules")
+    return (f"score {100 * m['score']:.1f} %: {m['killed']} killed, {m['survived']} survived, {m['equivalent']} "
+            f"equivalent (excluded, each with its reason in `pyproject.toml`) of {m['run']} mutants, {what}")
+
+
+RENDER = {"epa": _epa, "sim-speed": _sim_speed, "mutation": _mutation}
 
 
 # --------------------------------------------------------------------------------------------------- README blocks
@@ -62,6 +72,9 @@ def load() -> dict:
         p = bench_json(s)
         if p.exists():
             d.update(json.loads(p.read_text()))
+    if MUTATION_JSON.exists():
+        m = json.loads(MUTATION_JSON.read_text())
+        d["mutation"] = {k: m.get(k) for k in ("score", "killed", "survived", "equivalent", "run", "sample", "seed")}
     return d
 
 
@@ -122,7 +135,8 @@ def main(argv=None) -> int:
             tmp = README.with_suffix(".tmp")
             tmp.write_text(new)
             tmp.replace(README)
-        print(f"README figures rendered from {', '.join(str(bench_json(s).relative_to(ROOT)) for s in SUITES)}")
+        src = [bench_json(s) for s in SUITES] + [MUTATION_JSON]
+        print(f"README figures rendered from {', '.join(str(p.relative_to(ROOT)) for p in src if p.exists())}")
         return 0
     if cmd == "check":
         bad = check(text, data)

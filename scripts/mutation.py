@@ -3,8 +3,11 @@ that should notice it.
 
 Why not mutmut or cosmic-ray: mutmut 3 swaps each function for a "trampoline" and skips every decorated
 function, which is every ``@njit`` function (the model equations, the DP kernels, the replay loops): the
-core would not be mutated at all. Here a mutant is the module's source with one AST node changed, written
-into a scratch copy of the repository; the selected tests run there in a fresh process.
+core would not be mutated at all. cosmic-ray does mutate them (it writes each mutant into the source file on
+disk and puts the original back afterwards), but a session has one test command and one environment, while
+each module here needs its own tests and numba mode (below), and its mutants would be written into the
+checkout being worked on. Here a mutant is the module's source with one AST node changed, written into a
+scratch copy of the repository; the selected tests run there in a fresh process.
 
 Numba: a cached kernel in another file inlines the *old* version of a mutated compiled function, so a
 module with compiled code runs either with ``NUMBA_DISABLE_JIT=1`` (plain Python: no compilation, no cache)
@@ -244,8 +247,10 @@ def main(argv=None) -> int:
     mods = a.module or list(cfg["modules"])
     plan = []
     earlier = []
+    earlier_report = {}
     if a.rerun:
-        earlier = json.loads(Path(a.rerun).read_text())["mutants"]
+        earlier_report = json.loads(Path(a.rerun).read_text())
+        earlier = earlier_report["mutants"]
         surv = [r for r in earlier if r["status"] in ("survived", "equivalent")]
         for r in surv:  # the source must not have changed since: same mutation at the same line
             ss = {i: (ln, d) for i, ln, d in sites((ROOT / r["module"]).read_text())}
@@ -323,6 +328,9 @@ def main(argv=None) -> int:
             shutil.rmtree(w, ignore_errors=True)
     report = summarise(earlier + results, plan, cfg)
     report.update(seed=a.seed, sample=a.sample, wall_s=round(time.perf_counter() - t_start))
+    if a.rerun:  # the merged report describes the earlier run's sample, plus the time of this re-run
+        report.update({k: earlier_report[k] for k in ("seed", "sample", "planned", "wall_s") if k in earlier_report})
+        report["rerun_wall_s"] = round(time.perf_counter() - t_start)
     out = ROOT / a.out
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_suffix(".tmp")

@@ -295,6 +295,100 @@ def test_deterministic_across_thread_counts_and_dataframe():
     assert r1.solve_time > 0 and r1.evals_per_second > 0
 
 
+@njit(cache=True)
+def counting(k, x, u, w_k, p, tab, iu, ix, x_next):
+    """x+ = x, cost 0; counts its calls in p[0], records the table's shape in p[1:3] and the smallest grid
+    index it was given in p[3]."""
+    p[0] += 1.0
+    p[1] = tab.shape[0]
+    p[2] = tab.shape[1]
+    if ix[0] < p[3]:
+        p[3] = ix[0]
+    x_next[0] = x[0]
+    return 0.0
+
+
+def _counting_problem(N=3, n=100, nu=2):
+    p = np.array([0.0, 9.0, 9.0, 0.0])
+    return DPProblem(grids=[np.linspace(0.0, 1.0, n)], controls=np.zeros((nu, 1)), N=N, transition=counting,
+                     params=p), p
+
+
+def test_backward_pass_evaluates_each_state_control_pair_once_per_step():
+    """One thread, 100 nodes: the backward pass splits the states into 8 chunks of 13; every (state,
+    control) pair is evaluated exactly once per step, as n_evaluations reports, with the node's grid
+    index; without a precompute hook the table is an empty (0, 0) array."""
+    prob, p = _counting_problem()
+    old = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        backward_pass(prob)
+    finally:
+        numba.set_num_threads(old)
+    assert p[0] == 3 * 100 * 2
+    assert (p[1], p[2], p[3]) == (0.0, 0.0, 0.0)
+
+
+def test_forward_pass_gives_the_transition_grid_index_minus_one():
+    """The forward pass runs from the true (off-grid) state: every grid index it passes is -1."""
+    prob, p = _counting_problem()
+    res = solve(prob, [0.55])
+    assert res.feasible and p[3] == -1.0
+    # the backward pass, then per step one evaluation per control and one more of the chosen control
+    assert p[0] == res.n_evaluations + 3 * (2 + 1)
+
+
+def test_problem_defaults_are_empty_arrays():
+    """No exogenous inputs: an (N, 0) array; no parameters: an empty float64 array."""
+    prob = DPProblem(grids=[np.linspace(0.0, 1.0, 3)], controls=np.zeros((1, 1)), N=4, transition=counting)
+    assert prob.w.shape == (4, 0) and prob.params.shape == (0,) and prob.params.dtype == np.float64
+
+
+def test_terminal_level_is_the_distance_to_the_box_in_grid_steps():
+    """Grid step 0.1, box [0.3, 0.7]: 3 steps outside at 0, 0 on the boundary, -2 in the middle."""
+    prob = DPProblem(grids=[np.linspace(0.0, 1.0, 11)], controls=np.zeros((1, 1)), N=1, transition=counting,
+                     terminal_bounds=[(0.3, 0.7)])
+    np.testing.assert_allclose(prob.terminal_level([[0.0], [0.3], [0.5], [0.7], [1.0]]), [3, 0, -2, 0, 3],
+                               atol=1e-12)
+
+
+def test_levelset_terminal_boundary_reached_exactly_is_feasible():
+    """x+ = x + u on the integers 0..4, cost u^2, terminal set x >= 2 from x0 = 0 in two steps: only
+    u = (1, 1) ends in the set, exactly on its boundary (level 0): feasible, cost 2."""
+    A, B, Q, R = np.eye(1), np.eye(1), np.zeros((1, 1)), np.eye(1)
+    prob = DPProblem(grids=[np.arange(5.0)], controls=np.array([[-1.0], [0.0], [1.0]]), N=2,
+                     transition=linear_quadratic, params=(A, B, Q, R), terminal_bounds=[(2.0, None)],
+                     boundary="levelset")
+    res = solve(prob, [0.0])
+    assert res.feasible and res.cost == 2.0 and res.x[-1, 0] == 2.0
+
+
+def test_levelset_boundary_reached_then_a_dearer_control_inside_keeps_the_cheaper():
+    """One step, controls +1 (cost 1) then +2 (cost 4), terminal set x >= 2: from x = 1, +1 lands on the
+    boundary (level 0) and +2 inside (level -1): both reach the set, the cheaper is kept, V = 1. From 0 only
+    +2 reaches it (V = 4); from 4 both leave the grid (V = inf)."""
+    A, B, Q, R = np.eye(1), np.eye(1), np.zeros((1, 1)), np.eye(1)
+    prob = DPProblem(grids=[np.arange(5.0)], controls=np.array([[1.0], [2.0]]), N=1,
+                     transition=linear_quadratic, params=(A, B, Q, R), terminal_bounds=[(2.0, None)],
+                     boundary="levelset")
+    vf = backward_pass(prob)
+    np.testing.assert_array_equal(np.asarray(vf.V).reshape(2, 5)[0], [4.0, 1.0, 1.0, 1.0, np.inf])
+
+
+def test_result_built_without_timings_reports_none():
+    """A DPResult made by hand (not by solve) has zero times and evaluations, and no evaluation rate."""
+    import dataclasses
+
+    from optimize.dp.engine import DPResult
+
+    r = solve(_twostate_problem(11), [0.05, 0.02])
+    kw = {f.name: getattr(r, f.name) for f in dataclasses.fields(r)
+          if f.name not in ("t_backward", "t_forward", "n_evaluations")}
+    h = DPResult(**kw)
+    assert (h.t_backward, h.t_forward, h.n_evaluations, h.solve_time) == (0.0, 0.0, 0, 0.0)
+    assert np.isnan(h.evals_per_second) and h.cost == r.cost
+
+
 def test_result_plot(tmp_path):
     """The result draws itself: one panel per state and control plus the cumulative cost, saved atomically."""
     r = solve(_twostate_problem(11), [0.05, 0.02])

@@ -52,3 +52,102 @@ def test_eps_without_vent_temperature_is_not_fitted():
     fit = fit_cabin(logs, default_parameters())
     assert fit.estimates["eps_hc"].status == "prior"
     assert "vent_temp_degC" in fit.estimates["eps_hc"].note
+
+
+# ---------------------------------------------------------------------------------------------------
+# eps_hc on hand-made vent/coolant logs (no cabin channel: the heater inlet air is the ambient), against
+# the documented rule worked out here in closed form: binding samples = the upper cluster of
+# r = (T_vent - T_in) / (T_cl - T_in) reached from its 90th percentile, within 3 noise sd
+# s_r = 0.35 sqrt(1 + r^2) / (T_cl - T_in) of the estimate; eps = their 1/s_r^2-weighted mean
+# ---------------------------------------------------------------------------------------------------
+T_AMB = -10.0
+
+
+def _vent_log(x, r):
+    import numpy as np
+    import pandas as pd
+
+    from calib.drivelog import DriveLog, LogMeta
+
+    x, r = np.asarray(x, float), np.asarray(r, float)
+    d = pd.DataFrame({"ambient_temp_degC": T_AMB, "coolant_temp_degC": T_AMB + x, "vent_temp_degC": T_AMB + r * x,
+                      "blower_flow_kg_per_s": 0.05}, index=pd.Index(np.arange(x.size, dtype=float), name="time_s"))
+    return DriveLog(data=d, meta=LogMeta(source="hand-made vent log", format="test", synthetic=True))
+
+
+def _weighted(x, ys, counts):
+    """1/s_r^2-weighted mean of the ratios y / x of clusters (all samples at coolant - inlet = x)."""
+    import numpy as np
+
+    r = np.asarray(ys, float) / x
+    w = np.asarray(counts) / (0.35 * np.sqrt(1 + r ** 2) / x) ** 2
+    return float(w @ r / w.sum())
+
+
+# ratio clusters 0.30, 0.62, 0.66, 0.70 (400, 100, 409, 91 samples, in that order in time), all 50 K of
+# coolant above the inlet air: the 90th percentile is in the 0.66 cluster (the 91st in the 0.70 one);
+# 3 s_r is about 0.025, so 0.66 and 0.70 bind together and 0.62 does not
+CLUSTERS = ((0.30, 400), (0.62, 100), (0.66, 409), (0.70, 91))
+
+
+def _cluster_log():
+    import numpy as np
+
+    r = np.concatenate([np.full(n, v) for v, n in CLUSTERS])
+    return _vent_log(np.full(r.size, 50.0), r)
+
+
+def test_eps_is_the_weighted_mean_of_the_binding_cluster():
+    from calib.fit.cabin import _eps
+    from calib.fit.toolkit import SubsystemFit
+
+    fit = SubsystemFit("t", ())
+    (eps, se, nb), msg = _eps([_cluster_log()], default_parameters(), fit)
+    assert msg == "" and nb == 409 + 91
+    assert fit.metrics == {"eps_binding_samples": 500, "eps_candidate_samples": 1000}
+    assert eps == pytest.approx(_weighted(50.0, [33.0, 35.0], [409, 91]), rel=1e-12)
+    assert eps == pytest.approx(0.667061, abs=1e-6)
+
+
+def test_eps_standard_error_inflated_for_correlated_residuals_and_sensor_offsets():
+    """The binding residuals are two constant runs (one per cluster): the batch-means estimate of their
+    autocorrelation time (blocks of 22 samples), a lower bound of the one applied, inflates the iid
+    standard error; the 0.5 K offset of each sensor adds the change of eps it causes, in quadrature."""
+    import numpy as np
+
+    from calib.fit.cabin import _eps
+    from calib.fit.toolkit import T_SENSOR_SD, SubsystemFit, inflation
+
+    lg = _cluster_log()
+    (eps, se0, _), _ = _eps([lg], default_parameters(), SubsystemFit("t", ()), _propagate=False)
+    res = np.r_[np.full(409, 33.0 - eps * 50), np.full(91, 35.0 - eps * 50)]
+    se_iid = np.sqrt(np.sum(res ** 2) / 499 / (500 * 50.0 ** 2))
+    r0 = res - res.mean()
+    tau_bm = 22 * np.var(r0[:484].reshape(22, 22).mean(axis=1)) / np.mean(r0 ** 2)
+    assert tau_bm > 5
+    assert se0 >= se_iid * np.sqrt(499 / (500 / tau_bm - 1)) * (1 - 1e-12)
+    assert se0 == pytest.approx(se_iid * inflation([res], 1), rel=1e-9)  # inflation: tests/test_fit_toolkit.py
+    (_, se, _), _ = _eps([lg], default_parameters(), SubsystemFit("t", ()))
+    d_cl = _weighted(50.0 + T_SENSOR_SD, [33.0, 35.0], [409, 91]) - eps
+    d_vent = _weighted(50.0, [33.0 + T_SENSOR_SD, 35.0 + T_SENSOR_SD], [409, 91]) - eps
+    assert se == pytest.approx(np.sqrt(se0 ** 2 + d_cl ** 2 + d_vent ** 2), rel=1e-9)
+
+
+def test_eps_candidates_have_the_coolant_at_least_10_K_above_the_inlet_air():
+    import numpy as np
+
+    from calib.fit.cabin import _eps
+    from calib.fit.toolkit import SubsystemFit
+
+    # 70 samples exactly 10 K above (candidates), 30 at 9.5 K (not)
+    lg = _vent_log(np.r_[np.full(70, 10.0), np.full(30, 9.5)], np.full(100, 0.7))
+    fit = SubsystemFit("t", ())
+    (eps, _, nb), _ = _eps([lg], default_parameters(), fit)
+    assert fit.metrics["eps_candidate_samples"] == 70 and nb == 70
+    assert eps == pytest.approx(0.7, rel=1e-12)
+    # 50 candidates: fewer than the 60 needed, said before any estimate is tried
+    lg = _vent_log(np.r_[np.full(50, 10.0), np.full(100, 9.0)], np.full(150, 0.7))
+    out, msg = _eps([lg], default_parameters(), SubsystemFit("t", ()))
+    assert out is None and msg.startswith("fewer than 60 samples")
+    out, msg = _eps([_vent_log(np.full(100, 5.0), np.full(100, 0.7))], default_parameters(), SubsystemFit("t", ()))
+    assert out is None and msg.startswith("fewer than 60 samples")

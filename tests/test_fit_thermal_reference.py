@@ -61,3 +61,88 @@ def test_kappa_needs_sixty_bay_temperature_samples():
     fit = fit_thermal([_log(bay_samples=200)], default_parameters(), allowed={"kappa"})
     assert fit.estimates["kappa"].status == "estimated"
     assert fit.estimates["kappa"].value == pytest.approx(KAPPA, rel=1e-9)
+
+
+def test_kappa_uses_samples_with_the_coolant_more_than_10_K_above_ambient():
+    """Bay temperature on 90 samples: 60 (the least that is enough) with the coolant 10.5 K above ambient
+    (used), 30 exactly 10 K above (not used; their bay temperature says kappa = 0.9, which would pull the
+    estimate up)."""
+    log = _log(n=390, T0=-5.0, T_amb=-8.0)
+    d = log.data
+    d["coolant_temp_degC"] = np.r_[d["coolant_temp_degC"].to_numpy()[:300], np.full(60, 2.5), np.full(30, 2.0)]
+    bay = np.full(390, np.nan)
+    bay[300:360] = -8.0 + KAPPA * 10.5
+    bay[360:] = -8.0 + 0.9 * 10.0
+    d["bay_temp_degC"] = bay
+    fit = fit_thermal([log], default_parameters(), allowed={"kappa"})
+    assert fit.metrics["kappa_samples"] == 60
+    assert fit.estimates["kappa"].status == "estimated"
+    assert fit.estimates["kappa"].value == pytest.approx(KAPPA, rel=1e-9)
+
+
+@pytest.mark.filterwarnings("ignore:rel_change")
+def test_time_metrics_count_seconds_at_a_2_s_sample_step():
+    """Every other sample of the 1-s log (a 2-s log): 75 heater-off samples with the coolant 38 K above
+    ambient, of which 10 at 200.5 W count as on (above 200 W): 130 s; the last 20 samples within 5 K of the
+    thermostat are 40 s."""
+    log = _log(n=600)
+    d = log.data.iloc[::2].copy()
+    q = d["heater_power_W"].to_numpy().copy()
+    q[np.flatnonzero(q == 0.0)[:10]] = 200.5
+    d["heater_power_W"] = q
+    T = np.full(len(d), 30.0)
+    T[-20:] = default_parameters()["T_open_degC"] - 4.0
+    d["coolant_temp_degC"] = T
+    log = DriveLog(data=d, meta=log.meta)
+    assert log.dt == 2.0 and int(np.sum(d["heater_power_W"].to_numpy() <= 200.5)) == 75
+    fit = fit_thermal([log], default_parameters(), allowed={"T_open_degC", "k_rad_W_per_K"})
+    assert fit.metrics["heater_off_warm_s"] == 130.0
+    assert fit.metrics["time_near_thermostat_s"] == 40.0
+
+
+@pytest.mark.filterwarnings("ignore:rel_change")
+@pytest.mark.parametrize("near", [119, 120])
+def test_thermostat_parameters_need_120_s_near_the_opening(near):
+    """T_open and k_rad are flagged as prior-only when the coolant spent less than 120 s within 5 K of the
+    prior opening temperature (1-s log: one second per sample)."""
+    T_open = default_parameters()["T_open_degC"]
+    log = _log(n=600)
+    T = log.data["coolant_temp_degC"].to_numpy().copy()
+    T[-near:] = T_open - 4.0
+    log.data["coolant_temp_degC"] = T
+    fit = fit_thermal([log], default_parameters(), allowed={"T_open_degC", "k_rad_W_per_K"})
+    assert fit.metrics["time_near_thermostat_s"] == near
+    for n in ("T_open_degC", "k_rad_W_per_K"):
+        assert ("coolant never reached the thermostat" in fit.estimates[n].note) == (near < 120), n
+
+
+def test_a_channel_of_only_infinite_values_counts_as_missing():
+    """An ambient channel holding only infinities (a sensor's fault value) is no ambient temperature: the
+    thermal fit names it missing instead of filling it with a default."""
+    log = _log(n=300)
+    log.data["ambient_temp_degC"] = np.inf
+    assert "ambient_temp_degC" in log.missing(["ambient_temp_degC", "coolant_temp_degC"])
+    fit = fit_thermal([log], default_parameters(), allowed={"C_eng_J_per_K"})
+    assert fit.estimates["C_eng_J_per_K"].status == "prior" and "ambient_temp_degC" in fit.skipped[log.label()]
+
+
+def test_kappa_standard_error_from_the_regression_residuals():
+    """60 bay samples 10.5 K of coolant above ambient, bay = T_amb + 0.3 * 10.5 +- 0.1 alternating (independent
+    residuals: no inflation): k = 0.3, se = sqrt(r.r / (n - 1) / x.x); the posterior combines it with the
+    prior by precision."""
+    from calib.model.params import prior_sd_of
+
+    log = _log(n=360, T0=-5.0, T_amb=-8.0)
+    d = log.data
+    d["coolant_temp_degC"] = np.r_[d["coolant_temp_degC"].to_numpy()[:300], np.full(60, 2.5)]
+    bay = np.full(360, np.nan)
+    bay[300:] = -8.0 + KAPPA * 10.5 + 0.1 * np.tile([1.0, -1.0], 30)
+    d["bay_temp_degC"] = bay
+    base = default_parameters()
+    fit = fit_thermal([log], base, allowed={"kappa"})
+    se = np.sqrt(60 * 0.01 / 59 / (60 * 10.5 ** 2))
+    psd = float(prior_sd_of(base.param("kappa")))
+    w1, w0 = 1 / se ** 2, 1 / psd ** 2
+    e = fit.estimates["kappa"]
+    assert e.value == pytest.approx((w1 * KAPPA + w0 * base["kappa"]) / (w1 + w0), rel=1e-9)
+    assert e.stderr == pytest.approx((w1 + w0) ** -0.5, rel=1e-9)

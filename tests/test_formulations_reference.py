@@ -4,8 +4,9 @@ tables) and the cheapest charge-sustaining one is the reference the DP must reac
 import numpy as np
 import pytest
 
-from calib.model.equations import evaluate
+from calib.model.equations import OFF, ON, evaluate, f_cold, fuel_map
 from optimize.formulations import DPGrids, DPScenario, solve_baseline
+from optimize.formulations.layout import PENALTY_G_PER_STEP
 from optimize.formulations.solve import _power_controls
 
 
@@ -46,3 +47,138 @@ def test_baseline_dp_reaches_the_enumerated_optimum(params, tmp_path, kmh, soc_s
     assert o.sim.fuel_g == pytest.approx(best, rel=1e-9)
     # the DP's own off-grid SOC steps are the model's
     np.testing.assert_allclose(o.dp.x[:, 0], o.sim.soc, rtol=0, atol=1e-12)
+
+
+# ---------------------------------------------------------------------------------------------------
+# one step of the compiled transition against the model's step (calib.model.equations.evaluate) and the
+# documented penalty: PENALTY_G_PER_STEP per grid step of state-bound violation
+# ---------------------------------------------------------------------------------------------------
+# half-degree coolant and cabin steps: a penalty divided by its grid step differs from one multiplied by it
+GRIDS = DPGrids(pbat=1000.0, tcl=0.5, tcab=0.5)
+
+
+def _two_state(params, tmp_path, kmh=(30, 36, 40), nx=2, **scen):
+    from optimize.formulations.solve import build_problem
+
+    cyc = tmp_path / "c.csv"
+    cyc.write_text("time_s,speed_kph\n" + "".join(f"{i},{s}\n" for i, s in enumerate(kmh)))
+    kw = dict(cycle=str(cyc), T_amb=-5.0, soc0=0.6, T_cl0=20.0, T_cab0=15.0, Q_heat=1500.0)
+    kw.update(scen)
+    return build_problem(params, DPScenario(**kw), GRIDS, nx)
+
+
+def _one_step(b, x, iu):
+    """Cost and next state of step 0 from the off-grid state x (ix = -1: SOC and f_cl interpolated)."""
+    from optimize.formulations.transition import hev_precompute, hev_transition
+
+    prob = b.prob
+    tab = np.zeros(prob.table_shape)
+    hev_precompute(0, prob.w[0], prob.params, tab)
+    xn = np.empty(len(x))
+    cost = hev_transition(0, np.asarray(x, float), prob.controls[iu], prob.w[0], prob.params, tab, iu,
+                          np.full(len(x), -1, np.int64), xn)
+    return cost, xn
+
+
+def _model(b, x, iu):
+    """The same step by the model (cabin: the state x[2], or the transition's reference w_k[1])."""
+    e, pbm, q = b.prob.controls[iu]
+    v = b.cyc.v
+    T_cab = x[2] if len(x) == 3 else b.prob.w[0, 1]
+    return {k: float(np.asarray(a).ravel()[0]) for k, a in evaluate(
+        b.mp, x[0], x[1], T_cab, e, pbm, q, v[0], v[1], T_amb=-5.0, Ts=b.cyc.Ts).items()}
+
+
+def _on_control(b, pbm_sign):
+    """Index of an engine-on control discharging (+1) or charging (-1) the battery by the most, feasible."""
+    c = b.prob.controls
+    idx = [i for i in range(len(c)) if c[i, 0] == ON]
+    return max(idx, key=lambda i: pbm_sign * c[i, 1])
+
+
+def test_transition_fuel_is_the_cold_fuel_rate_and_states_are_the_models(params, tmp_path):
+    b = _two_state(params, tmp_path)
+    x = (0.6, 3.5)  # cold coolant: f_cl well above 1
+    iu = _on_control(b, -1)
+    cost, xn = _one_step(b, x, iu)
+    m = _model(b, x, iu)
+    assert m["code"] == 0 and m["f_cl"] > 1.2
+    # W_f = fuel map x f_cl, no penalty inside the grids
+    assert cost == pytest.approx(m["W_f"] * b.cyc.Ts, rel=1e-12)
+    assert m["W_f"] == pytest.approx(fuel_map(b.mp, m["P_e"]) * f_cold(b.mp, x[1]), rel=1e-12)
+    assert xn[0] == pytest.approx(m["soc_next"], abs=1e-14)
+    assert xn[1] == pytest.approx(m["T_cl_next"], rel=1e-12)
+    # the same control warm: the fuel ratio is f_cl
+    cost_w, _ = _one_step(b, (0.6, 90.0), iu)
+    assert cost / cost_w == pytest.approx(m["f_cl"] / _model(b, (0.6, 90.0), iu)["f_cl"], rel=1e-12)
+
+
+def test_soc_below_or_above_its_grid_pays_the_penalty_per_grid_step(params, tmp_path):
+    b = _two_state(params, tmp_path)
+    pen, step = PENALTY_G_PER_STEP, GRIDS.soc
+    for soc, sign, bound in ((0.4, 1, 0.4), (0.8, -1, 0.8)):  # discharge at the bottom, charge at the top
+        iu = _on_control(b, sign)
+        cost, xn = _one_step(b, (soc, 60.0), iu)
+        m = _model(b, (soc, 60.0), iu)
+        over = abs(m["soc_next"] - bound)
+        assert over > 1e-4 and (m["soc_next"] < bound if sign > 0 else m["soc_next"] > bound)
+        assert cost == pytest.approx(m["W_f"] * b.cyc.Ts + pen * over / step, rel=1e-9)
+
+
+def test_coolant_above_or_below_its_grid_pays_the_penalty_per_grid_step(params, tmp_path):
+    b = _two_state(params, tmp_path, T_cl_min=0.0, T_cl_max=40.0)
+    pen, step = PENALTY_G_PER_STEP, GRIDS.tcl
+    iu = _on_control(b, -1)  # engine on, charging: the coolant warms above the top of the grid
+    cost, xn = _one_step(b, (0.6, 40.0), iu)
+    m = _model(b, (0.6, 40.0), iu)
+    assert m["T_cl_next"] > 40.0 + 1e-3
+    assert cost == pytest.approx(m["W_f"] * b.cyc.Ts + pen * (m["T_cl_next"] - 40.0) / step, rel=1e-9)
+    b = _two_state(params, tmp_path, kmh=(0, 0, 0), T_cl_min=0.0, T_cl_max=40.0)  # standing still
+    iu = [i for i in range(len(b.prob.controls)) if b.prob.controls[i, 0] == OFF][0]
+    cost, xn = _one_step(b, (0.6, 0.0), iu)  # engine off at -5 degC ambient: below the bottom
+    m = _model(b, (0.6, 0.0), iu)
+    assert m["code"] == 0 and m["W_f"] == 0.0 and m["T_cl_next"] < -1e-4
+    assert cost == pytest.approx(pen * (0.0 - m["T_cl_next"]) / step, rel=1e-9)
+
+
+def test_cabin_state_steps_like_the_model_and_pays_outside_its_bounds(params, tmp_path):
+    """Three states: the heater-core limit sees the cabin state (recirculated inlet air), the cabin steps
+    by eq. 10, and a cabin below the step's lower bound w_k[2] or above T_cab_ub pays per 0.5-degC grid
+    step."""
+    sunny = params.with_values(recirc_frac=0.35, Q_sun_W=300.0)
+    b = _two_state(sunny, tmp_path, nx=3)
+    lb, ub = b.prob.w[0, 2], DPScenario().T_cab_ub
+    iu = max((i for i in range(len(b.prob.controls)) if b.prob.controls[i, 0] == ON),
+             key=lambda i: (-b.prob.controls[i, 1], b.prob.controls[i, 2]))  # charging, most heat asked
+    for T_cab in (lb + 2.0, lb - 3.0, ub + 2.0):
+        x = (0.6, 20.0, T_cab)
+        cost, xn = _one_step(b, x, iu)
+        m = _model(b, x, iu)
+        assert m["code"] == 0 and m["Q_heat"] < b.prob.controls[iu, 2]  # the heater-core limit binds
+        assert xn[1] == pytest.approx(m["T_cl_next"], rel=1e-12)
+        tc = m["T_cab_next"]
+        assert xn[2] == pytest.approx(tc, rel=1e-12)
+        over = lb - tc if T_cab < lb else (tc - ub if T_cab > ub else 0.0)
+        assert over > 0.5 or (T_cab == lb + 2.0 and lb < tc < ub)
+        assert cost == pytest.approx(m["W_f"] * b.cyc.Ts + PENALTY_G_PER_STEP * over / GRIDS.tcab, rel=1e-9)
+
+
+def test_control_tables_are_feasible_exactly_where_the_models_step_is(params, tmp_path):
+    """A brisk acceleration (30 -> 38 km/h in 1 s, about 33 kW at the wheels): the per-step table marks a power control feasible exactly
+    where the model's step is (engine power within (0, P_e_max], battery power within its closed limits),
+    including the controls at P_bat_min and P_bat_max themselves."""
+    from optimize.formulations.layout import _T_OK
+    from optimize.formulations.transition import hev_precompute
+
+    b = _two_state(params, tmp_path, kmh=(30, 38, 40))
+    prob = b.prob
+    tab = np.zeros(prob.table_shape)
+    hev_precompute(0, prob.w[0], prob.params, tab)
+    pc = prob.controls[:: int(len(prob.controls) // tab.shape[0])]  # one row per power control
+    assert len(pc) == tab.shape[0]
+    m = evaluate(b.mp, 0.6, 70.0, 15.0, pc[:, 0], pc[:, 1], 0.0, b.cyc.v[0], b.cyc.v[1], T_amb=-5.0)
+    assert np.array_equal(tab[:, _T_OK] == 1.0, m["code"] == 0)
+    on = pc[:, 0] == ON
+    for limit in (b.mp.P_bat_min, b.mp.P_bat_max):
+        at = on & (m["P_bat"] == limit)
+        assert at.sum() == 1 and tab[at, _T_OK][0] == 1.0

@@ -107,3 +107,40 @@ def test_power_split_small_discharge_uses_the_discharge_efficiency(sunny):
     P_e, Pbm, P_em, brake, ok = M.power_split(p, M.ON, 0.5, 10e3)
     assert P_em == pytest.approx(p.eta_em * 0.5, rel=1e-12)
     assert P_e == pytest.approx((10e3 - p.eta_em * 0.5) / p.eta_mech, rel=1e-12)
+
+
+def test_engine_mode_coding_is_the_documented_one(sunny):
+    """docs/model.md: e_mode 1 off, 2 idle, 3 on (the numbers stored in results and logs)."""
+    p = sunny.model_params()
+    v = 50 / 3.6  # cruising: traction power from the road load only
+    r = M.evaluate(p, 0.6, 85.0, 20.0, np.array([1, 2, 3]), 0.0, 0.0, v, v, T_amb=0.0)
+    assert (M.OFF, M.IDLE, M.ON) == (1, 2, 3)
+    W_f, P_e = r["W_f"], r["P_e"]
+    assert W_f[0] == 0.0 and P_e[0] == 0.0  # off
+    assert W_f[1] == pytest.approx(p.W_idle * M.f_cold(p, 85.0)) and P_e[1] == 0.0  # idle
+    # off and idle: the motor supplies the traction power from the battery (s.2)
+    assert r["P_bat_mg"][:2] == pytest.approx(r["P_trac"][:2] / p.eta_em, rel=1e-12)
+    # on with P_bat_mg = 0: the engine supplies it through the mechanical efficiency
+    assert P_e[2] == pytest.approx(r["P_trac"][2] / p.eta_mech, rel=1e-12) and P_e[2] > 1e3 and W_f[2] > p.W_idle
+    # torque times speed is the engine power; no torque off or idle (no power)
+    assert r["tau_e"][2] * r["omega_e"][2] == pytest.approx(P_e[2], rel=1e-12) and r["omega_e"][2] > 0
+    assert r["tau_e"][0] == 0.0 and r["tau_e"][1] == 0.0
+
+
+def test_battery_current_solves_the_terminal_power_equation():
+    """Eq. 1: P = U I - R I^2; the root of smaller magnitude; no real current where U^2 < 4 R P."""
+    U, R = 200.0, 0.5
+    for P in (10e3, 1.0, -15e3):
+        I = M.battery_current(U, R, P)
+        assert U * I - R * I * I == pytest.approx(P, rel=1e-12, abs=1e-9)
+        assert I == pytest.approx((U - np.sqrt(U * U - 4 * R * P)) / (2 * R), rel=1e-9)
+    assert np.isnan(M.battery_current(U, R, U * U / (4 * R) * 1.001))
+
+
+def test_battery_power_limits_are_inclusive():
+    """docs/model.md: P_bat is limited to [P_bat_min, P_bat_max] (-25 ... +25 kW): both ends feasible,
+    one watt beyond either infeasible."""
+    p = default_parameters().model_params()
+    assert (p.P_bat_min, p.P_bat_max) == (-25e3, 25e3)
+    codes = [M.battery(p, 0.6, P, p.T_bat_ref)[4] for P in (-25e3, 25e3, -25001.0, 25001.0)]
+    assert codes == [M.FEASIBLE, M.FEASIBLE, M.BATTERY_LIMIT, M.BATTERY_LIMIT]

@@ -12,6 +12,7 @@ _spec.loader.exec_module(figures)
 def test_readme_blocks_match_the_benchmark_json():
     data = figures.load()
     assert "sim" in data, "reports/figures/bench-sim.json missing: run `make figures`"
+    assert "mutation" in data, "reports/mutation.json missing: run scripts/mutation.py"
     assert figures.check(figures.README.read_text(), data) == []
 
 
@@ -27,3 +28,13 @@ def test_check_catches_an_edited_figure():
     # a timing quoted without its noise is also caught
     body = figures.blocks(text)["sim-speed"]
     assert [b[0] for b in figures.check(text.replace(body, "about 12 ms"), data)] == ["sim-speed"]
+
+
+def test_check_catches_an_edited_mutation_score():
+    data = figures.load()
+    text = figures.render_readme(figures.README.read_text(), data)
+    m = data["mutation"]
+    old = f"score {100 * m['score']:.1f} %"
+    assert old in figures.blocks(text)["mutation"]
+    edited = text.replace(old, f"score {100 * m['score'] + 1:.1f} %")
+    assert [b[0] for b in figures.check(edited, data)] == ["mutation"]

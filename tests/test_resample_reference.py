@@ -96,3 +96,17 @@ def test_bad_rate_is_refused(rate):
 
     with pytest.raises(IptmError, match="resampling rate"):
         to_drivelog({"soc": _stream([0.0, 1.0], [0.5, 0.5])}, LogMeta(source="hand"), rate_hz=rate)
+
+
+def test_a_log_longer_than_the_row_limit_is_refused():
+    """2,000,000 rows is the limit: at 2 Hz a last sample a quarter second beyond 1,000,000 s is refused with
+    the number of rows; exactly at it is a log of 2,000,001 rows (times 0, 0.5, ... 1,000,000 s)."""
+    from calib.errors import LogFormatError
+
+    meta = LogMeta(source="long.csv", format="test")
+    s = pd.Series([1.0, 2.0], index=[0.0, 1_000_000.25])
+    with pytest.raises(LogFormatError, match="2e\\+06 rows at 2 Hz"):
+        to_drivelog({"speed_mps": s}, meta, rate_hz=2.0)
+    log = to_drivelog({"speed_mps": pd.Series([1.0, 2.0], index=[0.0, 1_000_000.0])}, meta, rate_hz=2.0,
+                      max_gap_s=0.0)
+    assert len(log.data) == 2_000_001 and log.data.index[-1] == 1_000_000.0

@@ -54,3 +54,41 @@ def test_unknown_and_incompatible_units_raise_clear_errors():
     assert not is_known_unit("bogus_unit_xyz")
     assert is_known_unit("L/h")
     assert normalize_unit(" kph ") == "km/h"
+
+
+def test_rpm_constant_is_one_revolution_per_minute_in_rad_per_s():
+    """60 rpm is one revolution (2 pi rad) per second; pint's own rpm definition agrees."""
+    import math
+
+    from calib.units import RPM
+
+    assert 60.0 * RPM == pytest.approx(2.0 * math.pi, rel=1e-15)
+    assert convert(3000.0, "rpm", "rad/s") == pytest.approx(3000.0 * RPM, rel=1e-12)
+
+
+def test_conversions_do_not_depend_on_offset_autoconversion(monkeypatch):
+    """The registry converts offset units to base units in products; the conversions here never multiply a
+    temperature, so every pair of alias targets and temperature-rate units converts the same without it
+    (this keeps the listed equivalent mutant of that flag honest)."""
+    import itertools
+
+    import pint
+
+    import calib.units as U
+
+    units = sorted(set(U.ALIASES.values()) | {"kelvin", "degC/s", "degF/min", "K/s", "W/degC", "W/K", "J/degC",
+                                               "1/degC", "1/K", "degC*s"})
+
+    def table():
+        out = {}
+        for a, b in itertools.product(units, units):
+            try:
+                out[a, b] = np.round(np.asarray(U.convert([1.5, -20.0], a, b)), 12).tolist()
+            except UnitError:
+                out[a, b] = "error"
+        return out
+
+    with_flag = table()
+    monkeypatch.setattr(U, "ureg", pint.UnitRegistry(autoconvert_offset_to_baseunit=False))
+    assert len(units) == 41 and table() == with_flag
+    assert sum(v != "error" for v in with_flag.values()) == 165

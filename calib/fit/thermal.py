@@ -2,7 +2,7 @@
 
 - ``kappa``: when a log carries the engine-bay (compartment) temperature, directly from eq. 8,
   ``T_com - T_amb = kappa (T_cl - T_amb)`` (linear least squares through the origin over samples with the
-  coolant at least 10 K above ambient), combined with its prior. Otherwise its prior: it enters eq. 3 only
+  coolant more than 10 K above ambient), combined with its prior. Otherwise its prior: it enters eq. 3 only
   as ``hA_eng (1 - kappa)``.
 - ``C_eng``, ``gamma_exh``, ``hA_eng``, ``T_open``, ``k_rad``: :func:`calib.fit.toolkit.map_fit` on the
   coolant temperature *simulated* from the logged inputs (fuel rate -> ``Q_fuel``; engine power from speed x

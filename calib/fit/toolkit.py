@@ -116,7 +116,7 @@ def not_fitted(fit: SubsystemFit, base, names, reason):
 # statistics helpers
 # ------------------------------------------------------------------------------------------------
 def neff(residual_segments) -> tuple[int, float]:
-    """(n, n_eff) over per-log residual arrays.
+    """(n, n_eff) over per-log residual arrays (of at least 3 finite samples); n_eff is at least 1.
 
     ``n_eff = n / tau`` per log with ``tau`` the largest of: the integrated autocorrelation time
     ``1 + 2 sum_k rho_k`` (summed until the autocorrelation first drops below 0.05, at most n/5 lags), the
@@ -207,7 +207,7 @@ def map_fit(make_params, data_segments, cand, *, prior, prior_sd, noise_sd, extr
         Further prior residuals (e.g. smoothness of a table), already in sd units.
     perturbed : sequence of callable(params) -> list of ndarray
         Data residuals with one logged input moved by one sd of its calibration uncertainty; the
-        linearised shift of the MAP estimate is added in quadrature to the posterior sd.
+        linearised shift of the MAP estimate is added in quadrature to the posterior sd (none if it gives no residuals).
     floor : float, optional
         Smallest ``s`` (the resolution of the measurement).
     max_tau : float, optional

@@ -1,0 +1,156 @@
+"""Statistics helpers of the fitters (:mod:`calib.fit.toolkit`). The effective sample size behind the standard-error inflation of every fitter
+(:func:`calib.fit.toolkit.neff`), on sequences whose autocorrelation is worked out here with direct sums
+(the function under test uses FFTs), against the rule its docstring states: ``tau`` the largest of the
+integrated autocorrelation time, the batch-means value (only with at least 4 blocks of
+``max(20, sqrt(n))`` samples) and the AR(1) value ``(1 + rho_1) / (1 - rho_1)`` with ``rho_1`` clipped
+to [0, 0.995]."""
+import numpy as np
+import pytest
+
+from calib.fit.toolkit import WEAK_INFORMED, combine_with_prior, inflation, map_fit, neff, posterior_estimate
+
+
+def _rho1(r):
+    r0 = np.asarray(r, float) - np.mean(r)
+    return float(r0[:-1] @ r0[1:] / (r0 @ r0))
+
+
+def test_alternating_residuals_are_independent_samples():
+    """+1, -1, ...: rho_1 = -99/100 (below 0.05 at the first lag: tau_int = 1, AR(1) clipped at 0 -> 1),
+    block means of 20 alternating samples are 0: n_eff = n."""
+    r = np.tile([1.0, -1.0], 50)
+    assert _rho1(r) == pytest.approx(-0.99)
+    assert neff([r]) == (100, 100.0)
+    assert neff([r, r[:40]]) == (140, 140.0)
+    assert inflation([r], 2) == 1.0
+
+
+def test_near_unit_lag_one_correlation_is_capped_at_0_995():
+    """One sine period over 79 samples: rho_1 > 0.995, so the AR(1) factor is its cap
+    (1 + 0.995) / (1 - 0.995) = 399; the integrated time is at most 1 + 2 * 14 = 29 (79 // 5 = 15 lags) and
+    there are fewer than 4 blocks of 20, so tau = 399 and each segment counts 79 / 399 samples."""
+    m = 79
+    r = np.sin(2 * np.pi * (np.arange(m) + 1) / (m + 1))
+    assert _rho1(r) > 0.995
+    n, ne = neff([r] * 20)
+    assert n == 20 * m
+    assert ne == pytest.approx(20 * m / 399.0, rel=1e-12)
+
+
+def test_effective_sample_size_is_at_least_one():
+    """A single such segment counts 79 / 399 < 1 samples: n_eff is floored at 1 (so sqrt(n / n_eff) stays
+    finite); no usable segment (fewer than 3 finite samples) gives n = 0 and n_eff = 1."""
+    m = 79
+    r = np.sin(2 * np.pi * (np.arange(m) + 1) / (m + 1))
+    assert neff([r]) == (m, 1.0)
+    assert inflation([r]) == pytest.approx(np.sqrt(m))
+    assert neff([[1.0, np.nan, 2.0]]) == (0, 1.0)
+    # three samples are enough: r0 = (-4, -1, 5) / 3, rho_1 = -1/42 < 0.05, so tau = 1
+    assert neff([[1.0, 2.0, 4.0]]) == (3, 3.0)
+    # and with two parameters fitted to them: sqrt((3 - 2) / (3 - 2)) = 1
+    assert inflation([[1.0, 2.0, 4.0]], 2) == 1.0
+
+
+def _out(informed, value=1.2, prior_sd=0.5, post_sd=0.4):
+    return {"informed": {"a": informed}, "values": {"a": value}, "prior_sd": {"a": prior_sd}, "post_sd": {"a": post_sd}}
+
+
+def test_posterior_is_weak_when_the_data_narrowed_the_prior_by_less_than_30_percent():
+    assert WEAK_INFORMED == 0.3
+    e = posterior_estimate("a", _out(0.1), "", 1.0)  # moved 0.4 prior sd: no "moved" remark
+    assert (e.status, e.value, e.stderr, e.prior, e.prior_sd) == ("weak", 1.2, 0.4, 1.0, 0.5)
+    assert e.note == "data informed 10 % (prior sd 0.5, posterior sd 0.4); weakly informed: the value is mostly the prior"
+    e = posterior_estimate("a", _out(0.1, value=1.6), "n", 1.0)  # moved 1.2 prior sd
+    assert e.note == ("n; data informed 10 % (prior sd 0.5, posterior sd 0.4); moved +1.2 prior sd from the prior; "
+                      "weakly informed: the data moved it, but its sd is still close to the prior's")
+    e = posterior_estimate("a", _out(0.3), "", 1.0)
+    assert e.status == "estimated" and "weakly" not in e.note
+    e = posterior_estimate("a", _out(0.9, post_sd=0.05), "", 1.0)
+    assert (e.status, e.note) == ("estimated", "data informed 90 % (prior sd 0.5, posterior sd 0.05)")
+
+
+def test_map_fit_of_a_line_through_the_origin():
+    """y = a x with a Gaussian prior on a: the MAP estimate and its sd in closed form,
+    a = (x.y / s^2 + a0 / sd0^2) / (x.x / s^2 + 1 / sd0^2), sd = (x.x / s^2 + 1 / sd0^2)^-1/2, with s the
+    noise floor (the residuals here are far below it); an input perturbation that gives no residuals
+    adds nothing, one that shifts the data by dy adds the shift of the estimate it causes."""
+    import lmfit
+
+    x = np.linspace(1.0, 5.0, 40)
+    y = 2.0 * x + 0.01 * np.sin(7 * x)
+    a0, sd0, s = 1.0, 0.5, 0.1
+
+    def make():
+        ps = lmfit.Parameters()
+        ps.add("a", value=a0, min=-10, max=10)
+        return ps
+
+    def segs(ps, dy=0.0):
+        return [ps["a"].value * x - (y + dy)]
+
+    prec = x @ x / s ** 2 + 1 / sd0 ** 2
+    a_map = (x @ y / s ** 2 + a0 / sd0 ** 2) / prec
+    out = map_fit(make, segs, ["a"], prior={"a": a0}, prior_sd={"a": sd0}, noise_sd=s, floor=s)
+    assert out["values"]["a"] == pytest.approx(a_map, rel=1e-6)
+    assert out["post_sd"]["a"] == pytest.approx(prec ** -0.5, rel=1e-4)
+    out2 = map_fit(make, segs, ["a"], prior={"a": a0}, prior_sd={"a": sd0}, noise_sd=s, floor=s,
+                   perturbed=[lambda ps: []])
+    assert out2["post_sd"]["a"] == out["post_sd"]["a"]
+    out3 = map_fit(make, segs, ["a"], prior={"a": a0}, prior_sd={"a": sd0}, noise_sd=s, floor=s,
+                   perturbed=[lambda ps: segs(ps, dy=0.05)])
+    shift = (x.sum() * 0.05 / s ** 2) / prec  # moving every y by 0.05 moves a_map by this
+    assert out3["post_sd"]["a"] == pytest.approx(np.hypot(prec ** -0.5, shift), rel=1e-3)
+    assert out["at_bound"] == {}
+
+    def bounded():  # the data want a = 2.0; the upper bound 1.5 holds it there
+        ps = lmfit.Parameters()
+        ps.add("a", value=a0, min=-10, max=1.5)
+        return ps
+
+    out4 = map_fit(bounded, segs, ["a"], prior={"a": a0}, prior_sd={"a": sd0}, noise_sd=s, floor=s)
+    assert out4["values"]["a"] == pytest.approx(1.5, abs=1e-6)
+    assert list(out4["at_bound"]) == ["a"] and "at its bound [-10, 1.5]" in out4["at_bound"]["a"]
+
+
+def test_map_fit_posterior_correlation_of_slope_and_offset():
+    """y = a x + c with independent Gaussian priors: posterior covariance (X'X / s^2 + diag(1 / sd0^2))^-1,
+    its correlation cov_ac / sqrt(cov_aa cov_cc) (strongly negative: x is far from 0)."""
+    import lmfit
+
+    x = np.linspace(5.0, 9.0, 30)
+    y = 0.5 * x + 1.0 + 0.01 * np.cos(5 * x)
+    s = 0.2
+
+    def make():
+        ps = lmfit.Parameters()
+        ps.add("a", value=0.0, min=-10, max=10)
+        ps.add("c", value=0.0, min=-10, max=10)
+        return ps
+
+    out = map_fit(make, lambda ps: [ps["a"].value * x + ps["c"].value - y], ["a", "c"], prior={"a": 0.0, "c": 0.0},
+                  prior_sd={"a": 1.0, "c": 2.0}, noise_sd=s, floor=s)
+    X = np.column_stack([x, np.ones_like(x)])
+    cov = np.linalg.inv(X.T @ X / s ** 2 + np.diag([1.0, 0.25]))
+    r = cov[0, 1] / np.sqrt(cov[0, 0] * cov[1, 1])
+    assert r < -0.9
+    assert out["correl"]["a|c"] == pytest.approx(r, rel=1e-4)
+    assert out["post_sd"]["c"] == pytest.approx(np.sqrt(cov[1, 1]), rel=1e-4)
+
+
+def test_combine_with_prior_is_precision_weighted():
+    """Estimate 2.0 (se 0.5) and prior 1.0 (sd 2.0): precisions 4 and 0.25, posterior mean 8.25 / 4.25,
+    sd 4.25^-1/2, informed 1 - sd / 2.0."""
+    e = combine_with_prior("a", 2.0, 0.5, 1.0, 2.0, "n")
+    assert e.value == pytest.approx(8.25 / 4.25, rel=1e-12)
+    assert e.stderr == pytest.approx(4.25 ** -0.5, rel=1e-12)
+    assert e.informed == pytest.approx(1 - 4.25 ** -0.5 / 2.0, rel=1e-12) and e.status == "estimated"
+
+
+def test_output_error_initial_temperature_within_5_K_of_the_first_measured_value():
+    from calib.fit.toolkit import output_error_params
+
+    make = output_error_params(["a"], {"a": (0.0, 2.0)}, {"a": 1.0}, [{"name": "T0_0", "T0": -7.5}])
+    ps = make({"a"})
+    assert (ps["T0_0"].value, ps["T0_0"].min, ps["T0_0"].max, ps["T0_0"].vary) == (-7.5, -12.5, -2.5, True)
+    assert (ps["a"].value, ps["a"].min, ps["a"].max, ps["a"].vary) == (1.0, 0.0, 2.0, True)
+    assert not make(set())["a"].vary
