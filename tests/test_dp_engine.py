@@ -363,6 +363,27 @@ def test_levelset_terminal_boundary_reached_exactly_is_feasible():
     assert res.feasible and res.cost == 2.0 and res.x[-1, 0] == 2.0
 
 
+def test_levelset_terminal_set_missed_by_a_fraction_of_a_step_is_infeasible():
+    """x+ = x + u, u in {0, 0.5} on the grid 0..4 (step 1), terminal set x >= 1.5 from x0 = 0 in one step:
+    the best reachable end is 0.5, one grid step short of the set (level 1.0); a forward pass that ends
+    outside the set is reported infeasible, whatever its level (here 1.0, then 0.5 with the set at 1.0)."""
+    A, B, Q, R = np.eye(1), np.eye(1), np.zeros((1, 1)), np.eye(1)
+    prob = DPProblem(grids=[np.arange(5.0)], controls=np.array([[0.0], [0.5]]), N=1,
+                     transition=linear_quadratic, params=(A, B, Q, R), terminal_bounds=[(1.5, None)],
+                     boundary="levelset")
+    res = solve(prob, [0.0])
+    assert res.x[-1, 0] == 0.5  # the least level: as close to the set as the controls allow
+    assert prob.terminal_level([[0.5]])[0] == pytest.approx(1.0)
+    assert not res.feasible
+    # half as far short (level 0.5, still outside): infeasible too
+    prob2 = DPProblem(grids=[np.arange(5.0)], controls=np.array([[0.0], [0.5]]), N=1,
+                      transition=linear_quadratic, params=(A, B, Q, R), terminal_bounds=[(1.0, None)],
+                      boundary="levelset")
+    res2 = solve(prob2, [0.0])
+    assert res2.x[-1, 0] == 0.5 and prob2.terminal_level([[0.5]])[0] == pytest.approx(0.5)
+    assert not res2.feasible
+
+
 def test_levelset_boundary_reached_then_a_dearer_control_inside_keeps_the_cheaper():
     """One step, controls +1 (cost 1) then +2 (cost 4), terminal set x >= 2: from x = 1, +1 lands on the
     boundary (level 0) and +2 inside (level -1): both reach the set, the cheaper is kept, V = 1. From 0 only

@@ -151,3 +151,19 @@ def test_eps_candidates_have_the_coolant_at_least_10_K_above_the_inlet_air():
     assert out is None and msg.startswith("fewer than 60 samples")
     out, msg = _eps([_vent_log(np.full(100, 5.0), np.full(100, 0.7))], default_parameters(), SubsystemFit("t", ()))
     assert out is None and msg.startswith("fewer than 60 samples")
+
+
+def test_eps_note_names_missing_channels_only_when_no_log_has_them():
+    """One short log with every eps channel (30 samples: too few) and one without vent temperature: the
+    channels are there in one log, so the note gives the real reason (too few samples), not 'missing'."""
+    import numpy as np
+
+    short = _vent_log(np.full(30, 50.0), np.full(30, 0.66))
+    no_vent = _vent_log(np.full(200, 50.0), np.full(200, 0.66))
+    no_vent.data = no_vent.data.drop(columns=["vent_temp_degC"])
+    fit = fit_cabin([short, no_vent], default_parameters(), allowed=["eps_hc"])
+    note = fit.estimates["eps_hc"].note
+    assert "fewer than 60 samples" in note and "missing channel" not in note
+    # with the channel in no log, the note names it
+    fit2 = fit_cabin([no_vent], default_parameters(), allowed=["eps_hc"])
+    assert "missing channel(s) vent_temp_degC" in fit2.estimates["eps_hc"].note
