@@ -437,9 +437,12 @@ def current_from_power_table(P, soc, T, base, R_scale=1.0, tc=None):
     tc = float(base["R_int_tc_per_K"]) if tc is None else tc
     U = np.interp(soc, pU.x, pU.value)
     R = R_scale * np.interp(soc, pR.x, pR.value) * np.exp(-tc * (T - float(base["T_bat_ref_degC"])))
-    disc = U * U - 4.0 * R * P
-    root = 2.0 * P / (U + np.sqrt(np.maximum(disc, 0.0)))
-    return np.where(disc >= 0.0, root, P / U)
+    from calib.model.equations import battery_current_array
+
+    U, R, P = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in (U, R, P)))
+    flat = [np.ascontiguousarray(a).ravel() for a in (U, R, P)]
+    I = battery_current_array(*flat).reshape(U.shape)
+    return np.where(np.isnan(I), P / U, I)
 
 
 def _fit_from_power(fit, rows, base, names):

@@ -280,3 +280,12 @@ def evaluate(params, soc, T_cl, T_cab, e_mode, P_bat_mg, Q_heat_cmd, v, v_next, 
     res = {name: out[:, j].reshape(shape) for j, name in enumerate(OUTPUTS)}
     res["feasible"] = res["code"] == 0
     return res
+
+
+@njit(cache=True)
+def battery_current_array(U, R, P_bat):
+    """:func:`battery_current` element by element over 1-D arrays (NaN where there is no real current)."""
+    out = np.empty(P_bat.shape[0])
+    for k in range(P_bat.shape[0]):
+        out[k] = battery_current(U[k], R[k], P_bat[k])
+    return out
