@@ -135,6 +135,20 @@ def _zstd_whole_blocks_end(b) -> int | None:
     return min(p, len(b))
 
 
+def _lz4_length(nibble: int, src: bytes, i: int):
+    """An LZ4 literal or match length: the token's nibble, extended by bytes while they are 255 when the
+    nibble is 15. Returns (length, next index), or (None, i) when the block ends inside the extension."""
+    if nibble != 15:
+        return nibble, i
+    n = len(src)
+    while i < n:
+        nibble += src[i]
+        i += 1
+        if src[i - 1] != 255:
+            return nibble, i
+    return None, i
+
+
 def _lz4_block_prefix(src: bytes, out: bytearray) -> None:
     """Append to ``out`` what an LZ4 block (maybe cut short) decodes to, up to its first missing byte.
 
@@ -145,30 +159,18 @@ def _lz4_block_prefix(src: bytes, out: bytearray) -> None:
     while i < n:
         token = src[i]
         i += 1
-        lit = token >> 4
-        if lit == 15:
-            while i < n:
-                lit += src[i]
-                i += 1
-                if src[i - 1] != 255:
-                    break
-            else:
-                return
+        lit, i = _lz4_length(token >> 4, src, i)
+        if lit is None:
+            return
         out += src[i:i + lit]  # a literal run cut short is still the right bytes
         i += lit
         if i + 2 > n:
             return
         off = src[i] | (src[i + 1] << 8)
         i += 2
-        ml = token & 15
-        if ml == 15:
-            while i < n:
-                ml += src[i]
-                i += 1
-                if src[i - 1] != 255:
-                    break
-            else:
-                return
+        ml, i = _lz4_length(token & 15, src, i)
+        if ml is None:
+            return
         ml += 4
         if off == 0 or off > len(out):
             return  # not LZ4 any more (damage): stop at the last good byte

@@ -385,6 +385,18 @@ def rewrite_mcap(src, dst, compression: str) -> Path:
     return Path(dst)
 
 
+def _ext_length(nibble: int, comp: bytes, i: int) -> tuple[int, int]:
+    """An LZ4 length from its token nibble and, when that is 15, the extension bytes (255 continues);
+    written here from the LZ4 block format, apart from the reader's, for an independent reference."""
+    if nibble == 15:
+        while True:
+            nibble += comp[i]
+            i += 1
+            if comp[i - 1] != 255:
+                break
+    return nibble, i
+
+
 def _lz4_progress(comp: bytes) -> tuple[list[int], list[int]]:
     """(compressed bytes in, bytes decodable) through an LZ4 frame, for ``np.interp(out, d, e)``.
 
@@ -411,13 +423,7 @@ def _lz4_progress(comp: bytes) -> tuple[list[int], list[int]]:
             while i < b:
                 token = comp[i]
                 i += 1
-                lit = token >> 4
-                if lit == 15:
-                    while True:
-                        lit += comp[i]
-                        i += 1
-                        if comp[i - 1] != 255:
-                            break
+                lit, i = _ext_length(token >> 4, comp, i)
                 e_pts += [i, i + lit]
                 d_pts += [out, out + lit]
                 i += lit
@@ -425,13 +431,7 @@ def _lz4_progress(comp: bytes) -> tuple[list[int], list[int]]:
                 if i >= b:
                     break  # the last sequence has literals only
                 i += 2
-                ml = token & 15
-                if ml == 15:
-                    while True:
-                        ml += comp[i]
-                        i += 1
-                        if comp[i - 1] != 255:
-                            break
+                ml, i = _ext_length(token & 15, comp, i)
                 # the match's bytes all need its last length byte: a step, not a slope
                 e_pts += [i, i]
                 d_pts += [out + 1e-6, out + ml + 4]
