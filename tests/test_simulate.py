@@ -72,3 +72,19 @@ def test_custom_cycle_file(params, tmp_path):
     f.write_text("time_s,speed_kph\n" + "\n".join(f"{a},{min(a, 60) * 0.8:.2f}" for a in t))
     r = simulate(params, str(f), T_amb=0.0)
     assert len(r.t) == 121
+
+
+def test_credit_per_gram_is_the_closed_form_and_exceeds_one_when_the_engine_works():
+    """The corrected fuel credits charge at the best-efficiency valuation and coolant heat at the idling
+    valuation; one gram burnt at brake efficiency eta is then credited 1 + eta (1/eta_max - 1) grams
+    (work P_e = eta LHV W_f; heat to coolant (1 - gamma)(1 - eta) LHV W_f), worked out by hand here."""
+    from calib.model import credit_per_gram
+    from calib.model.equations import ON, fuel_rate
+    from calib.model.params import default_parameters
+
+    p = default_parameters().model_params()
+    eta_max = float(np.max(p.eta_ool))
+    for P_e in (5e3, 12e3, 25e3):
+        eta = P_e / (p.LHV * fuel_rate(p, ON, P_e, 90.0))
+        assert credit_per_gram(p, P_e) == pytest.approx(1.0 + eta * (1.0 / eta_max - 1.0), rel=1e-3)
+        assert credit_per_gram(p, P_e) > 1.4

@@ -41,6 +41,26 @@ def fuel_equivalents_g(p, soc0, soc_final, T_cl0, T_cl_final, T_cab0, T_cab_fina
     return {k: (float(v) if np.ndim(v) == 0 else v) for k, v in out.items()}
 
 
+def credit_per_gram(p, P_e: float, T_cl: float = 90.0) -> float:
+    """Fuel-equivalent credit (g) that :func:`fuel_equivalents_g` gives for the charge and coolant heat one
+    gram of fuel makes with the engine at power ``P_e`` (W, on), charging the battery through the
+    generator, before battery and coolant losses.
+
+    The work is credited as charge at the best-efficiency valuation and the rest of the non-exhaust fuel
+    energy as coolant heat at the idling-engine valuation, so the credit is ``1 + eta (1/eta_max - 1)``
+    with ``eta = P_e / (LHV W_f)``: above 1 whenever the engine does work. A strategy that ends a drive
+    with charge and heat made just before the end is credited more than the fuel it burnt for them.
+    """
+    from calib.model.equations import ON, coolant_heat_rate, fuel_rate
+
+    W_f = fuel_rate(p, ON, P_e, T_cl)  # one second of running: W_f grams
+    net, _ = coolant_heat_rate(p.gamma_exh, p.LHV * W_f, P_e, 0.0, 0.0)
+    U, _ = battery_ocv_r(p, 0.6, p.T_bat_ref)
+    dsoc = P_e * p.eta_mech * p.eta_em / (p.C_bat_As * U)  # the generator's output stored without loss
+    eq = fuel_equivalents_g(p, 0.6 - dsoc / 2, 0.6 + dsoc / 2, 0.0, net / p.C_eng, 0.0, 0.0)
+    return float((eq["electric_g"] + eq["coolant_g"]) / W_f)
+
+
 @dataclass
 class SimResult:
     """Time series of one simulated (or DP-optimised) drive.

@@ -39,6 +39,14 @@ def run(quick: bool = False) -> dict:
                    "loglik_per_step_markov", "loglik_per_step_iid"]].to_string(index=False, float_format="%.3f"))
     print("\ncorrected fuel (g) on held-out drives; gap to DP and saving vs tuned rule-based in %:")
     print(cmp.format())
+    from calib.model import credit_per_gram
+
+    mp0 = ps.model_params()
+    credit = {P: credit_per_gram(mp0, P) for P in (5e3, 15e3, 30e3)}
+    print("valuation: a gram of fuel burnt to charge the battery is credited "
+          + ", ".join(f"{c:.2f} g at {P / 1e3:g} kW" for P, c in credit.items())
+          + " (charge and coolant heat; before losses): charge and heat made just before a drive ends earn "
+            "more than they cost")
     mp = ps.model_params()
     pol = next(iter(cmp.policies.values()))
     steps = {"sdp": step_timing(ps, SDPController(mp, pol)), "ecms": step_timing(ps, ECMSController(mp))}
@@ -49,6 +57,7 @@ def run(quick: bool = False) -> dict:
         print(f"SDP policy build at {T:g} degC on 2 threads: {p.info['t_build_s']:.1f} s ({p.info['n_states']} states "
               f"x {p.info['n_controls']} controls, {p.info['iterations']} iterations, converged "
               f"{p.info['converged']}) (goal < 60 s)")
-    return {"table": cmp.rows, "goals": cmp.goals(), "validation": cmp.validation, "step": steps,
+    return {"table": cmp.rows, "goals": cmp.goals(),
+            "credit_per_gram": {str(k): v for k, v in credit.items()}, "validation": cmp.validation, "step": steps,
             "build": {str(T): p.info for T, p in cmp.policies.items()},
             "mean_abs_gap_pct": float(np.mean([abs(r["gap_to_dp_pct"]) for r in cmp.rows]))}

@@ -24,8 +24,9 @@ from optimize.causal.sdp import SDPConfig, build_policy
 
 #: Drives the statistics are built from (and the only ones used to choose the controllers' settings).
 TRAIN_CYCLES = ("udds", "hwfet", "us06")
-#: Drives never used to build or tune anything.
-HELD_OUT = ("artemis_urban", "nycc", "manhattan")
+#: Drives never used to build or tune anything: three urban cycles, the urban half of WLTC and two
+#: real-world GPS-logged drives (a 5-min suburban trip, an 18-min highway commute).
+HELD_OUT = ("artemis_urban", "nycc", "manhattan", "wltc_city_3b", "tsdc_trip_42648", "cmap_chicago_commute")
 AMBIENTS = (-10.0, 0.0)
 GOAL_GAP_PCT = 3.0
 SOC_TOL = 0.01
