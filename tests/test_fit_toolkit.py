@@ -199,7 +199,7 @@ def test_batch_means_count_from_exactly_four_blocks():
 def test_map_fit_robust_loss_is_scipy_soft_l1_with_f_scale_3():
     """The robust first look is scipy.optimize.least_squares with loss='soft_l1' and f_scale=3 (noise sd)
     on the documented objective [(model - data) / s, (a - prior) / prior_sd]. Here s is the floor 1.0 (the
-    residuals' rms, 0.9, is below it, so the fit is not repeated); three outliers 4 sd out sit where
+    residuals' rms, 0.86, is below it, so the fit is not repeated); three outliers 4 sd out sit where
     f_scale 3 and 4 weigh them differently (weights 0.60 against 0.71)."""
     import lmfit
     from scipy.optimize import least_squares
