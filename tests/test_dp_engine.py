@@ -308,6 +308,19 @@ def counting(k, x, u, w_k, p, tab, iu, ix, x_next):
     return 0.0
 
 
+@njit(cache=True)
+def index_check(k, x, u, w_k, p, tab, iu, ix, x_next):
+    """x+ = x, cost 0 on integer grids (node value = grid index): counts its calls in p[0] and, in p[1], the
+    calls whose grid index differs from the node in some dimension."""
+    p[0] += 1.0
+    for d in range(x.shape[0]):
+        x_next[d] = x[d]
+        if ix[d] != x[d]:
+            p[1] += 1.0
+            break
+    return 0.0
+
+
 def _counting_problem(N=3, n=100, nu=2):
     p = np.array([0.0, 9.0, 9.0, 0.0])
     return DPProblem(grids=[np.linspace(0.0, 1.0, n)], controls=np.zeros((nu, 1)), N=N, transition=counting,
@@ -327,6 +340,36 @@ def test_backward_pass_evaluates_each_state_control_pair_once_per_step():
         numba.set_num_threads(old)
     assert p[0] == 3 * 100 * 2
     assert (p[1], p[2], p[3]) == (0.0, 0.0, 0.0)
+
+
+def test_backward_pass_gives_each_node_its_grid_index_in_every_dimension():
+    """Three states on the integer grids 0..3, 0..2, 0..4 (60 nodes, strides 15, 5, 1): the backward pass
+    hands the transition, at every node, the node's own grid index in each dimension (the node (2, 1, 3)
+    is state 2 x 15 + 1 x 5 + 3 = 38 and gets ix = (2, 1, 3))."""
+    p = np.zeros(2)
+    prob = DPProblem(grids=[np.arange(4.0), np.arange(3.0), np.arange(5.0)], controls=np.zeros((2, 1)), N=2,
+                     transition=index_check, params=p)
+    old = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        backward_pass(prob)
+    finally:
+        numba.set_num_threads(old)
+    assert (p[0], p[1]) == (2 * 60 * 2, 0.0)
+
+
+def test_solve_time_is_the_backward_plus_the_forward_pass_time():
+    """A result with a 2.0 s backward and a 0.5 s forward pass took 2.5 s; 1000 evaluations in the 2.0 s
+    backward pass are 500 per second; the DataFrame carries the same total."""
+    from optimize.dp.engine import DPResult
+
+    N = 2
+    h = DPResult(t=np.arange(N + 1), x=np.zeros((N + 1, 1)), u=np.zeros((N, 1)), u_index=np.zeros(N, np.int64),
+                 stage_cost=np.ones(N), terminal_cost=0.0, cost=2.0, predicted_cost=np.ones(N), feasible=True,
+                 terminal_level=0.0, steps_completed=N, V=np.zeros((N + 1, 3)), L=None, policy=None,
+                 t_backward=2.0, t_forward=0.5, n_evaluations=1000)
+    assert h.solve_time == 2.5 and h.evals_per_second == 500.0
+    assert h.to_pandas().attrs["solve_time"] == 2.5
 
 
 def test_forward_pass_gives_the_transition_grid_index_minus_one():

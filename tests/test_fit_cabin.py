@@ -167,3 +167,41 @@ def test_eps_note_names_missing_channels_only_when_no_log_has_them():
     # with the channel in no log, the note names it
     fit2 = fit_cabin([no_vent], default_parameters(), allowed=["eps_hc"])
     assert "missing channel(s) vent_temp_degC" in fit2.estimates["eps_hc"].note
+
+
+def _cooldown_log(**heater):
+    """A cabin cooling from 20 degC at -10 degC ambient with no heat (eq. 10 integrated here by explicit
+    Euler at 1 s: C_cab = 80 kJ/K, UA_cab = 40 W/K, Q_sun = 0), plus the heater channels given."""
+    import numpy as np
+    import pandas as pd
+
+    from calib.drivelog import DriveLog, LogMeta
+
+    n = 1800
+    T = np.empty(n)
+    T[0] = 20.0
+    for k in range(n - 1):
+        T[k + 1] = T[k] + 40.0 * (T_AMB - T[k]) / 80e3
+    d = pd.DataFrame({"cabin_temp_degC": T, "ambient_temp_degC": T_AMB, **heater},
+                     index=pd.Index(np.arange(n, dtype=float), name="time_s"))
+    return DriveLog(data=d, meta=LogMeta(source="hand-made cooldown", format="test", synthetic=True))
+
+
+def test_heater_heat_missing_at_every_sample_counts_as_0_W():
+    """Vent temperature logged in the first half only, blower flow in the second half only: the heater heat
+    W_bl c_p (T_vent - T_in) is missing at every sample and the cabin is simulated with 0 W, exactly as for
+    the same log with heater_power_W = 0 logged; the heat-free cooldown is then reproduced, Q_sun = 0 W
+    within 0.1 W (1 W of phantom heat would move it to -1 W)."""
+    import numpy as np
+
+    half = np.arange(1800) < 900
+    gaps = _cooldown_log(vent_temp_degC=np.where(half, 30.0, np.nan), blower_flow_kg_per_s=np.where(half, np.nan, 0.05))
+    zero = _cooldown_log(heater_power_W=0.0)
+    cab = {"C_cab_J_per_K", "UA_cab_W_per_K", "Q_sun_W"}
+    fit_g, fit_0 = fit_cabin([gaps], default_parameters(), allowed=cab), fit_cabin([zero], default_parameters(), allowed=cab)
+    assert fit_g.used[gaps.label()] == {"heater heat": "vent_temp_degC + blower_flow_kg_per_s"}
+    assert fit_0.used[zero.label()] == {"heater heat": "heater_power_W"}
+    for n in cab:
+        assert fit_g.estimates[n].value == pytest.approx(fit_0.estimates[n].value, rel=1e-9, abs=1e-9), n
+        assert fit_g.estimates[n].stderr == pytest.approx(fit_0.estimates[n].stderr, rel=1e-9), n
+    assert fit_g.metrics["rmse_degC"] < 1e-3 and abs(fit_g.estimates["Q_sun_W"].value) < 0.1  # the truth: 0 W

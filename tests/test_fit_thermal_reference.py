@@ -146,3 +146,18 @@ def test_kappa_standard_error_from_the_regression_residuals():
     e = fit.estimates["kappa"]
     assert e.value == pytest.approx((w1 * KAPPA + w0 * base["kappa"]) / (w1 + w0), rel=1e-9)
     assert e.stderr == pytest.approx((w1 + w0) ** -0.5, rel=1e-9)
+
+
+@pytest.mark.filterwarnings("ignore:rel_change")
+def test_hA_eng_note_gives_the_identified_product_hA_eng_times_1_minus_kappa():
+    """Without the engine-bay temperature only hA_eng (1 - kappa) enters eq. 3: the note states that product,
+    34 W/K x (1 - 0.3) = 23.8 W/K for the log made here, and the kappa it assumes."""
+    import re
+
+    fit = fit_thermal([_log()], default_parameters())
+    e = fit.estimates["hA_eng_W_per_K"]
+    m = re.search(r"identified only as hA_eng \(1 - kappa\) = ([0-9.eE+-]+) W/K; kappa not logged, this value "
+                  r"assumes kappa = 0.3 \(its prior\)", e.note)
+    assert m, e.note
+    assert float(m.group(1)) == pytest.approx(TRUE["hA_eng_W_per_K"] * (1.0 - KAPPA), rel=1e-3)
+    assert m.group(1) == f"{e.value * (1.0 - KAPPA):.4g}"

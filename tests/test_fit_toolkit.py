@@ -180,3 +180,77 @@ def test_map_fit_robust_loss_discounts_an_outlier():
     assert lin["values"]["a"] == pytest.approx((y.sum() / s ** 2 + a0 / sd0 ** 2) / prec, rel=1e-3)
     rob = map_fit(make, segs, ["a"], prior={"a": a0}, prior_sd={"a": sd0}, noise_sd=s, floor=s, loss="soft_l1")
     assert abs(rob["values"]["a"]) < 0.75 and lin["values"]["a"] > 1.2
+
+
+def test_batch_means_count_from_exactly_four_blocks():
+    """80 samples: four blocks of 20 at +1, -1, +1, -1 plus a +-1 alternation. By hand: lag-one sum
+    73 (block pairs) - 79 (alternation) + 2 (cross terms at the block edges) = -4 over a sum of squares
+    160, rho_1 = -0.025 (tau_int = 1, AR(1) factor 1); the block means are +-1 (variance 1) against a
+    residual variance 2: tau = 20 x 1 / 2 = 10, n_eff = 8. The first 79 samples make only 3 blocks of 20:
+    no batch-means term, n_eff = 79."""
+    r = np.repeat([1.0, -1.0, 1.0, -1.0], 20) + np.tile([1.0, -1.0], 40)
+    assert _rho1(r) == pytest.approx(-0.025, rel=1e-12)
+    n, ne = neff([r])
+    assert n == 80 and ne == pytest.approx(8.0, rel=1e-12)
+    assert _rho1(r[:79]) < 0.05
+    assert neff([r[:79]]) == (79, 79.0)
+
+
+def test_map_fit_robust_loss_is_scipy_soft_l1_with_f_scale_3():
+    """The robust first look is scipy.optimize.least_squares with loss='soft_l1' and f_scale=3 (noise sd)
+    on the documented objective [(model - data) / s, (a - prior) / prior_sd]. Here s is the floor 1.0 (the
+    residuals' rms, 0.86, is below it, so the fit is not repeated); three outliers 4 sd out sit where
+    f_scale 3 and 4 weigh them differently (weights 0.60 against 0.71)."""
+    import lmfit
+    from scipy.optimize import least_squares
+
+    y = 0.1 * np.sin(np.arange(63.0))
+    y[[10, 30, 50]] = 4.0
+    s, a0, sd0 = 1.0, 0.0, 10.0
+
+    def make():
+        ps = lmfit.Parameters()
+        ps.add("a", value=0.5, min=-100, max=100)
+        return ps
+
+    def segs(ps):
+        return [ps["a"].value - y]
+
+    rob = map_fit(make, segs, ["a"], prior={"a": a0}, prior_sd={"a": sd0}, noise_sd=s, floor=s, loss="soft_l1")
+    assert rob["noise_sd"] == s and rob["rmse"] < s
+
+    def ref(f_scale):
+        fun = lambda p: np.concatenate([(p[0] - y) / s, [(p[0] - a0) / sd0]])  # noqa: E731
+        return least_squares(fun, [0.5], loss="soft_l1", f_scale=f_scale, xtol=1e-15, ftol=1e-15, gtol=1e-15).x[0]
+
+    assert abs(ref(3.0) - ref(4.0)) > 0.01  # the two scales are told apart far beyond the tolerance below
+    assert rob["values"]["a"] == pytest.approx(ref(3.0), rel=1e-6)
+
+
+def test_map_fit_covariance_with_a_nuisance_parameter_near_zero_matches_the_analytic_jacobian():
+    """r = a x + exp(b t) - y with a Gaussian prior on a and b a nuisance parameter (no prior: its forward
+    difference step is 1e-3 (0.1 |b| + 1e-3), about 1.6e-6 here, as for an initial temperature near 0 degC).
+    The posterior covariance is (J'J)^-1 with the analytic Jacobian J = [x / s, t exp(b t) / s] over the
+    data and [1 / sd0, 0] for the prior, at the MAP; b's column is curved in b, so a step of 1e-3 would
+    be off by about 1e-3."""
+    import lmfit
+
+    x = np.linspace(1.0, 5.0, 50)
+    t = np.linspace(0.0, 2.0, 50)
+    y = 2.0 * x + 1.0 + 0.01 * np.sin(7 * x)
+    s, a0, sd0 = 0.1, 1.0, 0.5
+
+    def make():
+        ps = lmfit.Parameters()
+        ps.add("a", value=a0, min=-10, max=10)
+        ps.add("b", value=0.1)
+        return ps
+
+    out = map_fit(make, lambda ps: [ps["a"].value * x + np.exp(ps["b"].value * t) - y], ["a"], prior={"a": a0},
+                  prior_sd={"a": sd0}, noise_sd=s, floor=s)
+    b = out["params"]["b"].value
+    assert abs(b) < 0.01 and out["noise_sd"] == s and out["cov_names"] == ["a", "b"]
+    J = np.vstack([np.column_stack([x, t * np.exp(b * t)]) / s, [[1.0 / sd0, 0.0]]])
+    cov = np.linalg.inv(J.T @ J)
+    np.testing.assert_allclose(out["cov"], cov, rtol=2e-5)
+    assert out["post_sd"]["a"] == pytest.approx(np.sqrt(cov[0, 0]), rel=2e-5)

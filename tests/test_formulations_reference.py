@@ -182,3 +182,26 @@ def test_control_tables_are_feasible_exactly_where_the_models_step_is(params, tm
     for limit in (b.mp.P_bat_min, b.mp.P_bat_max):
         at = on & (m["P_bat"] == limit)
         assert at.sum() == 1 and tab[at, _T_OK][0] == 1.0
+
+
+def test_coolant_above_the_thermostat_loses_the_radiator_heat_as_in_the_model(params, tmp_path):
+    """Coolant at 95 degC, 7 K above T_open = 88 degC: the radiator rejects k_rad (T_cl - T_open) =
+    1500 W/K x 7 K = 10.5 kW (below Q_rad_max = 50 kW), which cools the coolant by 10.5 kW x 1 s / C_eng
+    = 0.13 K in the step, on top of the engine-bay loss; the compiled transition (off-grid T_cl) gives the
+    model's next coolant temperature and its fuel cost, with no penalty inside the 0..100 degC grid."""
+    b = _two_state(params, tmp_path)
+    x = (0.6, 95.0)
+    mp = b.mp
+    assert (mp.T_open, mp.k_rad, mp.Q_rad_max) == (88.0, 1500.0, 50000.0)
+    for iu in (_on_control(b, -1), _on_control(b, 1)):
+        cost, xn = _one_step(b, x, iu)
+        m = _model(b, x, iu)
+        assert m["code"] == 0
+        assert m["Q_rad"] == pytest.approx(1500.0 * 7.0, rel=1e-12)
+        # eq. 3 by hand: heat of the fuel less shaft power, exhaust, bay air, radiator and heater
+        q_air = mp.hA_eng * (1.0 - mp.kappa) * (95.0 - (-5.0))
+        net = m["Q_fuel"] - m["P_e"] - m["Q_exh"] - q_air - 1500.0 * 7.0 - m["Q_heat"]
+        assert m["T_cl_next"] == pytest.approx(95.0 + b.cyc.Ts * net / mp.C_eng, rel=1e-12)
+        assert xn[1] == pytest.approx(m["T_cl_next"], rel=1e-12)
+        assert xn[0] == pytest.approx(m["soc_next"], abs=1e-14)
+        assert cost == pytest.approx(m["W_f"] * b.cyc.Ts, rel=1e-12)

@@ -98,6 +98,26 @@ def test_bad_rate_is_refused(rate):
         to_drivelog({"soc": _stream([0.0, 1.0], [0.5, 0.5])}, LogMeta(source="hand"), rate_hz=rate)
 
 
+@pytest.mark.parametrize("gap", [-1.0, -1e-9, np.inf, np.nan])
+def test_negative_or_non_finite_gap_limit_is_refused(gap):
+    """A gap limit must be a finite number of seconds >= 0: a negative finite one is refused as clearly as
+    an infinite or NaN one (0 s is allowed: see the row-limit test)."""
+    from calib.errors import IptmError
+
+    with pytest.raises(IptmError, match=f"max gap must be a non-negative number of seconds, got {gap}"):
+        to_drivelog({"soc": _stream([0.0, 1.0], [0.5, 0.5])}, LogMeta(source="hand"), max_gap_s=gap)
+
+
+@pytest.mark.parametrize("rate", [1.0, 2.0])
+def test_streams_without_samples_give_the_single_instant_zero(rate):
+    """No stream holds a sample (none given, or only empty ones): the time base is the one instant 0 s and
+    no channel gets a column."""
+    meta = LogMeta(source="hand")
+    for streams in ({}, {"soc": pd.Series([], dtype=float)}):
+        log = to_drivelog(streams, meta, rate_hz=rate)
+        assert log.data.index.tolist() == [0.0] and list(log.data.columns) == []
+
+
 def test_a_log_longer_than_the_row_limit_is_refused():
     """2,000,000 rows is the limit: at 2 Hz a last sample a quarter second beyond 1,000,000 s is refused with
     the number of rows; exactly at it is a log of 2,000,001 rows (times 0, 0.5, ... 1,000,000 s)."""
