@@ -161,3 +161,15 @@ def test_hA_eng_note_gives_the_identified_product_hA_eng_times_1_minus_kappa():
     assert m, e.note
     assert float(m.group(1)) == pytest.approx(TRUE["hA_eng_W_per_K"] * (1.0 - KAPPA), rel=1e-3)
     assert m.group(1) == f"{e.value * (1.0 - KAPPA):.4g}"
+
+
+def test_a_parameter_the_data_never_reach_keeps_its_prior_sd():
+    """The reference drive never reaches the thermostat, so the radiator conductance k_rad is informed by
+    its prior alone: its posterior sd is the prior sd (750 W/K), not cut to 0 by the pseudo-inverse."""
+    from calib.fit.thermal import fit_thermal
+    from calib.model.params import default_parameters
+
+    fit = fit_thermal([_log()], default_parameters())
+    est = fit.estimates["k_rad_W_per_K"]
+    assert est.prior_sd == pytest.approx(750.0)
+    assert est.stderr == pytest.approx(est.prior_sd, rel=0.01)

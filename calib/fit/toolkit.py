@@ -262,13 +262,15 @@ def map_fit(make_params, data_segments, cand, *, prior, prior_sd, noise_sd, extr
     x0 = np.array([params[k].value for k in names])
     r0 = total(params, s)
     J = np.empty((r0.size, len(names)))
+    # each parameter's scale (its prior sd): the normal matrix is inverted in these units, where a
+    # prior-only parameter's tiny precision is not cut off as numerical noise by pinv's cutoff
+    D = np.array([prior_sd[k] if k in prior_sd else max(abs(x0[j]), 1e-3) * 1e-1 + 1e-3 for j, k in enumerate(names)])
     for j, k in enumerate(names):
-        h = 1e-3 * (prior_sd[k] if k in prior_sd else max(abs(x0[j]), 1e-3) * 1e-1 + 1e-3)
+        h = 1e-3 * D[j]
         p1 = params.copy()
         p1[k].set(value=x0[j] + h, min=-np.inf, max=np.inf)
         J[:, j] = (total(p1, s) - r0) / h
-    H = J.T @ J
-    cov0 = np.linalg.pinv(H)
+    cov0 = D[:, None] * np.linalg.pinv((J * D).T @ (J * D)) * D[None, :]
     cov = cov0.copy()
     idx = {k: j for j, k in enumerate(names)}
     # calibration uncertainty of the inputs: linearised shift of the estimate, added (as a rank-one
@@ -287,8 +289,8 @@ def map_fit(make_params, data_segments, cand, *, prior, prior_sd, noise_sd, extr
     # informed a parameter only as far as its posterior sd is below *that*
     nd = sum(x.size for x in segs)
     ci = [idx[k] for k in cand]
-    Jp = J[nd:][:, ci]
-    prior_cov = np.linalg.pinv(Jp.T @ Jp)
+    Jp = J[nd:][:, ci] * D[ci]
+    prior_cov = D[ci][:, None] * np.linalg.pinv(Jp.T @ Jp) * D[ci][None, :]
     ref = {k: math.sqrt(max(float(prior_cov[i, i]), 0.0)) for i, k in enumerate(cand)}
     informed = {k: float(max(0.0, 1.0 - post[k] / ref[k])) if ref[k] > 0 else 0.0 for k in cand}
     correl = {}
