@@ -108,7 +108,9 @@ class CaseStudy:
             a = (getattr(o, "extra", None) or {}).get("grid_artefacts")  # cached outcomes keep it too
             if a:
                 lines.append(f"{k}: grid artefacts: heater flipping between neighbouring grid values "
-                             f"{a['chatter_pct']:.1f} % of steps (longest {a['chatter_longest_s']:g} s); cabin on "
+                             f"{a['chatter_pct']:.1f} % of steps (longest {a['chatter_longest_s']:g} s"
+                             + (f", {a['chatter_off_bound_pct']:.1f} % off the comfort bound"
+                                if "chatter_off_bound_pct" in a else "") + "); cabin on "
                              f"a grid node above its comfort bound {a['pinned_pct']:.1f} % (longest "
                              f"{a['pinned_longest_s']:g} s); on its comfort bound {a['at_bound_pct']:.1f} %")
         return "\n".join(lines)

@@ -646,3 +646,46 @@ def test_four_state_interpolation_is_exact_on_multilinear_functions():
     rng = np.random.default_rng(5)
     Q = np.column_stack([rng.uniform(g[0], g[-1], 100) for g in grids])
     np.testing.assert_allclose(interpolate(prob, V, Q), f(Q), rtol=0, atol=1e-12)
+
+
+def _bilinear_times_quadratic(X):
+    x0, x1, x2 = X[:, 0], X[:, 1], X[:, 2]
+    return (1.0 + 2.0 * x0 - 3.0 * x1 + 0.7 * x0 * x1) * (0.5 - 1.3 * x2 + 2.1 * x2 ** 2)
+
+
+def test_cubic_last_interpolation_is_exact_on_quadratics_along_the_last_axis():
+    # multilinear in the first two states, quadratic in the last: the cubic along the last axis reproduces
+    # it exactly (cells at both ends of the axis included), multilinear interpolation does not
+    grids = [np.linspace(-1, 1, 5), np.linspace(0, 3, 7), np.linspace(-2, 0, 5)]
+    prob = DPProblem(grids=grids, controls=np.zeros((1, 1)), N=1, transition=twostatesys)
+    V = _bilinear_times_quadratic(prob.grid_points()).reshape(prob.grid_shape)
+    rng = np.random.default_rng(5)
+    Q = np.column_stack([rng.uniform(g[0], g[-1], 300) for g in grids])
+    exact = _bilinear_times_quadratic(Q)
+    np.testing.assert_allclose(interpolate(prob, V, Q, interp="cubic_last"), exact, rtol=0, atol=1e-11)
+    assert np.max(np.abs(interpolate(prob, V, Q) - exact)) > 1e-2
+    # node values are returned exactly, and the multilinear rule is kept where the cubic cannot apply
+    P = prob.grid_points()
+    np.testing.assert_array_equal(interpolate(prob, V, P, interp="cubic_last"), V.ravel())
+    V2 = V.copy()
+    V2[:, :, 0] = np.inf  # the first cabin node infeasible: the cubic's stencil reads it, multilinear not
+    q = np.array([[0.1, 1.2, -2.0 + 0.5 * 1.5]])  # in cell 1 of the last axis
+    np.testing.assert_allclose(interpolate(prob, V2, q, interp="cubic_last"), interpolate(prob, V2, q))
+    with pytest.raises(ValueError, match="interp"):
+        interpolate(prob, V, Q, interp="cubic")
+
+
+def test_cubic_last_interpolation_of_a_convex_function_has_no_kink_at_nodes():
+    # a convex function along the axis: multilinear overestimates it between nodes (kinks at the nodes),
+    # the cubic follows it; the derivative is continuous across a node
+    g = [np.linspace(0.0, 4.0, 5)]
+    prob = DPProblem(grids=g, controls=np.zeros((1, 1)), N=1, transition=twostatesys)
+    V = np.exp(g[0])
+    z = np.linspace(0.0, 4.0, 401)[:, None]
+    lin = interpolate(prob, V, z)
+    cub = interpolate(prob, V, z, interp="cubic_last")
+    assert np.max(np.abs(cub - np.exp(z[:, 0]))) < 0.5 * np.max(np.abs(lin - np.exp(z[:, 0])))
+    e = 1e-6
+    for node in (1.0, 2.0, 3.0):
+        left, mid, right = interpolate(prob, V, [[node - e], [node], [node + e]], interp="cubic_last")
+        assert (right - mid) / e == pytest.approx((mid - left) / e, rel=1e-3)

@@ -120,6 +120,10 @@ __all__ = ["DPProblem", "DPResult", "ValueFunctions", "cartesian", "solve", "bac
            "forward_pass", "interpolate"]
 
 
+#: Interpolations of the cost-to-go (``DPProblem.interp``; see :func:`forward_pass`).
+FORWARD_INTERP = ("multilinear", "cubic_last")
+
+
 def cartesian(*grids: Sequence[float]) -> np.ndarray:
     """Cartesian product of per-control grids as an (n_controls, n_u) float64 array (last varies fastest)."""
     arrs = [np.asarray(g, dtype=np.float64).ravel() for g in grids]
@@ -143,6 +147,9 @@ class DPProblem:
     clip: look up the cost-to-go at the nearest box point for next states outside the grid.
     precompute: optional ``@njit`` hook ``(k, w_k, p, tab)``; table_shape: shape of ``tab`` (2-D).
     level_tol: level values <= level_tol count as feasible (levelset only).
+    interp: how the cost-to-go is interpolated at off-grid next states, in both passes: "multilinear"
+    (default) or "cubic_last" (multilinear in the other states, cubic Hermite along the last one; see
+    :func:`forward_pass`). The level function is always multilinear.
     """
 
     grids: Sequence[np.ndarray]
@@ -158,6 +165,7 @@ class DPProblem:
     precompute: Callable | None = None
     table_shape: tuple = (0, 0)
     level_tol: float = 0.0
+    interp: str = "multilinear"
 
     def __post_init__(self):
         self.grids = [np.ascontiguousarray(g, dtype=np.float64).ravel() for g in self.grids]
@@ -187,6 +195,8 @@ class DPProblem:
             raise ValueError("boundary must be 'none' or 'levelset'")
         if len(self.table_shape) != 2:
             raise ValueError("table_shape must be 2-D")
+        if self.interp not in FORWARD_INTERP:
+            raise ValueError(f"interp {self.interp!r}: choose one of {', '.join(FORWARD_INTERP)}")
 
     # ---- derived grid data -------------------------------------------------------------------
     @property
@@ -365,7 +375,7 @@ def backward_pass(prob: DPProblem, store_policy: bool = False) -> ValueFunctions
     t0 = time.perf_counter()
     _k.backward(prob.transition, pre, prob.N, X, prob.controls, prob.w, prob.params, _tab(prob),
                 VT, LT, use_level, float(prob.level_tol), *grid, bool(prob.clip), policy,
-                bool(store_policy))
+                bool(store_policy), prob.interp == "cubic_last")
     t_b = time.perf_counter() - t0
     shape = (prob.N + 1,) + prob.grid_shape
     return ValueFunctions(V=VT.reshape(shape), L=LT.reshape(shape) if use_level else None,
@@ -373,16 +383,30 @@ def backward_pass(prob: DPProblem, store_policy: bool = False) -> ValueFunctions
                           t_backward=t_b, n_evaluations=prob.N * ns * prob.n_controls)
 
 
-def interpolate(prob: DPProblem, values: np.ndarray, points) -> np.ndarray:
-    """Multilinear interpolation of a grid-shaped array at points (m, n_x) with the engine's rules."""
+def interpolate(prob: DPProblem, values: np.ndarray, points, interp: str = "multilinear") -> np.ndarray:
+    """Interpolation of a grid-shaped array at points (m, n_x) with the engine's rules; ``interp`` as in
+    :func:`forward_pass` (default multilinear)."""
+    if interp not in FORWARD_INTERP:
+        raise ValueError(f"interp {interp!r}: choose one of {', '.join(FORWARD_INTERP)}")
     grid = prob._grid_arrays()
     Q = np.atleast_2d(np.asarray(points, dtype=np.float64))
     V = np.ascontiguousarray(np.asarray(values).reshape(-1))
-    return _k.interp_points(V, Q, *grid, bool(prob.clip))
+    return _k.interp_points(V, Q, *grid, bool(prob.clip), interp == "cubic_last")
 
 
-def forward_pass(prob: DPProblem, vf: ValueFunctions, x0) -> DPResult:
-    """Simulate the optimal policy from the true initial state x0 (may be off-grid)."""
+def forward_pass(prob: DPProblem, vf: ValueFunctions, x0, interp: str | None = None) -> DPResult:
+    """Simulate the optimal policy from the true initial state x0 (may be off-grid).
+
+    ``interp`` is how the one-step decision interpolates the cost-to-go at the next state (default
+    ``prob.interp``, the backward pass's rule): ``"multilinear"`` or ``"cubic_last"``: multilinear in the other states,
+    cubic Hermite along the last one (central-difference slopes: exact on quadratics, equal to the node
+    values at nodes, C1 across them). A cost-to-go convex along an axis is overestimated between nodes by
+    linear interpolation, whose kinks then hold the state on a node; the cubic has no kinks. It needs a
+    uniform last grid of at least 3 nodes and finite values around the query (elsewhere it falls back to
+    multilinear). The level function is always multilinear (it is piecewise linear)."""
+    interp = prob.interp if interp is None else interp
+    if interp not in FORWARD_INTERP:
+        raise ValueError(f"interp {interp!r}: choose one of {', '.join(FORWARD_INTERP)}")
     x0 = np.ascontiguousarray(np.asarray(x0, dtype=np.float64).ravel())
     if x0.size != prob.n_x:
         raise ValueError(f"x0 must have {prob.n_x} entries")
@@ -399,7 +423,7 @@ def forward_pass(prob: DPProblem, vf: ValueFunctions, x0) -> DPResult:
     t0 = time.perf_counter()
     done = _k.forward(prob.transition, pre, N, x0, prob.controls, prob.w, prob.params, _tab(prob),
                       VT, LT, use_level, float(prob.level_tol), *grid, bool(prob.clip), X_out, U_idx,
-                      stage, pred)
+                      stage, pred, interp == "cubic_last")
     t_f = time.perf_counter() - t0
     u = np.full((N, prob.controls.shape[1]), np.nan)
     ok = U_idx >= 0

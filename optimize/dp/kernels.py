@@ -139,6 +139,82 @@ def _interp(V, nx, strides, ib, tb):
 
 
 @njit(inline="always", cache=True)
+def _hermite(V, o, c, nl, t):
+    """Cubic Hermite along a uniform axis of ``nl >= 3`` nodes (values V[o], V[o+1], ...) in cell c at
+    fraction t: slopes are central differences (one-sided second-order ones at the two end nodes), so
+    the interpolant is exact on quadratics, C1 across nodes, and equals the node values at t = 0, 1."""
+    f0 = np.float64(V[o + c])
+    f1 = np.float64(V[o + c + 1])
+    if t == 0.0:
+        return f0
+    if t == 1.0:
+        return f1
+    if c > 0:
+        m0 = 0.5 * (f1 - np.float64(V[o + c - 1]))
+    else:
+        m0 = 0.5 * (-3.0 * f0 + 4.0 * f1 - np.float64(V[o + 2]))
+    if c + 2 < nl:
+        m1 = 0.5 * (np.float64(V[o + c + 2]) - f0)
+    else:
+        m1 = 0.5 * (3.0 * f1 - 4.0 * f0 + np.float64(V[o + c - 1]))
+    t2 = t * t
+    t3 = t2 * t
+    return ((2.0 * t3 - 3.0 * t2 + 1.0) * f0 + (t3 - 2.0 * t2 + t) * m0 + (3.0 * t2 - 2.0 * t3) * f1
+            + (t3 - t2) * m1)
+
+
+@njit(cache=True)
+def _interp_cubic_last(V, nx, n, uniform, strides, ib, tb):
+    """Multilinear in the first nx-1 dimensions, cubic Hermite (:func:`_hermite`) along the last one.
+
+    Why: a cost-to-go convex along that axis is overestimated between nodes by linear interpolation, and
+    the kinks at the nodes draw a one-step minimisation onto them. Falls back to :func:`_interp` (and its
+    +inf rules) where the last axis is non-uniform or has fewer than 3 nodes, or the result is not
+    finite (a value the cubic reads is +inf). For 2 and 3 dimensions the corners are combined in the
+    order of the fused Thermal kernels (same rounding)."""
+    nl = n[nx - 1]
+    if nl < 3 or not uniform[nx - 1]:
+        return _interp(V, nx, strides, ib, tb)
+    c = ib[nx - 1]
+    t = tb[nx - 1]
+    if nx == 1:
+        r = _hermite(V, 0, c, nl, t)
+    elif nx == 2:
+        s0 = strides[0]
+        t0 = tb[0]
+        o = ib[0] * s0
+        r = (1.0 - t0) * _hermite(V, o, c, nl, t) + t0 * _hermite(V, o + s0, c, nl, t)
+    elif nx == 3:
+        s0 = strides[0]
+        s1 = strides[1]
+        t0 = tb[0]
+        t1 = tb[1]
+        o = ib[0] * s0 + ib[1] * s1
+        a = _hermite(V, o, c, nl, t)
+        b = _hermite(V, o + s1, c, nl, t)
+        cc = _hermite(V, o + s0, c, nl, t)
+        e = _hermite(V, o + s0 + s1, c, nl, t)
+        r = (1.0 - t0) * ((1.0 - t1) * a + t1 * b) + t0 * ((1.0 - t1) * cc + t1 * e)
+    else:
+        r = 0.0
+        for corner in range(1 << (nx - 1)):
+            wgt = 1.0
+            off = 0
+            for d in range(nx - 1):
+                if (corner >> d) & 1:
+                    wgt *= tb[d]
+                    off += (ib[d] + 1) * strides[d]
+                else:
+                    wgt *= 1.0 - tb[d]
+                    off += ib[d] * strides[d]
+            if wgt != 0.0:
+                r += wgt * _hermite(V, off, c, nl, t)
+    if np.isfinite(r):
+        return r
+    return _interp(V, nx, strides, ib, tb)
+
+
+@njit(inline="always", cache=True)
 def level_needs_cost(lv, tol, feas, Lsel):
     """Whether a control of interpolated level ``lv`` can still be chosen (so its cost is needed), given
     the current choice (``feas``: it reaches the terminal set; ``Lsel``: its level)."""
@@ -160,9 +236,10 @@ def level_better(lv, v, tol, feas, Lsel, best):
 
 @njit(parallel=True, cache=False)  # no disk cache: kernels specialised on a user function never hit it
 def backward(transition, precompute, N, X, controls, w, p, tab, VT, LT, use_level, level_tol,
-             lo, inv_dx, n, uniform, pts, strides, clip, policy, store_policy):
+             lo, inv_dx, n, uniform, pts, strides, clip, policy, store_policy, cubic_last):
     """Backward pass. VT[N] (and LT[N] when use_level) must hold the terminal data; fills VT[0..N-1],
-    LT[0..N-1] and, when store_policy, policy[0..N-1] (argmin control index, -1 if none)."""
+    LT[0..N-1] and, when store_policy, policy[0..N-1] (argmin control index, -1 if none).
+    ``cubic_last``: the cost-to-go is interpolated by :func:`_interp_cubic_last`."""
     n_states = X.shape[0]
     nx = X.shape[1]
     nu = controls.shape[0]
@@ -216,7 +293,10 @@ def backward(transition, precompute, N, X, controls, w, p, tab, VT, LT, use_leve
                             Lmin = lv
                         if not level_needs_cost(lv, level_tol, feas, Lsel):
                             continue
-                    v = cst + _interp(Vn, nx, strides, ib, tb)
+                    if cubic_last:
+                        v = cst + _interp_cubic_last(Vn, nx, n, uniform, strides, ib, tb)
+                    else:
+                        v = cst + _interp(Vn, nx, strides, ib, tb)
                     if not (v < np.inf):
                         continue
                     if use_level:
@@ -238,9 +318,10 @@ def backward(transition, precompute, N, X, controls, w, p, tab, VT, LT, use_leve
 
 @njit(cache=False)
 def forward(transition, precompute, N, x0, controls, w, p, tab, VT, LT, use_level, level_tol,
-            lo, inv_dx, n, uniform, pts, strides, clip, X_out, U_idx, stage, pred):
+            lo, inv_dx, n, uniform, pts, strides, clip, X_out, U_idx, stage, pred, cubic_last):
     """Forward pass from the true (off-grid) state x0. Returns the number of steps completed
-    (N unless no admissible control was found at some step)."""
+    (N unless no admissible control was found at some step). ``cubic_last``: the cost-to-go is
+    interpolated by :func:`_interp_cubic_last` (the level stays multilinear)."""
     nx = x0.shape[0]
     nu = controls.shape[0]
     x = x0.copy()
@@ -271,7 +352,10 @@ def forward(transition, precompute, N, x0, controls, w, p, tab, VT, LT, use_leve
                     continue
                 if not level_needs_cost(lv, level_tol, feas, Lsel):
                     continue
-                v = cst + _interp(Vn, nx, strides, ib, tb)
+                if cubic_last:
+                    v = cst + _interp_cubic_last(Vn, nx, n, uniform, strides, ib, tb)
+                else:
+                    v = cst + _interp(Vn, nx, strides, ib, tb)
                 if not (v < np.inf):
                     continue
                 if level_better(lv, v, level_tol, feas, Lsel, best):
@@ -280,7 +364,10 @@ def forward(transition, precompute, N, x0, controls, w, p, tab, VT, LT, use_leve
                     feas = lv <= level_tol
                     bi = iu
             else:
-                v = cst + _interp(Vn, nx, strides, ib, tb)
+                if cubic_last:
+                    v = cst + _interp_cubic_last(Vn, nx, n, uniform, strides, ib, tb)
+                else:
+                    v = cst + _interp(Vn, nx, strides, ib, tb)
                 if v < best:
                     best = v
                     bi = iu
@@ -297,15 +384,19 @@ def forward(transition, precompute, N, x0, controls, w, p, tab, VT, LT, use_leve
 
 
 @njit(cache=True)
-def interp_points(V, Q, lo, inv_dx, n, uniform, pts, strides, clip):
-    """Interpolate flat V at each row of Q (m, nx); +inf off-grid."""
+def interp_points(V, Q, lo, inv_dx, n, uniform, pts, strides, clip, cubic_last):
+    """Interpolate flat V at each row of Q (m, nx); +inf off-grid. ``cubic_last``: by
+    :func:`_interp_cubic_last` instead of multilinearly."""
     m, nx = Q.shape
     out = np.empty(m)
     ib = np.empty(nx, np.int64)
     tb = np.empty(nx)
     for j in range(m):
         if _locate_all(Q[j], nx, lo, inv_dx, n, uniform, pts, clip, ib, tb):
-            out[j] = _interp(V, nx, strides, ib, tb)
+            if cubic_last:
+                out[j] = _interp_cubic_last(V, nx, n, uniform, strides, ib, tb)
+            else:
+                out[j] = _interp(V, nx, strides, ib, tb)
         else:
             out[j] = np.inf
     return out

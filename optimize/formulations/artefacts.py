@@ -24,7 +24,9 @@ def trajectory_checks(outcome) -> dict:
     """Grid artefacts in a Thermal-Cabin-DP solution (a :class:`DPOutcome` with a cabin state).
 
     Returns ``chatter_pct`` (share of steps where the heater goes to a neighbouring grid value and straight
-    back), ``chatter_longest_s`` (longest stretch of such back-and-forth), ``pinned_pct`` (share of times
+    back), ``chatter_longest_s`` (longest stretch of such back-and-forth), ``chatter_off_bound_pct`` (the
+    share of steps with such a flip that ends with the cabin off its comfort bound: on the bound, a heat
+    between two grid values is held by an occasional step to the neighbouring value), ``pinned_pct`` (share of times
     the cabin sits within ``ON_NODE_K`` of a grid node above its comfort bound), ``pinned_longest_s``
     (longest such stretch) and ``at_bound_pct`` (share of times on the comfort bound, where the bound and
     not the grid holds it)."""
@@ -41,13 +43,17 @@ def trajectory_checks(outcome) -> dict:
         flip[1:-1] = (b != a) & (c == a) & (np.abs(b - a) <= 1.0001 * dq)
     lo, h = ex["T_cab_grid_lo"], ex["T_cab_grid_step"]
     tc = np.asarray(sim.T_cab[1:], float)
-    x = (tc - lo) / h
+    # a grid that moves with the comfort bound has its nodes at offset + lo + j h at each step
+    off = np.asarray(ex.get("T_cab_grid_offset", 0.0), float)
+    x = (tc - off - lo) / h
     on_node = np.abs(x - np.round(x)) * h < ON_NODE_K
     # riding the comfort bound is the constraint at work, not the grid, even where the bound is a node
     at_bound = np.zeros_like(on_node) if outcome.T_cab_lb is None else tc <= outcome.T_cab_lb + ON_NODE_K
     pinned = on_node & ~at_bound
+    flip_off = flip & ~at_bound if flip.size == at_bound.size else flip
     return {"chatter_pct": 100.0 * float(flip.mean()) if q.size else 0.0,
             "chatter_longest_s": _longest_run(flip) * Ts,
+            "chatter_off_bound_pct": 100.0 * float(flip_off.mean()) if q.size else 0.0,
             "pinned_pct": 100.0 * float(pinned.mean()) if pinned.size else 0.0,
             "pinned_longest_s": _longest_run(pinned) * Ts,
             "at_bound_pct": 100.0 * float(at_bound.mean()) if at_bound.size else 0.0}

@@ -25,10 +25,11 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from optimize.formulations.layout import (_C_CH, _C_CHI, _C_PEN, _C_SH, _C_SHI, _C_SLO, _C_TH, _C_THI, _C_TLO, _C_TS,
+from optimize.formulations.layout import (_C_CH, _C_CHI, _C_CREL, _C_PEN, _C_SH, _C_SHI, _C_SLO, _C_TH, _C_THI, _C_TLO, _C_TS,
                                           _C_TAMB, _C_WBL, _CCAB, _CENG, _CP, _EPS, _GAMMA, _LHV, _MS0, _QSUN,
                                           _RECIRC, _T_OK, _T_PE, _T_SOC0, _T_WF, _UACAB, _A_FCLG, _A_LOSSG)
 from optimize.dp.kernels import _interp_slow as _slow  # the engine's exact multilinear interpolation
+from optimize.dp.kernels import _hermite, _interp_cubic_last  # the engine's cubic along the cabin axis
 from optimize.dp.kernels import level_better, level_needs_cost  # the engine's level-set choice rule
 from optimize.dp.engine import ValueFunctions
 from calib.model.equations import cabin_heat_rate, coolant_heat_rate, heater_core_limit
@@ -166,12 +167,13 @@ def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol):
 
 
 @njit(parallel=True, cache=True)
-def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol):
+def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic):
     """Thermal-Cabin-DP backward pass (states SOC x T_cl x T_cab, controls power x Q).
 
     Controls whose requested heat exceeds the heater-core limit all deliver the same heat (the limit):
     they are identical transitions, so only the first of them (lowest control index, the one the engine's
-    tie rule would keep) is evaluated."""
+    tie rule would keep) is evaluated. ``cubic``: the cost-to-go is interpolated along T_cab by the
+    engine's cubic Hermite (``interp="cubic_last"``, needs >= 3 cabin nodes); the level stays linear."""
     ns, nt, nc, nq = socg.size, tclg.size, cabg.size, Q.size
     np_ = big.shape[1]
     s_lo, s_inv = socg[0], (ns - 1) / (socg[-1] - socg[0])
@@ -185,6 +187,8 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol):
     s1 = nc
     s0 = nt * nc
     strides = np.array([s0, s1, 1], np.int64)
+    nn = np.array([ns, nt, nc], np.int64)
+    unif = np.ones(3, np.bool_)
     nplane = ns * nt
     qlim = np.empty((nt, nc))
     nunl = np.empty((nt, nc), np.int64)  # number of Q values not limited at (j, m)
@@ -203,9 +207,16 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol):
         Vn = VT[k + 1]
         Ln = LT[k + 1]
         lb = w[k, 2]
+        # cabin node m is the temperature cabg[m] + off; the next one is located at tc - off_n
+        off = 0.0
+        off_n = 0.0
+        if P[_C_CREL] != 0.0:
+            off = w[k, 3]
+            off_n = lb
         for m in range(nc):
+            T_m = cabg[m] + off
             for j in range(nt):
-                ql = heater_core_limit(P[_MS0 + _EPS], P[_C_WBL], P[_MS0 + _CP], P[_MS0 + _RECIRC], tclg[j], cabg[m],
+                ql = heater_core_limit(P[_MS0 + _EPS], P[_C_WBL], P[_MS0 + _CP], P[_MS0 + _RECIRC], tclg[j], T_m,
                                        T_amb)
                 qlim[j, m] = ql
                 cnt = 0
@@ -214,14 +225,14 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol):
                         cnt += 1
                 nunl[j, m] = cnt
             for iq in range(nq):
-                tc = cabg[m] + Ts * cabin_heat_rate(P[_MS0 + _UACAB], P[_MS0 + _QSUN], cabg[m], T_amb, Q[iq])[0] / P[_MS0 + _CCAB]
+                tc = T_m + Ts * cabin_heat_rate(P[_MS0 + _UACAB], P[_MS0 + _QSUN], T_m, T_amb, Q[iq])[0] / P[_MS0 + _CCAB]
                 pc = 0.0
                 if tc < lb:
                     pc = (lb - tc) / P[_C_CH]
                 elif tc > P[_C_CHI]:
                     pc = (tc - P[_C_CHI]) / P[_C_CH]
                 pcu[m, iq] = pc
-                c, tt = _loc(tc, c_lo, c_inv, nc)
+                c, tt = _loc(tc - off_n, c_lo, c_inv, nc)
                 cu[m, iq] = c
                 tu[m, iq] = tt
         for r in prange(nc * nq):
@@ -231,7 +242,10 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol):
             t2 = tu[m, iq]
             for e in range(nplane):
                 o = e * nc + c
-                SV[r, e] = (1.0 - t2) * Vn[o] + t2 * Vn[o + 1]
+                if cubic:
+                    SV[r, e] = _hermite(Vn, e * nc, c, nc, t2)
+                else:
+                    SV[r, e] = (1.0 - t2) * Vn[o] + t2 * Vn[o + 1]
                 SL[r, e] = (1.0 - t2) * Ln[o] + t2 * Ln[o + 1]
         for ip in prange(np_):
             if tab[ip, _T_OK] == 0.0:
@@ -307,7 +321,10 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol):
                                 tb[0] = ta
                                 tb[1] = tt
                                 tb[2] = tu[m, iq]
-                                vv = _slow(Vn, 3, strides, ib, tb)
+                                if cubic:
+                                    vv = _interp_cubic_last(Vn, 3, nn, unif, strides, ib, tb)
+                                else:
+                                    vv = _slow(Vn, 3, strides, ib, tb)
                             v = c0 + PEN * ((pen0 + PT[ip, j, iq]) + pcu[m, iq]) + vv
                             if not (v < np.inf):
                                 continue
@@ -326,13 +343,14 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol):
                             pen += (P[_C_TLO] - tn) / P[_C_TH]
                         elif tn > P[_C_THI]:
                             pen += (tn - P[_C_THI]) / P[_C_TH]
-                        tc = cabg[m] + Ts * cabin_heat_rate(P[_MS0 + _UACAB], P[_MS0 + _QSUN], cabg[m], T_amb, q)[0] / P[_MS0 + _CCAB]
+                        T_m = cabg[m] + off
+                        tc = T_m + Ts * cabin_heat_rate(P[_MS0 + _UACAB], P[_MS0 + _QSUN], T_m, T_amb, q)[0] / P[_MS0 + _CCAB]
                         if tc < lb:
                             pen += (lb - tc) / P[_C_CH]
                         elif tc > P[_C_CHI]:
                             pen += (tc - P[_C_CHI]) / P[_C_CH]
                         bb, tt = _loc(tn, t_lo, t_inv, nt)
-                        c, t2 = _loc(tc, c_lo, c_inv, nc)
+                        c, t2 = _loc(tc - off_n, c_lo, c_inv, nc)
                         ib[0] = a
                         ib[1] = bb
                         ib[2] = c
@@ -349,9 +367,12 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol):
                             Lmin[sidx] = lv
                         if not level_needs_cost(lv, level_tol, feas[sidx], Lsel[sidx]):
                             continue
-                        vv = _tri(Vn, o, s0, s1, ta, tt, t2)
-                        if not np.isfinite(vv):
-                            vv = _slow(Vn, 3, strides, ib, tb)
+                        if cubic:
+                            vv = _interp_cubic_last(Vn, 3, nn, unif, strides, ib, tb)
+                        else:
+                            vv = _tri(Vn, o, s0, s1, ta, tt, t2)
+                            if not np.isfinite(vv):
+                                vv = _slow(Vn, 3, strides, ib, tb)
                         v = c0 + PEN * pen + vv
                         if not (v < np.inf):
                             continue
@@ -394,11 +415,13 @@ def backward_pass_fused(prob) -> ValueFunctions:
     nq = int(P[1])
     Q = np.ascontiguousarray(prob.controls[:nq, 2])
     t0 = time.perf_counter()
+    if prob.interp != "multilinear" and nx != 3:
+        raise ValueError(f"interp {prob.interp!r}: the fused kernels offer it for 3 states only")
     if nx == 2:
         backward2(prob.N, P, big, prob.w, prob.grids[0], prob.grids[1], Q, VT, LT, float(prob.level_tol))
     elif nx == 3:
         backward3(prob.N, P, big, prob.w, prob.grids[0], prob.grids[1], prob.grids[2], Q, VT, LT,
-                  float(prob.level_tol))
+                  float(prob.level_tol), prob.interp == "cubic_last" and prob.grids[2].size >= 3)
     else:
         raise ValueError("fused kernels cover 2 and 3 states")
     t_b = time.perf_counter() - t0

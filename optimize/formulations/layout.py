@@ -14,6 +14,8 @@ from numba import njit
 # cfg layout (float64 array in the params tuple)
 _C_NX, _C_NQ, _C_TAMB, _C_TS, _C_TBAT, _C_WBL = 0, 1, 2, 3, 4, 5
 _C_SLO, _C_SHI, _C_SH, _C_TLO, _C_THI, _C_TH, _C_CHI, _C_CH, _C_PEN = 6, 7, 8, 9, 10, 11, 12, 13, 14
+# 1.0: the cabin state is the temperature above the step's comfort bound (w_k[3] at k, w_k[2] at k+1)
+_C_CREL = 15
 
 # array descriptors (offset, length) in the flat parameter vector, then the model scalars
 _A_SOCG, _A_FCLG, _A_LOSSG, _A_SOCBP, _A_UOC, _A_SOCBPR, _A_RINT, _A_TFCL, _A_FCL, _A_BIG = range(16, 36, 2)

@@ -18,13 +18,20 @@ from calib.model.simulate import fuel_equivalents_g
 
 from optimize.dp.engine import DPProblem, DPResult, backward_pass, forward_pass
 from optimize.formulations.artefacts import trajectory_checks
-from optimize.formulations.layout import (LEVEL_TOL, PENALTY_G_PER_STEP, _C_CH, _C_CHI, _C_NQ, _C_NX, _C_PEN, _C_SH, _C_SHI,
+from optimize.formulations.layout import (LEVEL_TOL, PENALTY_G_PER_STEP, _C_CH, _C_CHI, _C_CREL, _C_NQ, _C_NX, _C_PEN, _C_SH, _C_SHI,
                      _C_SLO, _C_TAMB, _C_TBAT, _C_TH, _C_THI, _C_TLO, _C_TS, _C_WBL, _MS, _T_SOC0,
                      pack_params)
 from optimize.formulations.scenario import DPGrids, DPScenario, _grid
 from optimize.formulations.transition import build_tables, hev_precompute, hev_transition
 
 
+
+
+#: Thermal-Cabin-DP's interpolation of the cost-to-go (the cabin is the last state).
+CABIN_INTERP = "multilinear"
+#: Coordinates of Thermal-Cabin-DP's cabin state (:func:`build_problem`) and the default.
+CABIN_STATES = ("absolute", "bound")
+CABIN_STATE = "bound"
 
 
 def peak_rss_mb() -> float:
@@ -124,8 +131,9 @@ def reference_cabin(params, cycle: Cycle, scen: DPScenario) -> np.ndarray:
     return reference_run(params, cycle, scen).T_cab.copy()
 
 
-def _terminal_cost(mp, scen: DPScenario, nx: int, cab_soft=None):
-    """Terminal cost phi(X) on grid points X (n, nx) for the scenario's terminal condition."""
+def _terminal_cost(mp, scen: DPScenario, nx: int, cab_soft=None, cab_offset: float = 0.0):
+    """Terminal cost phi(X) on grid points X (n, nx) for the scenario's terminal condition; the cabin
+    temperature is ``X[:, 2] + cab_offset``."""
     if scen.terminal == "valued":
         if nx == 1:
             return None
@@ -136,12 +144,12 @@ def _terminal_cost(mp, scen: DPScenario, nx: int, cab_soft=None):
         # "saves" 50 g of corrected fuel).
         def phi(X):
             eq = fuel_equivalents_g(mp, scen.soc0, scen.soc0, scen.T_cl0, X[:, 1], scen.T_cab0,
-                                    X[:, 2] if nx == 3 else scen.T_cab0)
+                                    X[:, 2] + cab_offset if nx == 3 else scen.T_cab0)
             return -(eq["coolant_g"] + eq["cabin_g"]) * np.ones(X.shape[0])
         return phi
     if scen.terminal == "free" and cab_soft is not None:
         T_term, rate = cab_soft
-        return lambda X: rate * np.maximum(T_term - X[:, 2], 0.0)  # noqa: E731
+        return lambda X: rate * np.maximum(T_term - (X[:, 2] + cab_offset), 0.0)  # noqa: E731
     return None
 
 
@@ -188,8 +196,14 @@ class _Built:
 
 
 def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: float | None = None,
-                  warm: bool = False, cycle=None) -> _Built:
-    """Assemble the :class:`DPProblem` of a formulation with ``nx`` states (1, 2 or 3)."""
+                  warm: bool = False, cycle=None, interp: str = "multilinear",
+                  cabin: str = "absolute") -> _Built:
+    """Assemble the :class:`DPProblem` of a formulation with ``nx`` states (1, 2 or 3); ``interp``: the
+    cost-to-go interpolation (:class:`optimize.dp.engine.DPProblem`); ``cabin`` (3 states): the cabin
+    state is the temperature (``"absolute"``) or its height above the step's comfort bound (``"bound"``:
+    the grid moves with the bound, which is a node at every step)."""
+    if cabin not in CABIN_STATES:
+        raise ScenarioError(f"cabin state {cabin!r}: choose one of {', '.join(CABIN_STATES)}")
     mp = _mp(params)
     if warm:
         mp = mp._replace(f_cl=np.ones_like(mp.f_cl))
@@ -203,7 +217,7 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
     pc = _power_controls(mp, grids)
     P_trac = _traction(mp, cyc)
     extra = {}
-    w = np.zeros((N, 3))
+    w = np.zeros((N, 4))
     w[:, 0] = P_trac
     grid_list = [socg]
     bounds = [(scen.soc0, None)]
@@ -230,24 +244,33 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
         lb = ref - scen.cab_lb_offset
         lb[0] = min(lb[0], scen.T_cab0)
         w[:, 2] = lb[1:]
-        lo = math.floor(float(np.min(lb)) + 1e-9)
         hi = max(scen.T_cab_ub, float(ref[-1]), scen.T_cab0)
+        rel = cabin == "bound"
+        if rel:
+            # the state is the height above the step's comfort bound: the bound is the node 0 at every step
+            w[:, 3] = lb[:-1]
+            off = lb.copy()
+            lo, hi = 0.0, hi - float(np.min(lb))
+        else:
+            off = np.zeros(N + 1)
+            lo = math.floor(float(np.min(lb)) + 1e-9)
         if hi - lo < grids.tcab:
             hi = lo + grids.tcab
         tcabg = _grid(lo, hi, grids.tcab)
         if tcabg[-1] < hi - 1e-9:
             tcabg = np.append(tcabg, tcabg[-1] + grids.tcab)
         grid_list.append(tcabg)
-        bounds.append((t_cab, None) if scen.terminal == "match" else (None, None))
+        bounds.append((t_cab - off[-1], None) if scen.terminal == "match" else (None, None))
         cab_soft = (float(ref[-1]), float(scen.cab_terminal_g_per_K))
-        x0.append(scen.T_cab0)
+        x0.append(scen.T_cab0 - off[0])
         Q = _grid(scen.Q_heat_min, scen.Q_heat_max, grids.qheat)
-        extra.update(T_cab_lb_min=float(np.min(lb)), T_cab_ub=float(tcabg[-1]),
+        extra.update(T_cab_lb_min=float(np.min(lb)), T_cab_ub=float(tcabg[-1] + np.min(off)),
                      T_cab_terminal_min=float(ref[-1]), T_cab_grid_lo=float(tcabg[0]),
-                     T_cab_grid_step=float(grids.tcab), Q_heat_step=float(grids.qheat))
+                     T_cab_grid_step=float(grids.tcab), Q_heat_step=float(grids.qheat), cabin_state=cabin,
+                     T_cab_grid_offset=off[1:].copy())
     else:
         Q = np.array([scen.Q_heat if heater is None else heater])
-    terminal = _terminal_cost(mp, scen, nx, cab_soft)
+    terminal = _terminal_cost(mp, scen, nx, cab_soft, float(off[-1]) if nx == 3 else 0.0)
     extra["terminal"] = scen.terminal
     nq = Q.size
     controls = np.column_stack([np.repeat(pc, nq, axis=0), np.tile(Q, pc.shape[0])])
@@ -256,6 +279,7 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
     cfg[_C_TLO], cfg[_C_THI], cfg[_C_TH] = tclg[0], tclg[-1], tclg[1] - tclg[0]
     if nx == 3:
         cfg[_C_CHI], cfg[_C_CH] = scen.T_cab_ub, grids.tcab
+        cfg[_C_CREL] = 1.0 if rel else 0.0
     cfg[_C_PEN] = PENALTY_G_PER_STEP
     cfg[_C_NX], cfg[_C_NQ], cfg[_C_TAMB], cfg[_C_TS] = nx, nq, scen.T_amb, Ts
     cfg[_C_TBAT], cfg[_C_WBL] = mp.T_bat_ref, mp.W_bl
@@ -267,7 +291,7 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
     prob = DPProblem(grids=grid_list, controls=controls, N=N, transition=hev_transition, w=w, params=p,
                      terminal_bounds=bounds, terminal_cost=terminal, boundary="levelset", clip=True,
                      level_tol=LEVEL_TOL, precompute=hev_precompute,
-                     table_shape=(pc.shape[0], _T_SOC0 + socg.size))
+                     table_shape=(pc.shape[0], _T_SOC0 + socg.size), interp=interp)
     return _Built(prob, np.array(x0), cyc, extra, mp)
 
 
@@ -349,16 +373,21 @@ def solve_thermal(params, scenario: DPScenario | None = None, grids: DPGrids | N
 
 
 def solve_thermal_cabin(params, scenario: DPScenario | None = None, grids: DPGrids | None = None, *,
-                        engine: str = "fused", threads: int | None = None) -> DPOutcome:
-    """Thermal-Cabin-DP (SOC, T_cl, T_cab; Q_heat a control). ``engine``: "fused" (default) or "generic"."""
+                        engine: str = "fused", threads: int | None = None,
+                        interp: str = CABIN_INTERP, cabin: str = CABIN_STATE) -> DPOutcome:
+    """Thermal-Cabin-DP (SOC, T_cl, T_cab; Q_heat a control). ``engine``: "fused" (default) or "generic".
+    ``interp``: how both passes interpolate the cost-to-go along the cabin axis
+    (:class:`optimize.dp.engine.DPProblem`; default :data:`CABIN_INTERP`); ``cabin``: the cabin state's
+    coordinate (:func:`build_problem`; default :data:`CABIN_STATE`)."""
     scen, grids = scenario or DPScenario(), grids or DPGrids()
     t0 = time.perf_counter()
-    b = build_problem(params, scen, grids, 3)
+    b = build_problem(params, scen, grids, 3, interp=interp, cabin=cabin)
     with _threads(threads):
         res = _solve(b, engine)
     sim = resimulate(params, b.cyc, res.u[:, 0], res.u[:, 1], res.u[:, 2], scen, "Thermal-Cabin-DP")
     out = _outcome("thermal_cabin", params, b, res, scen, grids, sim, t0)
     out.extra["engine"] = engine
+    out.extra["interp"] = interp
     out.extra["grid_artefacts"] = trajectory_checks(out)
     return out
 

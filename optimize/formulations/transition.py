@@ -10,7 +10,7 @@ from calib.model.equations import (IDLE, OFF, battery_current, battery_ocv_r, ca
                                    engine_bay_loss, fuel_map, heater_core_limit, power_split, radiator_heat)
 
 from optimize.formulations.layout import (_A_BIG, _A_FCL, _A_FCLG, _A_LOSSG, _A_RINT, _A_SOCBP, _A_SOCBPR, _A_TFCL, _A_UOC, _CBAT,
-                     _CCAB, _CENG, _CP, _C_CH, _C_CHI, _C_NQ, _C_NX, _C_PEN, _C_SH, _C_SHI, _C_SLO, _C_TAMB,
+                     _CCAB, _CENG, _CP, _C_CH, _C_CHI, _C_CREL, _C_NQ, _C_NX, _C_PEN, _C_SH, _C_SHI, _C_SLO, _C_TAMB,
                      _C_TBAT, _C_TH, _C_THI, _C_TLO, _C_TS, _C_WBL, _EPS, _GAMMA, _HA, _KAPPA, _KRAD, _LHV,
                      _MS0, _QRADMAX, _QSUN, _RECIRC, _R_TC, _TBREF, _TOPEN, _T_OK, _T_PBAT, _T_PE, _T_SOC0,
                      _T_WF, _UACAB, _arr)
@@ -77,7 +77,8 @@ def _soc_next(p, soc, P_bat, Ts):
 
 @njit(cache=True)
 def hev_transition(k, x, u, w_k, p, tab, iu, ix, x_next):  # pragma: no cover - compiled
-    """x = (soc[, T_cl[, T_cab]]), u = (e_mode, P_bat_mg, Q_heat_cmd); w_k = (P_trac, T_cab_ref_k, T_cab_LB_k+1).
+    """x = (soc[, T_cl[, T_cab]]), u = (e_mode, P_bat_mg, Q_heat_cmd); w_k = (P_trac, T_cab_ref_k, T_cab_LB_k+1,
+    T_cab_LB_k). With the cabin relative to its bound (``p[_C_CREL]``) the cabin state is T_cab - T_cab_LB_k.
 
     Returns the fuel (g) of the step, inf if infeasible. Same equations as :func:`calib.model.equations.step`."""
     nq = int(p[_C_NQ])
@@ -114,6 +115,8 @@ def hev_transition(k, x, u, w_k, p, tab, iu, ix, x_next):  # pragma: no cover - 
     W_f = wf * fcl
     if nx == 3:
         T_cab = x[2]
+        if p[_C_CREL] != 0.0:
+            T_cab += w_k[3]
     else:
         T_cab = w_k[1]
     q_lim = heater_core_limit(p[_MS0 + _EPS], p[_C_WBL], p[_MS0 + _CP], p[_MS0 + _RECIRC], T_cl, T_cab, T_amb)
@@ -132,7 +135,7 @@ def hev_transition(k, x, u, w_k, p, tab, iu, ix, x_next):  # pragma: no cover - 
         pen += (tn - p[_C_THI]) / p[_C_TH]
     if nx == 3:
         tc = T_cab + Ts * cabin_heat_rate(p[_MS0 + _UACAB], p[_MS0 + _QSUN], T_cab, T_amb, q)[0] / p[_MS0 + _CCAB]
-        x_next[2] = tc
+        x_next[2] = tc - w_k[2] if p[_C_CREL] != 0.0 else tc
         if tc < w_k[2]:
             pen += (w_k[2] - tc) / p[_C_CH]
         elif tc > p[_C_CHI]:
