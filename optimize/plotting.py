@@ -64,6 +64,10 @@ def plot_case_study(cs, outdir) -> list:
             if name == "cabin" and "thermal_cabin" in cs.outcomes:
                 ex = cs.outcomes["thermal_cabin"].extra
                 ax.axhline(ex.get("T_cab_ub", np.nan), color="0.5", ls=":", lw=0.8, label="upper bound")
+                lb = cs.outcomes["thermal_cabin"].T_cab_lb
+                if lb is not None:  # the comfort bound at steps 1..N, which Thermal-Cabin-DP may ride
+                    tt = cs.sims["thermal_cabin"].t
+                    ax.plot(tt[1:1 + len(lb)], lb, color="0.5", ls="--", lw=0.8, label="comfort bound")
                 if cs.scenario.terminal == "free":
                     ax.axhline(ex.get("T_cab_terminal_min", np.nan), color="0.5", ls="--", lw=0.8,
                                label="terminal minimum")
