@@ -62,3 +62,23 @@ def test_strict_refuses_the_damaged_layout(tmp_path):
     _patch_byte_offset(p, "ambient_temp", 4104)
     with pytest.raises(Exception, match="outside its record"):
         read_log(p, strict=True)
+
+
+def test_an_unclosed_handle_collected_during_a_read_is_not_damage_of_the_file(tmp_path, monkeypatch):
+    """A ResourceWarning about some other object's unclosed file, emitted whenever the garbage collector
+    runs inside the read, says nothing about this file: the intact file reads without any damage."""
+    import asammdf as am
+
+    p = _write(tmp_path / "drive.mf4")
+    real_get = am.MDF.get
+
+    def get_and_collect_a_leak(self, *a, **k):
+        warnings.warn("unclosed file <_io.BufferedReader name='elsewhere.mf4'>", ResourceWarning, stacklevel=2)
+        return real_get(self, *a, **k)
+
+    monkeypatch.setattr(am.MDF, "get", get_and_collect_a_leak)
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        log = read_log(p)
+    assert not [x for x in w if issubclass(x.category, LogDamageWarning)]
+    assert not log.meta.damage

@@ -207,6 +207,10 @@ def quiet_libraries(loggers=("can", "asammdf", "mcap", "canmatrix", "cantools"))
         for w in caught:
             if issubclass(w.category, LogDamageWarning):
                 ours.append(w)
+            elif issubclass(w.category, ResourceWarning):
+                # the garbage collector's report on some earlier object's unclosed handle, emitted whenever
+                # collection happens to run: it says nothing about the file being read
+                continue
             else:
                 captured.append(f"{w.category.__name__}: {w.message}")
     finally:
