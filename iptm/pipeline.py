@@ -219,9 +219,10 @@ class _StoredOutcome:
 
     cached = True
 
-    def __init__(self, d: dict):
+    def __init__(self, d: dict, T_cab_lb=None):
         self._d = d
         self.extra = d  # describe() flattens the outcome's extra figures into the dict
+        self.T_cab_lb = T_cab_lb  # the comfort bound at steps 1..N (a list), for the cabin figure
 
     def describe(self) -> dict:
         return self._d
@@ -278,7 +279,7 @@ def optimize_cached(params, scen, grids, strategies, store: Store | None, progre
                 for name, a in arrays.items():
                     sims[name] = sim_from_arrays(a)
                 if entry.get("outcome"):
-                    outcomes[strat] = _StoredOutcome(entry["outcome"])
+                    outcomes[strat] = _StoredOutcome(entry["outcome"], entry.get("T_cab_lb"))
                 timings[strat] = entry.get("timing", 0.0)
                 rule = entry.get("rule") or rule
                 bar.set_postfix_str(_states_text(entry.get("outcome")) + "from the cache")
@@ -294,7 +295,9 @@ def optimize_cached(params, scen, grids, strategies, store: Store | None, progre
                     for name, sim in cs.sims.items():
                         store.put_npz("dp", f"{key}-{name}", sim_to_arrays(sim))
                     store.put_json("dp", key, {"sims": list(cs.sims), "timing": cs.timings.get(strat, 0.0),
-                                               "rule": cs.rule, "outcome": o.describe() if o else None})
+                                               "rule": cs.rule, "outcome": o.describe() if o else None,
+                                               "T_cab_lb": None if getattr(o, "T_cab_lb", None) is None
+                                               else [float(x) for x in o.T_cab_lb]})
                 bar.set_postfix_str(_states_text(o.describe() if o else None) + f"solved in {cs.timings.get(strat, 0.0):.1f} s")
             bar.update(1)
     order = [k for k in ("rule", "baseline", "thermal", "thermal_cabin", "baseline_warm") if k in sims]

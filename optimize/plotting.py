@@ -64,7 +64,7 @@ def plot_case_study(cs, outdir) -> list:
             if name == "cabin" and "thermal_cabin" in cs.outcomes:
                 ex = cs.outcomes["thermal_cabin"].extra
                 ax.axhline(ex.get("T_cab_ub", np.nan), color="0.5", ls=":", lw=0.8, label="upper bound")
-                lb = cs.outcomes["thermal_cabin"].T_cab_lb
+                lb = getattr(cs.outcomes["thermal_cabin"], "T_cab_lb", None)
                 if lb is not None:  # the comfort bound at steps 1..N, which Thermal-Cabin-DP may ride
                     tt = cs.sims["thermal_cabin"].t
                     ax.plot(tt[1:1 + len(lb)], lb, color="0.5", ls="--", lw=0.8, label="comfort bound")
