@@ -173,9 +173,6 @@ def read_mdf_streams(path, column_map: dict | None = None, strict: bool = False)
 
 def _read_mdf(MDF, path, column_map, dmg, meta, tmp):
     size = Path(path).stat().st_size
-    # collect the garbage of earlier reads now: what asammdf logs while collecting an old object must not
-    # be captured below as damage of this file
-    gc.collect()
     cut_groups = 0
     with quiet_libraries() as chatter:
         mdf, err = _open_mdf(MDF, path)
