@@ -78,21 +78,29 @@ def _locate_all(xq, nx, lo, inv_dx, n, uniform, pts, clip, ib, tb):
     return True
 
 
+@njit(inline="always", cache=True)
+def _corner(c, nd, strides, ib, tb):
+    """(multilinear weight, flat offset) of corner ``c`` (bit d set: upper node in dimension d) of the cell
+    located at (ib, tb), over the first ``nd`` dimensions."""
+    wgt = 1.0
+    off = 0
+    for d in range(nd):
+        if (c >> d) & 1:
+            wgt *= tb[d]
+            off += (ib[d] + 1) * strides[d]
+        else:
+            wgt *= 1.0 - tb[d]
+            off += ib[d] * strides[d]
+    return wgt, off
+
+
 @njit(cache=True)
 def _interp_slow(V, nx, strides, ib, tb):
     """Exact multilinear interpolation that ignores zero-weight corners; +inf if any
     positive-weight corner is +inf."""
     acc = 0.0
     for c in range(1 << nx):
-        wgt = 1.0
-        off = 0
-        for d in range(nx):
-            if (c >> d) & 1:
-                wgt *= tb[d]
-                off += (ib[d] + 1) * strides[d]
-            else:
-                wgt *= 1.0 - tb[d]
-                off += ib[d] * strides[d]
+        wgt, off = _corner(c, nx, strides, ib, tb)
         if wgt == 0.0:
             continue
         v = np.float64(V[off])
@@ -198,15 +206,7 @@ def _interp_cubic_last(V, nx, n, uniform, strides, ib, tb):
     else:
         r = 0.0
         for corner in range(1 << (nx - 1)):
-            wgt = 1.0
-            off = 0
-            for d in range(nx - 1):
-                if (corner >> d) & 1:
-                    wgt *= tb[d]
-                    off += (ib[d] + 1) * strides[d]
-                else:
-                    wgt *= 1.0 - tb[d]
-                    off += ib[d] * strides[d]
+            wgt, off = _corner(corner, nx - 1, strides, ib, tb)
             if wgt != 0.0:
                 r += wgt * _hermite(V, off, c, nl, t)
     if np.isfinite(r):
