@@ -327,17 +327,22 @@ def _counting_problem(N=3, n=100, nu=2):
                      params=p), p
 
 
-def test_backward_pass_evaluates_each_state_control_pair_once_per_step():
-    """One thread, 100 nodes: the backward pass splits the states into 8 chunks of 13; every (state,
-    control) pair is evaluated exactly once per step, as n_evaluations reports, with the node's grid
-    index; without a precompute hook the table is an empty (0, 0) array."""
-    prob, p = _counting_problem()
+def _backward_pass_on_one_thread(prob):
+    """The backward pass with numba on one thread (then the thread count as it was)."""
     old = numba.get_num_threads()
     try:
         numba.set_num_threads(1)
         backward_pass(prob)
     finally:
         numba.set_num_threads(old)
+
+
+def test_backward_pass_evaluates_each_state_control_pair_once_per_step():
+    """One thread, 100 nodes: the backward pass splits the states into 8 chunks of 13; every (state,
+    control) pair is evaluated exactly once per step, as n_evaluations reports, with the node's grid
+    index; without a precompute hook the table is an empty (0, 0) array."""
+    prob, p = _counting_problem()
+    _backward_pass_on_one_thread(prob)
     assert p[0] == 3 * 100 * 2
     assert (p[1], p[2], p[3]) == (0.0, 0.0, 0.0)
 
@@ -349,12 +354,7 @@ def test_backward_pass_gives_each_node_its_grid_index_in_every_dimension():
     p = np.zeros(2)
     prob = DPProblem(grids=[np.arange(4.0), np.arange(3.0), np.arange(5.0)], controls=np.zeros((2, 1)), N=2,
                      transition=index_check, params=p)
-    old = numba.get_num_threads()
-    try:
-        numba.set_num_threads(1)
-        backward_pass(prob)
-    finally:
-        numba.set_num_threads(old)
+    _backward_pass_on_one_thread(prob)
     assert (p[0], p[1]) == (2 * 60 * 2, 0.0)
 
 

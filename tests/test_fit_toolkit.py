@@ -156,29 +156,34 @@ def test_output_error_initial_temperature_within_5_K_of_the_first_measured_value
     assert not make(set())["a"].vary
 
 
-def test_map_fit_robust_loss_discounts_an_outlier():
-    """A constant through 40 zeros and one sample at 50 with a broad prior: squares put the estimate near
-    the mean (50/41 = 1.22), a robust loss (soft_l1, f_scale 3 noise sd) keeps it below 0.75; loss='linear'
-    reaches the closed-form least-squares MAP."""
+def _constant_fit(y, s, a0, sd0, **kw):
+    """map_fit of a constant ``a`` (start 0.5, bounds +-100) to the samples ``y``, prior N(a0, sd0^2), noise
+    sd ``s`` (also the floor)."""
     import lmfit
-
-    y = np.zeros(41)
-    y[20] = 50.0
-    s, a0, sd0 = 1.0, 0.0, 100.0
 
     def make():
         ps = lmfit.Parameters()
         ps.add("a", value=0.5, min=-100, max=100)
         return ps
 
-    def segs(ps):
-        return [ps["a"].value - y]
+    return map_fit(make, lambda ps: [ps["a"].value - y], ["a"], prior={"a": a0}, prior_sd={"a": sd0}, noise_sd=s,
+                   floor=s, **kw)
 
-    lin = map_fit(make, segs, ["a"], prior={"a": a0}, prior_sd={"a": sd0}, noise_sd=s, floor=s)
+
+def test_map_fit_robust_loss_discounts_an_outlier():
+    """A constant through 40 zeros and one sample at 50 with a broad prior: squares put the estimate near
+    the mean (50/41 = 1.22), a robust loss (soft_l1, f_scale 3 noise sd) keeps it below 0.75; loss='linear'
+    reaches the closed-form least-squares MAP."""
+
+    y = np.zeros(41)
+    y[20] = 50.0
+    s, a0, sd0 = 1.0, 0.0, 100.0
+
+    lin = _constant_fit(y, s, a0, sd0)
     prec = y.size / s ** 2 + 1 / sd0 ** 2
     # (the second pass weighs the prior with the re-estimated noise sd: a 1e-4 effect with this broad prior)
     assert lin["values"]["a"] == pytest.approx((y.sum() / s ** 2 + a0 / sd0 ** 2) / prec, rel=1e-3)
-    rob = map_fit(make, segs, ["a"], prior={"a": a0}, prior_sd={"a": sd0}, noise_sd=s, floor=s, loss="soft_l1")
+    rob = _constant_fit(y, s, a0, sd0, loss="soft_l1")
     assert abs(rob["values"]["a"]) < 0.75 and lin["values"]["a"] > 1.2
 
 
@@ -201,22 +206,13 @@ def test_map_fit_robust_loss_is_scipy_soft_l1_with_f_scale_3():
     on the documented objective [(model - data) / s, (a - prior) / prior_sd]. Here s is the floor 1.0 (the
     residuals' rms, 0.86, is below it, so the fit is not repeated); three outliers 4 sd out sit where
     f_scale 3 and 4 weigh them differently (weights 0.60 against 0.71)."""
-    import lmfit
     from scipy.optimize import least_squares
 
     y = 0.1 * np.sin(np.arange(63.0))
     y[[10, 30, 50]] = 4.0
     s, a0, sd0 = 1.0, 0.0, 10.0
 
-    def make():
-        ps = lmfit.Parameters()
-        ps.add("a", value=0.5, min=-100, max=100)
-        return ps
-
-    def segs(ps):
-        return [ps["a"].value - y]
-
-    rob = map_fit(make, segs, ["a"], prior={"a": a0}, prior_sd={"a": sd0}, noise_sd=s, floor=s, loss="soft_l1")
+    rob = _constant_fit(y, s, a0, sd0, loss="soft_l1")
     assert rob["noise_sd"] == s and rob["rmse"] < s
 
     def ref(f_scale):
