@@ -49,6 +49,7 @@ class CausalComparison:
     policies: dict = field(default_factory=dict)
     timings: dict = field(default_factory=dict)
     valuation: str = "corrected"
+    soc_band: float = SOC_TOL
 
     def table(self) -> pd.DataFrame:
         return pd.DataFrame(self.rows)
@@ -70,7 +71,8 @@ class CausalComparison:
                 "gap_to_dp_pct", "vs_rule_pct"]
         with pd.option_context("display.width", 200, "display.max_columns", 20):
             txt = df[cols].to_string(index=False, float_format=lambda v: f"{v:.3f}" if abs(v) < 2 else f"{v:.2f}")
-        what = ("continuation-corrected (fuel + C(x_N) - C(x_0), Thermal-DP with the 'continued' terminal)"
+        what = ("continuation-corrected (fuel + C(x_N) - C(x_0), Thermal-DP with the 'continued' terminal, "
+                f"|SOC_N - SOC_0| <= {self.soc_band:g})"
                 if self.valuation == "continuation" else "corrected (fuel minus fuel equivalents of stored energy)")
         lines = [f"fuel_corrected_g: {what}; credit_g = fuel_g - fuel_corrected_g", txt, ""]
         for s, g in self.goals().items():
@@ -104,12 +106,14 @@ def _row(cycle, T_amb, strategy, sim, dp_corr, rule_corr, t_s, corr, residual=np
 def compare_causal(params, *, train=TRAIN_CYCLES, train_logs=(), held_out=HELD_OUT, ambients=AMBIENTS,
                    sdp_config: SDPConfig | None = None, ecms: ECMSParams | None = None, grids=None,
                    scenario=None, threads: int | None = 2, progress: bool = True,
-                   valuation: str = "corrected") -> CausalComparison:
+                   valuation: str = "corrected", soc_band: float | None = None) -> CausalComparison:
     """Build statistics and policies from ``train`` (+ ``train_logs``) and compare on ``held_out``.
 
     ``valuation``: ``"corrected"`` (fuel minus the fuel equivalents of the stored-energy changes; Thermal-DP
     with the scenario's terminal condition) or ``"continuation"`` (continuation-corrected fuel; Thermal-DP
-    with the ``continued`` terminal condition). Rows carry ``credit_g`` (fuel minus the corrected figure)
+    with the ``continued`` terminal condition and ``|SOC_N - SOC_0| <= soc_band``, default :data:`SOC_TOL`,
+    the charge-sustaining band the causal controllers are held to; ``math.inf``: SOC_N free). Rows carry
+    ``credit_g`` (fuel minus the corrected figure)
     and, with the continuation, ``residual_g`` (the part valued by fuel equivalents after it)."""
     from dataclasses import replace
 
@@ -131,7 +135,9 @@ def compare_causal(params, *, train=TRAIN_CYCLES, train_logs=(), held_out=HELD_O
         raise IptmError(f"causal comparison: valuation {valuation!r}; choose one of {', '.join(VALUATIONS)}")
     base = scenario or DPScenario()
     if valuation == "continuation":
-        base = replace(base, terminal="continued")
+        # the DP ends in the band the causal controllers must end in: free, it banks charge made at its
+        # engine's marginal efficiency, which the continuation (rule-based) uses at a better rate
+        base = replace(base, terminal="continued", cont_soc_band=SOC_TOL if soc_band is None else soc_band)
     mp = params.model_params() if hasattr(params, "model_params") else params
     markov = DemandMarkov.estimate(params, list(train) + list(train_logs))
     validation = []
@@ -167,7 +173,8 @@ def compare_causal(params, *, train=TRAIN_CYCLES, train_logs=(), held_out=HELD_O
             say(f"  {cyc} at {T_amb:g} degC: DP {dp_corr:.2f} g, rule {rule_corr:.2f} g, SDP "
                 f"{rows[-2]['fuel_corrected_g']:.2f} g, ECMS {rows[-1]['fuel_corrected_g']:.2f} g (corrected)",
                 flush=True)
-    return CausalComparison(rows, markov, validation, policies, timings, valuation)
+    return CausalComparison(rows, markov, validation, policies, timings, valuation,
+                            base.cont_soc_band if valuation == "continuation" else SOC_TOL)
 
 
 def step_timing(params, controller, cycle="artemis_urban", T_amb=-10.0, reps: int = 3) -> dict:

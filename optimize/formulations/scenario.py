@@ -38,7 +38,8 @@ class DPScenario:
         common continuation drive (``cont_cycle``, default UDDS six times) from the final state, less that from the initial state,
         remaining end-state differences valued by ``fuel_equivalents_g``
         (:func:`calib.model.continuation.continuation_value`); it values charge too, so Thermal-DP and
-        Thermal-Cabin-DP drop ``SOC_N >= SOC_0`` (Baseline-DP keeps it and has no terminal cost). C is
+        Thermal-Cabin-DP drop ``SOC_N >= SOC_0`` for the band ``|SOC_N - SOC_0| <= cont_soc_band`` (None:
+        SOC_N free; Baseline-DP keeps ``SOC_N >= SOC_0`` and has no terminal cost). C is
         computed on a sub-grid (every ``cont_soc_every``-th SOC node, coolant every ``cont_tcl_step`` K,
         cabin every ``cont_tcab_step`` K) and interpolated multilinearly;
       * ``"free"``: the paper's: final coolant free; Thermal-Cabin-DP's final cabin at least the 1500-W
@@ -69,10 +70,13 @@ class DPScenario:
     cont_soc_every: int = 5
     cont_tcl_step: float = 5.0
     cont_tcab_step: float = 2.0
+    cont_soc_band: float | None = None
 
     def __post_init__(self):
         if self.terminal not in TERMINALS:
             raise ScenarioError(f"terminal {self.terminal!r}: choose one of {', '.join(TERMINALS)}")
+        if self.cont_soc_band is not None and not self.cont_soc_band >= 0:
+            raise ScenarioError(f"cont_soc_band {self.cont_soc_band!r}: give a SOC band >= 0 (or None: SOC_N free)")
         if not (int(self.cont_soc_every) >= 1 and self.cont_tcl_step > 0 and self.cont_tcab_step > 0):
             raise ScenarioError("cont_soc_every must be a positive integer and cont_tcl_step, cont_tcab_step "
                                 "positive (K)")

@@ -298,8 +298,12 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
     w = np.zeros((N, 4))
     w[:, 0] = P_trac
     grid_list = [socg]
-    # the continuation values charge, so with it the terminal SOC is free (Baseline-DP, without it, keeps the set)
-    bounds = [(None, None) if scen.terminal == "continued" and nx >= 2 else (scen.soc0, None)]
+    # the continuation values charge, so with it the terminal SOC is free or held to a band around SOC_0
+    # (Baseline-DP, without it, keeps the set)
+    bounds = [(scen.soc0, None)]
+    if scen.terminal == "continued" and nx >= 2:
+        band = scen.cont_soc_band
+        bounds = [(None, None) if band is None else (scen.soc0 - band, scen.soc0 + band)]
     x0 = [scen.soc0]
     if nx >= 2:
         if not (scen.T_cl_min <= scen.T_cl0 <= scen.T_cl_max):
