@@ -95,3 +95,12 @@ def test_continued_dp_beats_rule_on_equal_terms(ps, dp_short):
     # and on the valued terminal's terms the DP is a different optimum (the two conditions differ)
     valued = solve_thermal(ps, replace(SHORT, terminal="valued"), GRIDS, threads=1)
     assert dp_objective(ps, valued.sim, SHORT, 2, grids=GRIDS) >= dp_short.dp_cost - 0.05
+
+
+def test_continued_soc_band(ps):
+    # with a band the DP ends charge sustaining as the causal controllers must; without, it may not
+    scen = replace(SHORT, cont_soc_band=0.01)
+    dp = solve_thermal(ps, scen, GRIDS, threads=1)
+    assert abs(dp.sim.soc[-1] - scen.soc0) <= 0.011
+    with pytest.raises(ScenarioError, match="cont_soc_band"):
+        DPScenario(cont_soc_band=-0.01)
