@@ -157,14 +157,6 @@ class SimResult:
         return fuel_equivalents_g(self.mp, self.soc[0], self.soc[-1], self.T_cl[0], self.T_cl[-1],
                                   self.T_cab[0], self.T_cab[-1])
 
-    def continuation_corrected(self, *, Q_heat, T_amb=None, cycle=None) -> dict:
-        """Continuation-corrected fuel: fuel plus the continuation values of the final minus the initial
-        state (:func:`calib.model.continuation.continuation_corrected`; ``cycle`` default
-        :data:`calib.model.continuation.CONTINUATION_CYCLE`)."""
-        from calib.model.continuation import CONTINUATION_CYCLE, continuation_corrected
-
-        return continuation_corrected(self, Q_heat=Q_heat, T_amb=T_amb, cycle=cycle or CONTINUATION_CYCLE)
-
     def summary(self) -> dict:
         """Headline figures: fuel, economy, final states, starts, idle time, heater shortfall, balances."""
         f, Ts = self.flows, self.Ts
