@@ -104,3 +104,16 @@ def test_continued_soc_band(ps):
     assert abs(dp.sim.soc[-1] - scen.soc0) <= 0.011
     with pytest.raises(ScenarioError, match="cont_soc_band"):
         DPScenario(cont_soc_band=-0.01)
+
+
+def test_continued_thermal_cabin(ps):
+    # three states: C is tabulated along the cabin too, which the DP's cabin state is measured from its bound
+    from optimize.formulations.solve import solve_thermal_cabin
+
+    scen = DPScenario(duration_s=200.0, terminal="continued", cont_cycle="udds")
+    grids = DPGrids(pbat=1000.0, qheat=100.0)
+    dp = solve_thermal_cabin(ps, scen, grids)
+    assert len(dp.extra["continuation_nodes"][2]) >= 2
+    assert dp_objective(ps, dp.sim, scen, 3, grids=grids) == pytest.approx(dp.dp_cost, abs=1e-3)
+    direct = continuation_corrected(dp.sim, Q_heat=scen.Q_heat, cycle=scen.cont_cycle)
+    assert dp.dp_cost == pytest.approx(direct["fuel_continuation_g"], abs=1.5)
