@@ -92,9 +92,9 @@ def continuation_corrected(res, *, Q_heat, T_amb=None, cycle=CONTINUATION_CYCLE,
     continuation) and the continuation end states' differences ``residual_dsoc``, ``residual_dT_cl``,
     ``residual_dT_cab``.
     """
-    T = float(res.info.get("T_amb_degC")) if T_amb is None else float(T_amb)
     if T_amb is None and res.info.get("T_amb_degC") is None:
         raise ScenarioError("continuation_corrected: the result records no ambient; pass T_amb")
+    T = float(res.info["T_amb_degC"]) if T_amb is None else float(T_amb)
     x0 = (float(res.soc[0]), float(res.T_cl[0]), float(res.T_cab[0]))
     C, run, ref_run = continuation_value(res.mp, float(res.soc[-1]), float(res.T_cl[-1]), float(res.T_cab[-1]),
                                          T_amb=T, Q_heat=Q_heat, ref=x0, cycle=cycle, rule_params=rule_params,
