@@ -10,6 +10,8 @@ from calib.model.params import Parameter, ParameterSet, default_parameters
 from calib.model.cycles import Cycle, available_cycles, load_cycle
 from calib.model.rulebased import RuleBasedController, RuleParams
 from calib.model.simulate import SimResult, credit_per_gram, fuel_equivalents_g, simulate
+from calib.model.continuation import (CONTINUATION_CYCLE, continuation_corrected, continuation_credit_per_gram,
+                                      continuation_run, continuation_value)
 from calib.model.fuelmap import FuelMap, apply_fuel_map, optimal_operating_line, read_fuel_map
 from calib.model.epa import epa_comparison, tune_fuel_scale
 from calib.model.ftp import COLD_FTP, WARM_FTP, FtpResult, ftp_comparison, run_ftp, weighted_fuel_per_distance
@@ -22,6 +24,8 @@ __all__ = [
     "Cycle", "available_cycles", "load_cycle",
     "RuleBasedController", "RuleParams",
     "SimResult", "simulate", "fuel_equivalents_g", "credit_per_gram",
+    "CONTINUATION_CYCLE", "continuation_run", "continuation_value", "continuation_corrected",
+    "continuation_credit_per_gram",
     "FuelMap", "read_fuel_map", "optimal_operating_line", "apply_fuel_map",
     "epa_comparison", "tune_fuel_scale",
     "WARM_FTP", "COLD_FTP", "FtpResult", "run_ftp", "ftp_comparison", "weighted_fuel_per_distance",

@@ -32,6 +32,10 @@ def register(sub):
     p.add_argument("--json", metavar="FILE", help="write all figures as JSON")
     p.add_argument("--n", type=int, metavar="N", help="fuzz: mutated inputs per reader (default 10000, --quick 300)")
     p.add_argument("--seed", type=int, default=0, help="fuzz: seed of the mutations (default 0)")
+    p.add_argument("--valuation", choices=("corrected", "continuation"), default="corrected",
+                   help="causal: how final states are valued: corrected (fuel equivalents of the stored energy, "
+                        "default) or continuation (the rule-based controller's fuel over UDDS six times from the final "
+                        "state; Thermal-DP with the 'continued' terminal)")
     p.set_defaults(func=run)
 
 
@@ -53,6 +57,8 @@ def run(args) -> int:
             raise
         print(f"== {n}")
         extra = {"n": args.n, "seed": args.seed} if n == "fuzz" else {}
+        if n == "causal":
+            extra = {"valuation": args.valuation}
         results[n] = mod.run(quick=args.quick, **extra)
     if args.json:
         write_json(args.json, results)

@@ -18,10 +18,11 @@ def register(sub):
     p.add_argument("--tcab0", type=float, default=None, metavar="DEGC", help="initial cabin temperature (20)")
     p.add_argument("--heater", type=float, default=None, metavar="W", help="heater demand of rule-based, "
                                                                             "Baseline and Thermal-DP (1500)")
-    p.add_argument("--terminal", choices=("free", "match", "valued"), default=None,
+    p.add_argument("--terminal", choices=("free", "match", "valued", "continued"), default=None,
                    help="terminal condition on coolant and cabin: valued (default; heat left in them valued as "
-                        "in the corrected fuel), match (at least the rule-based run's final values) or free "
-                        "(the paper's)")
+                        "in the corrected fuel), match (at least the rule-based run's final values), continued "
+                        "(final state valued by the rule-based controller's fuel over UDDS six times; charge too) or "
+                        "free (the paper's)")
     p.add_argument("--formulation", default="all",
                    help="rule, baseline, thermal, thermal_cabin, a comma list, or all (default)")
     p.add_argument("--grid", default=None, metavar="SPEC",

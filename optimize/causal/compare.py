@@ -8,6 +8,11 @@ the changes of SOC, coolant and cabin heat), the SDP and ECMS controllers with T
 (:func:`optimize.solve_thermal`, which knows the whole drive) and the rule-based controller tuned for
 that very drive (:func:`optimize.tune_rule_based`). The rule-based baseline thus also knows the drive
 (through its tuning); the causal controllers use fixed settings for every drive.
+
+``valuation="continuation"`` compares instead on the continuation-corrected fuel
+(:func:`calib.model.continuation.continuation_corrected`: fuel plus the continuation value of the final
+minus the initial state, the rule-based controller's fuel over a common next drive), with Thermal-DP
+solved with the ``continued`` terminal condition, i.e. minimising that same figure.
 """
 from __future__ import annotations
 
@@ -30,6 +35,8 @@ HELD_OUT = ("artemis_urban", "nycc", "manhattan", "wltc_city_3b", "tsdc_trip_426
 AMBIENTS = (-10.0, 0.0)
 GOAL_GAP_PCT = 3.0
 SOC_TOL = 0.01
+#: How final states are valued (:func:`compare_causal`).
+VALUATIONS = ("corrected", "continuation")
 
 
 @dataclass
@@ -41,6 +48,8 @@ class CausalComparison:
     validation: list
     policies: dict = field(default_factory=dict)
     timings: dict = field(default_factory=dict)
+    valuation: str = "corrected"
+    soc_band: float = SOC_TOL
 
     def table(self) -> pd.DataFrame:
         return pd.DataFrame(self.rows)
@@ -58,11 +67,14 @@ class CausalComparison:
 
     def format(self) -> str:
         df = self.table()
-        cols = ["cycle", "T_amb", "strategy", "fuel_g", "fuel_corrected_g", "soc_final", "T_cl_final",
+        cols = ["cycle", "T_amb", "strategy", "fuel_g", "fuel_corrected_g", "credit_g", "soc_final", "T_cl_final",
                 "gap_to_dp_pct", "vs_rule_pct"]
         with pd.option_context("display.width", 200, "display.max_columns", 20):
             txt = df[cols].to_string(index=False, float_format=lambda v: f"{v:.3f}" if abs(v) < 2 else f"{v:.2f}")
-        lines = [txt, ""]
+        what = ("continuation-corrected (fuel + C(x_N) - C(x_0), Thermal-DP with the 'continued' terminal, "
+                f"|SOC_N - SOC_0| <= {self.soc_band:g})"
+                if self.valuation == "continuation" else "corrected (fuel minus fuel equivalents of stored energy)")
+        lines = [f"fuel_corrected_g: {what}; credit_g = fuel_g - fuel_corrected_g", txt, ""]
         for s, g in self.goals().items():
             lines.append(f"{s}: max gap to DP {g['max_gap_to_dp_pct']:.2f} % (goal <= {GOAL_GAP_PCT:g} %: "
                          f"{'met' if g['within_3pct_all'] else 'NOT met'}); better than tuned rule-based on every "
@@ -71,10 +83,20 @@ class CausalComparison:
         return "\n".join(lines)
 
 
-def _row(cycle, T_amb, strategy, sim, dp_corr, rule_corr, t_s):
+def _corrected(sim, scen, valuation) -> tuple:
+    """(corrected fuel, residual of the continuation or nan) of a run under the valuation."""
+    if valuation == "continuation":
+        from calib.model.continuation import continuation_corrected
+
+        c = continuation_corrected(sim, Q_heat=scen.Q_heat, T_amb=scen.T_amb, cycle=scen.cont_cycle)
+        return c["fuel_continuation_g"], c["residual_g"]
+    return sim.summary()["fuel_corrected_g"], np.nan
+
+
+def _row(cycle, T_amb, strategy, sim, dp_corr, rule_corr, t_s, corr, residual=np.nan):
     s = sim.summary()
-    corr = s["fuel_corrected_g"]
     return {"cycle": cycle, "T_amb": T_amb, "strategy": strategy, "fuel_g": s["fuel_g"], "fuel_corrected_g": corr,
+            "credit_g": s["fuel_g"] - corr, "residual_g": residual,
             "soc_final": s["soc_final"], "dsoc": s["soc_final"] - s["soc_initial"],
             "T_cl_final": s["T_cl_final_degC"], "T_cab_final": s["T_cab_final_degC"],
             "gap_to_dp_pct": 100.0 * (corr / dp_corr - 1.0) if dp_corr else np.nan,
@@ -83,8 +105,16 @@ def _row(cycle, T_amb, strategy, sim, dp_corr, rule_corr, t_s):
 
 def compare_causal(params, *, train=TRAIN_CYCLES, train_logs=(), held_out=HELD_OUT, ambients=AMBIENTS,
                    sdp_config: SDPConfig | None = None, ecms: ECMSParams | None = None, grids=None,
-                   scenario=None, threads: int | None = 2, progress: bool = True) -> CausalComparison:
-    """Build statistics and policies from ``train`` (+ ``train_logs``) and compare on ``held_out``."""
+                   scenario=None, threads: int | None = 2, progress: bool = True,
+                   valuation: str = "corrected", soc_band: float | None = None) -> CausalComparison:
+    """Build statistics and policies from ``train`` (+ ``train_logs``) and compare on ``held_out``.
+
+    ``valuation``: ``"corrected"`` (fuel minus the fuel equivalents of the stored-energy changes; Thermal-DP
+    with the scenario's terminal condition) or ``"continuation"`` (continuation-corrected fuel; Thermal-DP
+    with the ``continued`` terminal condition and ``|SOC_N - SOC_0| <= soc_band``, default :data:`SOC_TOL`,
+    the charge-sustaining band the causal controllers are held to; ``math.inf``: SOC_N free). Rows carry
+    ``credit_g`` (fuel minus the corrected figure)
+    and, with the continuation, ``residual_g`` (the part valued by fuel equivalents after it)."""
     from dataclasses import replace
 
     from calib.model.simulate import simulate
@@ -99,7 +129,15 @@ def compare_causal(params, *, train=TRAIN_CYCLES, train_logs=(), held_out=HELD_O
 
         raise IptmError(f"causal comparison: {sorted(overlap)} both trains and tests the controllers; "
                         "held-out drives must not be training drives")
+    if valuation not in VALUATIONS:
+        from calib.errors import IptmError
+
+        raise IptmError(f"causal comparison: valuation {valuation!r}; choose one of {', '.join(VALUATIONS)}")
     base = scenario or DPScenario()
+    if valuation == "continuation":
+        # the DP ends in the band the causal controllers must end in: free, it banks charge made at its
+        # engine's marginal efficiency, which the continuation (rule-based) uses at a better rate
+        base = replace(base, terminal="continued", cont_soc_band=SOC_TOL if soc_band is None else soc_band)
     mp = params.model_params() if hasattr(params, "model_params") else params
     markov = DemandMarkov.estimate(params, list(train) + list(train_logs))
     validation = []
@@ -122,19 +160,21 @@ def compare_causal(params, *, train=TRAIN_CYCLES, train_logs=(), held_out=HELD_O
             tr = tune_rule_based(params, scen.load_cycle(), T_amb=T_amb, soc0=scen.soc0, T_cl0=scen.T_cl0,
                                  T_cab0=scen.T_cab0, Q_heat=scen.Q_heat)
             t_rule = time.perf_counter() - t0
-            dp_corr = dp.sim.summary()["fuel_corrected_g"]
-            rule_corr = tr.result.summary()["fuel_corrected_g"]
+            dp_corr, dp_res = _corrected(dp.sim, scen, valuation)
+            rule_corr, rule_res = _corrected(tr.result, scen, valuation)
             kw = dict(T_amb=T_amb, soc0=scen.soc0, T_cl0=scen.T_cl0, T_cab0=scen.T_cab0, Q_heat=scen.Q_heat)
-            rows.append(_row(cyc, T_amb, "dp_thermal", dp.sim, dp_corr, rule_corr, t_dp))
-            rows.append(_row(cyc, T_amb, "rule_tuned", tr.result, dp_corr, rule_corr, t_rule))
+            rows.append(_row(cyc, T_amb, "dp_thermal", dp.sim, dp_corr, rule_corr, t_dp, dp_corr, dp_res))
+            rows.append(_row(cyc, T_amb, "rule_tuned", tr.result, dp_corr, rule_corr, t_rule, rule_corr, rule_res))
             for name, ctrl in (("sdp", SDPController(mp, pol, T_amb)), ("ecms", ECMSController(mp, ep, T_amb))):
                 t0 = time.perf_counter()
                 sim = simulate(params, scen.load_cycle(), ctrl, **kw)
-                rows.append(_row(cyc, T_amb, name, sim, dp_corr, rule_corr, time.perf_counter() - t0))
+                t_s = time.perf_counter() - t0
+                rows.append(_row(cyc, T_amb, name, sim, dp_corr, rule_corr, t_s, *_corrected(sim, scen, valuation)))
             say(f"  {cyc} at {T_amb:g} degC: DP {dp_corr:.2f} g, rule {rule_corr:.2f} g, SDP "
                 f"{rows[-2]['fuel_corrected_g']:.2f} g, ECMS {rows[-1]['fuel_corrected_g']:.2f} g (corrected)",
                 flush=True)
-    return CausalComparison(rows, markov, validation, policies, timings)
+    return CausalComparison(rows, markov, validation, policies, timings, valuation,
+                            base.cont_soc_band if valuation == "continuation" else SOC_TOL)
 
 
 def step_timing(params, controller, cycle="artemis_urban", T_amb=-10.0, reps: int = 3) -> dict:

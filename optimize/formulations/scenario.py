@@ -7,11 +7,12 @@ from dataclasses import asdict, dataclass, fields, replace
 import numpy as np
 
 from calib.errors import ScenarioError
+from calib.model.continuation import CONTINUATION_CYCLE
 from calib.model.cycles import Cycle, load_cycle
 
 FORMULATIONS = ("baseline", "thermal", "thermal_cabin")
 #: Terminal conditions on the thermal states (``DPScenario.terminal``).
-TERMINALS = ("free", "match", "valued")
+TERMINALS = ("free", "match", "valued", "continued")
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -24,7 +25,8 @@ class DPScenario:
     cycle: bundled cycle name or CSV path; ``duration_s`` truncates it (None: whole cycle).
     cab_lb_offset: the cabin lower bound is the 1500-W reference trajectory minus this (degC).
     soc_tol: tolerance of the charge-sustaining check on re-simulated results (``SOC_N >= SOC_0 - soc_tol``).
-    terminal: the terminal condition on coolant and cabin (every formulation keeps ``SOC_N >= SOC_0``):
+    terminal: the terminal condition on coolant and cabin (every formulation but ``continued``'s keeps
+    ``SOC_N >= SOC_0``):
 
       * ``"valued"`` (default): a terminal cost equal to minus the fuel equivalent of the heat gained in
         coolant (and cabin, where it is a state) over the drive (:func:`calib.model.simulate.fuel_equivalents_g`,
@@ -32,6 +34,14 @@ class DPScenario:
         corrected fuel of its trajectory;
       * ``"match"``: final coolant (and, with the cabin as a state, cabin) at least the rule-based run's
         (``T_cl_final_min`` / ``T_cab_final_min``; None: those of the untuned rule-based controller);
+      * ``"continued"``: a terminal cost ``C(x_N) - C(x_0)``, the fuel the rule-based controller burns over a
+        common continuation drive (``cont_cycle``, default UDDS six times) from the final state, less that from the initial state,
+        remaining end-state differences valued by ``fuel_equivalents_g``
+        (:func:`calib.model.continuation.continuation_value`); it values charge too, so Thermal-DP and
+        Thermal-Cabin-DP drop ``SOC_N >= SOC_0`` for the band ``|SOC_N - SOC_0| <= cont_soc_band`` (None:
+        SOC_N free; Baseline-DP keeps ``SOC_N >= SOC_0`` and has no terminal cost). C is
+        computed on a sub-grid (every ``cont_soc_every``-th SOC node, coolant every ``cont_tcl_step`` K,
+        cabin every ``cont_tcab_step`` K) and interpolated multilinearly;
       * ``"free"``: the paper's: final coolant free; Thermal-Cabin-DP's final cabin at least the 1500-W
         reference's, as a soft cost of ``cab_terminal_g_per_K`` per kelvin below it.
     """
@@ -56,10 +66,20 @@ class DPScenario:
     terminal: str = "valued"
     T_cl_final_min: float | None = None
     T_cab_final_min: float | None = None
+    cont_cycle: str = CONTINUATION_CYCLE
+    cont_soc_every: int = 5
+    cont_tcl_step: float = 5.0
+    cont_tcab_step: float = 2.0
+    cont_soc_band: float | None = None
 
     def __post_init__(self):
         if self.terminal not in TERMINALS:
             raise ScenarioError(f"terminal {self.terminal!r}: choose one of {', '.join(TERMINALS)}")
+        if self.cont_soc_band is not None and not self.cont_soc_band >= 0:
+            raise ScenarioError(f"cont_soc_band {self.cont_soc_band!r}: give a SOC band >= 0 (or None: SOC_N free)")
+        if not (int(self.cont_soc_every) >= 1 and self.cont_tcl_step > 0 and self.cont_tcab_step > 0):
+            raise ScenarioError("cont_soc_every must be a positive integer and cont_tcl_step, cont_tcab_step "
+                                "positive (K)")
 
     @classmethod
     def from_dict(cls, d: dict) -> "DPScenario":

@@ -131,9 +131,79 @@ def reference_cabin(params, cycle: Cycle, scen: DPScenario) -> np.ndarray:
     return reference_run(params, cycle, scen).T_cab.copy()
 
 
-def _terminal_cost(mp, scen: DPScenario, nx: int, cab_soft=None, cab_offset: float = 0.0):
+#: Continuation tables already computed (key: car, scenario and sub-grid): one table serves every drive
+#: of a comparison at the same ambient and initial state.
+_CONT_CACHE: dict = {}
+
+
+def _sub_nodes(lo: float, hi: float, step: float) -> np.ndarray:
+    n = max(1, int(math.ceil((hi - lo) / step - 1e-9)))
+    return np.linspace(lo, hi, n + 1) if hi > lo else np.array([lo])
+
+
+def continuation_table(mp, scen: DPScenario, soc_nodes, tcl_nodes, tcab_nodes) -> np.ndarray:
+    """C (g, :func:`calib.model.continuation.continuation_value`, ``ref`` the scenario's initial state) on the
+    sub-grid ``soc_nodes x tcl_nodes x tcab_nodes``, at the scenario's ambient and heater demand; cached."""
+    from calib.model.continuation import continuation_value
+
+    nodes = [np.asarray(a, dtype=np.float64) for a in (soc_nodes, tcl_nodes, tcab_nodes)]
+    key = (tuple(np.asarray(v, dtype=np.float64).tobytes() for v in mp), scen.T_amb, scen.Q_heat, scen.soc0,
+           scen.T_cl0, scen.T_cab0, scen.cont_cycle, *(a.tobytes() for a in nodes))
+    if key not in _CONT_CACHE:
+        S, T, B = np.meshgrid(*nodes, indexing="ij")
+        _CONT_CACHE[key] = continuation_value(mp, S, T, B, T_amb=scen.T_amb, Q_heat=scen.Q_heat,
+                                              ref=(scen.soc0, scen.T_cl0, scen.T_cab0), cycle=scen.cont_cycle)
+        if len(_CONT_CACHE) > 16:
+            _CONT_CACHE.pop(next(iter(_CONT_CACHE)))
+    return _CONT_CACHE[key]
+
+
+def _continued_phi(mp, scen: DPScenario, grid_list, cab_offset: float, cab_final: float | None):
+    """phi(X) = C(X) - C(x_0) on the DP grid ``grid_list``: C tabulated on a sub-grid (every
+    ``cont_soc_every``-th SOC node, coolant every ``cont_tcl_step`` K, cabin every ``cont_tcab_step`` K over
+    the grids' ranges) and interpolated multilinearly; the offset at x_0 is removed so that phi(x_0) = 0."""
+    from scipy.interpolate import RegularGridInterpolator
+
+    socg, tclg = grid_list[0], grid_list[1]
+    soc_n = socg[:: int(scen.cont_soc_every)]
+    if soc_n[-1] != socg[-1]:
+        soc_n = np.append(soc_n, socg[-1])
+    tcl_n = _sub_nodes(float(tclg[0]), float(tclg[-1]), scen.cont_tcl_step)
+    three = len(grid_list) == 3
+    if three:
+        tcab_n = _sub_nodes(float(grid_list[2][0] + cab_offset), float(grid_list[2][-1] + cab_offset),
+                            scen.cont_tcab_step)
+    else:
+        tcab_n = np.array([float(cab_final)])
+    tab = continuation_table(mp, scen, soc_n, tcl_n, tcab_n)
+    if three and tcab_n.size > 1:
+        f = RegularGridInterpolator((soc_n, tcl_n, tcab_n), tab, bounds_error=False, fill_value=None)
+    else:
+        f = RegularGridInterpolator((soc_n, tcl_n), tab[:, :, 0], bounds_error=False, fill_value=None)
+    use_cab = three and tcab_n.size > 1
+    x0 = [scen.soc0, scen.T_cl0] + ([scen.T_cab0] if use_cab else [])
+    c0 = float(f(np.array([x0]))[0])
+
+    def phi(X):
+        X = np.atleast_2d(np.asarray(X, dtype=np.float64))
+        pts = np.column_stack([X[:, 0], X[:, 1]] + ([X[:, 2] + cab_offset] if use_cab else []))
+        return f(pts) - c0
+    phi.nodes = (soc_n, tcl_n, tcab_n)
+    return phi
+
+
+def _terminal_cost(mp, scen: DPScenario, nx: int, cab_soft=None, cab_offset: float = 0.0,
+                   cab_final: float | None = None, grid_list=None):
     """Terminal cost phi(X) on grid points X (n, nx) for the scenario's terminal condition; the cabin
-    temperature is ``X[:, 2] + cab_offset``."""
+    temperature is ``X[:, 2] + cab_offset`` (3 states) or ``cab_final`` (Thermal-DP's ``continued``: the
+    reference run's final cabin, the cabin not being a state); ``continued`` tabulates on a sub-grid of
+    ``grid_list`` (the DP's grids)."""
+    if scen.terminal == "continued":
+        if nx == 1:
+            return None
+        if grid_list is None or (nx == 2 and cab_final is None):
+            raise ScenarioError("terminal 'continued' needs the DP's grids (and, with 2 states, the final cabin)")
+        return _continued_phi(mp, scen, grid_list, cab_offset, cab_final)
     if scen.terminal == "valued":
         if nx == 1:
             return None
@@ -171,11 +241,19 @@ def _t_cl_tables(mp, tclg, T_amb):
     return fcl, loss
 
 
-def dp_objective(params, sim, scen: DPScenario, nx: int, T_cab_terminal_min: float | None = None) -> float:
+def dp_objective(params, sim, scen: DPScenario, nx: int, T_cab_terminal_min: float | None = None, *,
+                 grids: DPGrids | None = None, cabin: str = CABIN_STATE) -> float:
     """The objective a formulation with ``nx`` states minimises, evaluated on any simulated run ``sim``:
     fuel plus the scenario's terminal cost at its final state (the ``match`` bounds and ``SOC_N >= SOC_0``
     are constraints, not costs). Compares strategies on the DP's own terms: a DP whose feasible set
-    contains another strategy's run has an objective at most that run's, up to grid error."""
+    contains another strategy's run has an objective at most that run's, up to grid error. With
+    ``continued`` the terminal cost is the DP's own interpolated ``C(x_N) - C(x_0)`` (Thermal-DP: at the
+    reference run's final cabin, as in the DP), on ``grids`` and the ``cabin`` coordinate of that DP."""
+    if scen.terminal == "continued" and nx >= 2:
+        b = build_problem(params, scen, grids or DPGrids(), nx, cabin=cabin)
+        off = float(b.extra["T_cab_grid_offset"][-1]) if nx == 3 else 0.0
+        X = np.array([[sim.soc[-1], sim.T_cl[-1], sim.T_cab[-1] - off][:nx]])
+        return float(sim.fuel_g + b.prob.terminal_cost(X)[0])
     cab_soft = None
     if nx == 3 and T_cab_terminal_min is not None:
         cab_soft = (float(T_cab_terminal_min), float(scen.cab_terminal_g_per_K))
@@ -220,7 +298,12 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
     w = np.zeros((N, 4))
     w[:, 0] = P_trac
     grid_list = [socg]
+    # the continuation values charge, so with it the terminal SOC is free or held to a band around SOC_0
+    # (Baseline-DP, without it, keeps the set)
     bounds = [(scen.soc0, None)]
+    if scen.terminal == "continued" and nx >= 2:
+        band = scen.cont_soc_band
+        bounds = [(None, None) if band is None else (scen.soc0 - band, scen.soc0 + band)]
     x0 = [scen.soc0]
     if nx >= 2:
         if not (scen.T_cl_min <= scen.T_cl0 <= scen.T_cl_max):
@@ -270,7 +353,10 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
                      T_cab_grid_offset=off[1:].copy())
     else:
         Q = np.array([scen.Q_heat if heater is None else heater])
-    terminal = _terminal_cost(mp, scen, nx, cab_soft, float(off[-1]) if nx == 3 else 0.0)
+    terminal = _terminal_cost(mp, scen, nx, cab_soft, float(off[-1]) if nx == 3 else 0.0,
+                              cab_final=extra.get("T_cab_ref_final"), grid_list=grid_list)
+    if scen.terminal == "continued" and terminal is not None:
+        extra["continuation_nodes"] = [a.tolist() for a in terminal.nodes]
     extra["terminal"] = scen.terminal
     nq = Q.size
     controls = np.column_stack([np.repeat(pc, nq, axis=0), np.tile(Q, pc.shape[0])])

@@ -1,0 +1,119 @@
+"""Valuation of final states by a common continuation (calib.model.continuation) and the DP's
+``continued`` terminal condition."""
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from calib.errors import IptmError, ScenarioError
+from calib.model import (continuation_corrected, continuation_credit_per_gram, continuation_value, credit_per_gram,
+                         default_parameters, simulate)
+from optimize.formulations.scenario import DPGrids, DPScenario
+from optimize.formulations.solve import dp_objective, reference_run, solve_thermal
+
+X0 = (0.6, 70.0, 20.0)
+KW = dict(T_amb=-10.0, Q_heat=1500.0)
+
+
+@pytest.fixture(scope="module")
+def ps():
+    return default_parameters()
+
+
+def test_initial_state_gives_zero_correction(ps):
+    # a drive that ends where it started has no continuation correction, and C(x0) is ref's own fuel
+    C, run, ref = continuation_value(ps, *X0, ref=X0, cycle="udds", details=True, **KW)
+    assert C == pytest.approx(float(ref["fuel_g"]), abs=1e-9)
+    res = simulate(ps, "nycc", T_amb=-10.0, soc0=X0[0], T_cl0=X0[1], T_cab0=X0[2], Q_heat=1500.0)
+    c = continuation_corrected(res, Q_heat=1500.0, cycle="udds")
+    # the corrected figure is fuel + C(x_N) - C(x_0), computed independently here
+    CN = continuation_value(ps, res.soc[-1], res.T_cl[-1], res.T_cab[-1], ref=X0, cycle="udds", **KW)
+    assert c["fuel_continuation_g"] == pytest.approx(res.fuel_g + CN - C, abs=1e-9)
+    assert c["continuation_credit_g"] == pytest.approx(C - CN, abs=1e-9)
+    # the final state differs from the initial one, so the correction is not zero here
+    assert abs(c["continuation_credit_g"]) > 0.1
+
+
+def test_value_decreases_with_charge_and_coolant_heat(ps):
+    soc = np.array([0.45, 0.5, 0.55, 0.6, 0.65, 0.7, 0.75])
+    C_soc = continuation_value(ps, soc, 70.0, 20.0, ref=X0, **KW)
+    assert np.all(np.diff(C_soc) < 0), C_soc
+    tcl = np.array([30.0, 40.0, 50.0, 60.0, 70.0, 80.0])
+    C_tcl = continuation_value(ps, 0.6, tcl, 20.0, ref=X0, **KW)
+    assert np.all(np.diff(C_tcl) < 0), C_tcl
+    # above the thermostat extra heat is dumped by the radiator: worth (almost) nothing, never a cost
+    C_hot = continuation_value(ps, 0.6, np.array([85.0, 90.0, 95.0, 100.0]), 20.0, ref=X0, **KW)
+    assert np.all(np.diff(C_hot) <= 1e-6), C_hot
+
+
+def test_no_double_credit(ps):
+    # a gram burnt to charge the battery, its heat to the coolant: the fuel equivalents credit it 1.53-1.58 g,
+    # the continuation at most the gram itself
+    for P_e in (5e3, 15e3, 30e3):
+        assert credit_per_gram(ps.model_params(), P_e) > 1.5
+        for T_cl in (60.0, 85.0):
+            c = continuation_credit_per_gram(ps, P_e, T_cl=T_cl)
+            assert 0.3 < c <= 1.0, (P_e, T_cl, c)
+
+
+def test_bad_input(ps):
+    with pytest.raises(ScenarioError, match="ref"):
+        continuation_value(ps, 0.6, 70.0, 20.0, ref=(0.6, 70.0), **KW)
+    with pytest.raises(ScenarioError, match="finite"):
+        continuation_value(ps, np.nan, 70.0, 20.0, ref=X0, **KW)
+    with pytest.raises(ScenarioError, match="cont_soc_every"):
+        DPScenario(cont_soc_every=0)
+    from optimize.causal.compare import compare_causal
+
+    with pytest.raises(IptmError, match="valuation"):
+        compare_causal(ps, valuation="prices")
+
+
+SHORT = DPScenario(duration_s=300.0, terminal="continued", cont_cycle="udds+udds")
+GRIDS = DPGrids(pbat=1000.0)
+
+
+@pytest.fixture(scope="module")
+def dp_short(ps):
+    return solve_thermal(ps, SHORT, GRIDS, threads=1)
+
+
+def test_continued_objective_consistent(ps, dp_short):
+    dp = dp_short
+    # the DP's cost at its own re-simulated run is fuel + phi(x_N) (dp_objective on the same grids)
+    assert dp_objective(ps, dp.sim, SHORT, 2, grids=GRIDS) == pytest.approx(dp.dp_cost, abs=1e-3)
+    assert dp.extra["terminal"] == "continued"
+    # phi is C(x_N) - C(x_0) up to interpolation: compare with the direct continuation of the final state
+    direct = continuation_corrected(dp.sim, Q_heat=SHORT.Q_heat, cycle=SHORT.cont_cycle)
+    assert dp.dp_cost == pytest.approx(direct["fuel_continuation_g"], abs=1.5)
+
+
+def test_continued_dp_beats_rule_on_equal_terms(ps, dp_short):
+    rule = reference_run(ps, SHORT.load_cycle(), SHORT)
+    obj_rule = dp_objective(ps, rule, SHORT, 2, grids=GRIDS)
+    assert dp_short.dp_cost <= obj_rule + 0.05, (dp_short.dp_cost, obj_rule)
+    # and on the valued terminal's terms the DP is a different optimum (the two conditions differ)
+    valued = solve_thermal(ps, replace(SHORT, terminal="valued"), GRIDS, threads=1)
+    assert dp_objective(ps, valued.sim, SHORT, 2, grids=GRIDS) >= dp_short.dp_cost - 0.05
+
+
+def test_continued_soc_band(ps):
+    # with a band the DP ends charge sustaining as the causal controllers must; without, it may not
+    scen = replace(SHORT, cont_soc_band=0.01)
+    dp = solve_thermal(ps, scen, GRIDS, threads=1)
+    assert abs(dp.sim.soc[-1] - scen.soc0) <= 0.011
+    with pytest.raises(ScenarioError, match="cont_soc_band"):
+        DPScenario(cont_soc_band=-0.01)
+
+
+def test_continued_thermal_cabin(ps):
+    # three states: C is tabulated along the cabin too, which the DP's cabin state is measured from its bound
+    from optimize.formulations.solve import solve_thermal_cabin
+
+    scen = DPScenario(duration_s=200.0, terminal="continued", cont_cycle="udds")
+    grids = DPGrids(pbat=1000.0, qheat=100.0)
+    dp = solve_thermal_cabin(ps, scen, grids)
+    assert len(dp.extra["continuation_nodes"][2]) >= 2
+    assert dp_objective(ps, dp.sim, scen, 3, grids=grids) == pytest.approx(dp.dp_cost, abs=1e-3)
+    direct = continuation_corrected(dp.sim, Q_heat=scen.Q_heat, cycle=scen.cont_cycle)
+    assert dp.dp_cost == pytest.approx(direct["fuel_continuation_g"], abs=1.5)
