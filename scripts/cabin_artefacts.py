@@ -47,7 +47,8 @@ def main(argv=None) -> int:
                       **{k: round(v, 2) for k, v in art.items()},
                       "steps_below_comfort_bound": int(np.sum(below < -1e-9)),
                       "most_below_comfort_bound_mK": round(max(0.0, -1e3 * float(np.min(below))), 2),
-                      "wall_s": round(time.perf_counter() - t0, 1), "load_1min": round(os.getloadavg()[0], 2)}))
+                      "t_backward_s": round(o.t_backward, 1), "wall_s": round(time.perf_counter() - t0, 1),
+                      "load_1min": round(os.getloadavg()[0], 2)}))
     return 0
 
 

@@ -13,7 +13,8 @@ with the engine to rounding; cross-checked in tests/test_formulations.py) by exp
 * Thermal-Cabin: when the heater is not limited by the coolant, the next cabin temperature depends only on
   (T_cab node, Q_heat): V and L are interpolated along T_cab once per (T_cab node, Q_heat) into 2-D slices
   (the engine's own trilinear formula, first stage), so the inner loop is bilinear; where the heater core
-  limits the heat (cold coolant) the full trilinear interpolation is used.
+  limits the heat (cold coolant) the full trilinear interpolation is used. The "hold the bound" heater
+  control's heat depends on the cabin node only: it is one more (T_cab node, heat) slice per node.
 * levels are signed (negative inside the terminal set) and the true minimum is stored, with the engine's
   choice rule (:func:`optimize.dp.kernels.level_better`).
 
@@ -177,7 +178,7 @@ def _tri(V, o, s0, s1, t0, t1, t2):
 
 
 @njit(cache=True)  # a call, not inlined: numba cannot inline this many arguments into a parfor; the path is rare
-def _limited(P, tab, ip, a, ta, j, m, sidx, c0, pen0, q, Q_fuel, T_cl, loss, T_m, lb, off_n, t_lo, t_inv, nt, c_lo,
+def _limited(P, tab, ip, a, ta, sidx, c0, pen0, q, Q_fuel, T_cl, loss, T_m, lb, off_n, t_lo, t_inv, nt, c_lo,
              c_inv, nc, s0, s1, strides, nn, unif, Vn, Ln, ib, tb, cubic, level_tol, best, Lmin, Lsel, feas):
     """Evaluate the first heater-limited control (heat ``q``, the core limit) at state ``sidx`` by full
     trilinear interpolation and apply the engine's choice rule to best/Lmin/Lsel/feas."""
@@ -433,7 +434,7 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold)
                                 feas[sidx] = lv <= level_tol
                         if nu_ < nq:
                             # the first heater-limited control (the others repeat it)
-                            _limited(P, tab, ip, a, ta, j, m, sidx, c0, pen0, qlim[j, m], QFUEL[ip, j], tclg[j],
+                            _limited(P, tab, ip, a, ta, sidx, c0, pen0, qlim[j, m], QFUEL[ip, j], tclg[j],
                                      lossg[j], cabg[m] + off, lb, off_n, t_lo, t_inv, nt, c_lo, c_inv, nc, s0, s1,
                                      strides, nn, unif, Vn, Ln, ib, tb, cubic, level_tol, best, Lmin, Lsel, feas)
                         if hsk[j, m]:
