@@ -2,7 +2,7 @@
 discretisation (the figures of the README's paragraph on grid artefacts).
 
     .venv/bin/python scripts/cabin_artefacts.py [--params FILE] [--grid SPEC] [--cabin bound|absolute]
-                                                [--interp multilinear|cubic_last]
+                                                [--interp multilinear|cubic_last] [--no-hold]
 
 Case study scenario (ARTEMIS Urban, -10 degC, valued terminal); prints one JSON line."""
 from __future__ import annotations
@@ -30,20 +30,25 @@ def main(argv=None) -> int:
     ap.add_argument("--grid", default=None, help="grid steps, e.g. soc=0.01,tcl=1,tcab=0.5,pbat=500,qheat=50")
     ap.add_argument("--cabin", choices=CABIN_STATES, default=CABIN_STATE)
     ap.add_argument("--interp", choices=FORWARD_INTERP, default=CABIN_INTERP)
+    ap.add_argument("--no-hold", action="store_true", help="no 'hold the bound' heater control, the heater grid only "
+                    "(default: offered with --cabin bound)")
     a = ap.parse_args(argv)
     ps = load_params(a.params)
     t0 = time.perf_counter()
-    o = solve_thermal_cabin(ps, DPScenario(), parse_grid_spec(a.grid), cabin=a.cabin, interp=a.interp)
+    o = solve_thermal_cabin(ps, DPScenario(), parse_grid_spec(a.grid), cabin=a.cabin, interp=a.interp,
+                            hold=False if a.no_hold else None)
     s = o.sim.summary()
     art = o.extra["grid_artefacts"]
     below = o.sim.T_cab[1:] - o.T_cab_lb
     print(json.dumps({"grid": parse_grid_spec(a.grid).to_dict(), "cabin": a.cabin, "interp": a.interp,
+                      "hold": bool(o.extra["heater_hold"]), "heater_hold_pct": round(o.extra["heater_hold_pct"], 2),
                       "fuel_corrected_g": round(s["fuel_corrected_g"], 3), "fuel_g": round(s["fuel_g"], 3),
                       "T_cab_mean_degC": round(s["T_cab_mean_degC"], 3), "dp_cost_g": round(o.dp_cost, 3),
                       **{k: round(v, 2) for k, v in art.items()},
                       "steps_below_comfort_bound": int(np.sum(below < -1e-9)),
                       "most_below_comfort_bound_mK": round(max(0.0, -1e3 * float(np.min(below))), 2),
-                      "wall_s": round(time.perf_counter() - t0, 1), "load_1min": round(os.getloadavg()[0], 2)}))
+                      "t_backward_s": round(o.t_backward, 1), "wall_s": round(time.perf_counter() - t0, 1),
+                      "load_1min": round(os.getloadavg()[0], 2)}))
     return 0
 
 

@@ -90,15 +90,16 @@ def test_dp_beats_tuned_rule(params):
     assert j_th <= j_base + abs(j_th - j_half) + 1e-9
 
 
-@pytest.mark.parametrize("nx,scen,grids", [
-    (2, DPScenario(duration_s=40.0, T_cl0=25.0), DPGrids(pbat=1000.0)),
-    (3, DPScenario(duration_s=25.0, T_cl0=28.0), DPGrids(soc=0.02, tcl=4.0, pbat=2500.0, qheat=200.0)),
+@pytest.mark.parametrize("nx,scen,grids,hold", [
+    (2, DPScenario(duration_s=40.0, T_cl0=25.0), DPGrids(pbat=1000.0), False),
+    (3, DPScenario(duration_s=25.0, T_cl0=28.0), DPGrids(soc=0.02, tcl=4.0, pbat=2500.0, qheat=200.0), False),
+    (3, DPScenario(duration_s=25.0, T_cl0=28.0), DPGrids(soc=0.02, tcl=4.0, pbat=2500.0, qheat=200.0), True),
 ])
-def test_fused_kernel_equals_generic_engine(params, nx, scen, grids):
+def test_fused_kernel_equals_generic_engine(params, nx, scen, grids, hold):
     from optimize.formulations.fused import backward_pass_fused
     from optimize.dp.engine import backward_pass, forward_pass
 
-    b = build_problem(params, scen, grids, nx)
+    b = build_problem(params, scen, grids, nx, hold=hold)
     vg = backward_pass(b.prob)
     vf = backward_pass_fused(b.prob)
     np.testing.assert_array_equal(vg.V, vf.V)
@@ -162,6 +163,10 @@ def test_trajectory_checks_find_chatter_and_pinned_states():
     # a jump of two grid steps and back is a decision, not chatter between neighbours
     r3 = trajectory_checks(_fake_outcome([1600.0, 1700.0] * 10, np.full(21, 19.5)))
     assert r3["chatter_pct"] == 0.0 and r3["pinned_pct"] == 0.0
+    # off-grid heats (the hold control): a smooth drift is no flip, a grid value between two holds is
+    q4 = list(1437.3 - 0.2 * np.arange(10)) + [1450.0] + list(1435.2 - 0.2 * np.arange(9))
+    r4 = trajectory_checks(_fake_outcome(q4, np.full(21, 19.5)))
+    assert r4["chatter_pct"] == pytest.approx(100 / 20) and r4["chatter_longest_s"] == 1.0
 
 
 def test_thermal_cabin_on_paper_grids_neither_chatters_nor_pins(params):
@@ -180,13 +185,43 @@ BOUND_OFF_NODE = DPScenario(duration_s=200.0, cab_lb_offset=0.3)
 GRIDS_CAB = DPGrids(soc=0.02, tcl=4.0, pbat=2000.0)  # paper cabin (1 degC) and heater (50 W) grids
 
 
-def test_cabin_state_relative_to_its_bound_neither_pins_nor_chatters_off_the_bound(params):
+@pytest.fixture(scope="module")
+def bound_off_node(params):
+    return solve_thermal_cabin(params, BOUND_OFF_NODE, GRIDS_CAB)
+
+
+def test_cabin_rides_its_bound_without_heater_flips(params, bound_off_node):
+    """Riding a slowly moving comfort bound, the heater does not flip between neighbouring grid values:
+    the hold-the-bound control (the default with the cabin relative to its bound) delivers the heat that
+    holds it, which lies between two grid values. On the heater grid alone the same drive is held by a
+    duty cycle of neighbouring values, at no lower corrected fuel. The heat recorded is the heat used:
+    re-simulated through calib.model.equations.step, the cabin lands on its bound."""
+    from optimize.convergence import trajectory_checks
+
+    o = bound_off_node
+    r = trajectory_checks(o)
+    assert r["chatter_pct"] == 0.0 and r["pinned_pct"] == 0.0 and r["at_bound_pct"] > 50.0, r
+    assert o.extra["heater_hold"] and o.extra["heater_hold_pct"] > 50.0
+    q = o.dp.u[:, 2]
+    assert np.all(np.isfinite(q)) and np.all(q == o.sim.Q_heat_cmd)
+    assert np.all((q >= BOUND_OFF_NODE.Q_heat_min) & (q <= BOUND_OFF_NODE.Q_heat_max))
+    off_grid = np.abs(q / GRIDS_CAB.qheat - np.round(q / GRIDS_CAB.qheat)) > 1e-6
+    assert off_grid.mean() > 0.5  # heats between grid values
+    held = o.sim.T_cab[1:][off_grid] - o.T_cab_lb[off_grid]
+    assert np.max(np.abs(held)) < 1e-9  # the re-simulated cabin is on its bound after every held step
+    grid = solve_thermal_cabin(params, BOUND_OFF_NODE, GRIDS_CAB, hold=False)
+    rg = trajectory_checks(grid)
+    assert rg["chatter_pct"] > 5.0 and rg["chatter_off_bound_pct"] == 0.0, rg  # the duty cycle on the bound
+    assert o.sim.summary()["fuel_corrected_g"] <= grid.sim.summary()["fuel_corrected_g"] + 1e-6
+
+
+def test_cabin_state_relative_to_its_bound_neither_pins_nor_chatters_off_the_bound(params, bound_off_node):
     """With the bound between cabin nodes, a cabin grid fixed in temperature holds the cabin on the node
     above the bound (the interpolated cost-to-go has its kinks at the nodes, not at the bound); a grid
     that moves with the bound (the default) rides the bound itself, at no higher corrected fuel."""
     from optimize.convergence import trajectory_checks
 
-    o = solve_thermal_cabin(params, BOUND_OFF_NODE, GRIDS_CAB)
+    o = bound_off_node
     r = trajectory_checks(o)
     assert r["pinned_pct"] == 0.0 and r["chatter_off_bound_pct"] == 0.0, r
     assert r["at_bound_pct"] > 50.0, r
@@ -196,16 +231,58 @@ def test_cabin_state_relative_to_its_bound_neither_pins_nor_chatters_off_the_bou
     assert o.sim.summary()["fuel_corrected_g"] <= fixed.sim.summary()["fuel_corrected_g"] + 1e-6
 
 
-def test_fused_kernel_equals_generic_engine_with_the_cabin_relative_to_its_bound(params):
+@pytest.mark.parametrize("hold", [False, True], ids=["grid", "hold"])
+@pytest.mark.parametrize("scen", [DPScenario(duration_s=25.0, T_cl0=28.0, cab_lb_offset=0.37),
+                                  DPScenario(duration_s=90.0, cab_lb_offset=0.37)], ids=["cold", "warm"])
+def test_fused_kernel_equals_generic_engine_with_the_cabin_relative_to_its_bound(params, scen, hold):
+    """Same value and level functions, bit for bit, with and without the hold-the-bound heater control;
+    on the cold start the heater-core limit binds (the kernel's trilinear path), on the warm one the
+    forward pass rides the bound with the hold control."""
     from optimize.formulations.fused import backward_pass_fused
     from optimize.dp.engine import backward_pass, forward_pass
 
-    scen = DPScenario(duration_s=25.0, T_cl0=28.0, cab_lb_offset=0.37)
-    b = build_problem(params, scen, DPGrids(soc=0.02, tcl=4.0, pbat=2500.0, qheat=200.0), 3, cabin="bound")
+    b = build_problem(params, scen, DPGrids(soc=0.02, tcl=4.0, pbat=2500.0, qheat=200.0), 3, cabin="bound",
+                      hold=hold)
     assert b.prob.grids[2][0] == 0.0 and b.x0[2] >= 0.0  # node 0 is the bound
+    assert np.isnan(b.prob.controls[:, 2]).any() == hold
     vg, vf = backward_pass(b.prob), backward_pass_fused(b.prob)
     np.testing.assert_array_equal(vg.V, vf.V)
     np.testing.assert_array_equal(vg.L, vf.L)
     rg, rf = forward_pass(b.prob, vg, b.x0), forward_pass(b.prob, vf, b.x0)
     np.testing.assert_array_equal(rg.u_index, rf.u_index)
     assert rg.cost == rf.cost
+    if hold and scen.T_cl0 > 60.0:
+        assert np.isnan(rg.u[:, 2]).sum() >= 10  # the hold control is chosen: the comparison exercises it
+
+
+def test_hold_heat_puts_the_cabin_on_its_bound(params):
+    """The hold control's heat, re-simulated through calib.model.equations.step from grid states, lands
+    the cabin on the next step's comfort bound to rounding unless clipped to the heater grid's ends; it
+    also matches eq. 10 solved by hand."""
+    from calib.model.equations import ON, step
+    from optimize.formulations.transition import delivered_heat
+
+    scen = DPScenario(duration_s=60.0, cab_lb_offset=0.37)
+    b = build_problem(params, scen, GRIDS_CAB, 3, cabin="bound")
+    mp, prob = b.mp, b.prob
+    qmin, qmax = scen.Q_heat_min, float(np.nanmax(prob.controls[:, 2]))
+    e, pbm = ON, float(prob.controls[prob.controls[:, 0] == ON][0, 1])
+    grade = np.zeros(prob.N + 1) if b.cyc.grade is None else b.cyc.grade
+    n_on = n_clip = 0
+    for k in range(0, prob.N, 5):
+        lb_next, off = prob.w[k, 2], prob.w[k, 3]
+        for h in prob.grids[2][:4]:
+            x = np.array([[scen.soc0, 70.0, h], [scen.soc0, 70.0, h]])
+            q = delivered_heat(prob.params, x, np.array([[e, pbm, np.nan]]), prob.w[k: k + 1])[0]
+            T = h + off
+            by_hand = mp.C_cab * (lb_next - T) / b.cyc.Ts - mp.UA_cab * (scen.T_amb - T) - mp.Q_sun
+            assert q == pytest.approx(min(max(by_hand, qmin), qmax), rel=1e-12, abs=1e-9)
+            r = step(mp, scen.soc0, 70.0, T, e, pbm, q, b.cyc.v[k], b.cyc.v[k + 1], grade[k], scen.T_amb,
+                     mp.T_bat_ref, mp.W_bl, b.cyc.Ts)
+            if qmin < q < qmax:
+                assert r[2] == pytest.approx(lb_next, abs=1e-9)
+                n_on += 1
+            else:
+                assert (r[2] > lb_next) == (q == qmin)  # too warm even unheated, or the heater's top short
+                n_clip += 1
+    assert n_on >= 10 and n_clip >= 1

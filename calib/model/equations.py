@@ -184,6 +184,14 @@ def cabin_heat_rate(UA_cab, Q_sun, T_cab, T_amb, Q_heat):
 
 
 @njit(cache=True)
+def cabin_heat_to_reach(UA_cab, Q_sun, C_cab, T_cab, T_amb, T_target, Ts):
+    """Eq. 10 solved for the heat: the Q_heat that takes the cabin from T_cab to T_target in one explicit-
+    Euler step of Ts (unbounded; the caller clips it to what the heater can do)."""
+    net0, _ = cabin_heat_rate(UA_cab, Q_sun, T_cab, T_amb, 0.0)
+    return C_cab * (T_target - T_cab) / Ts - net0
+
+
+@njit(cache=True)
 def heater_limit(p, T_cl, T_cab, T_amb, W_bl):
     """Most heat the core can pass to the air: eps W_bl c_p (T_cl - T_in), >= 0."""
     return heater_core_limit(p.eps_hc, W_bl, p.cp_air, p.recirc, T_cl, T_cab, T_amb)

@@ -6,10 +6,12 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["trajectory_checks", "ON_NODE_K"]
+__all__ = ["trajectory_checks", "ON_NODE_K", "FLIP_TOL"]
 
 #: A cabin temperature closer than this to a grid node counts as on the node (K).
 ON_NODE_K = 1e-3
+#: Heater changes smaller than this share of the heater grid step are no flip (W per W).
+FLIP_TOL = 0.02
 
 
 def _longest_run(mask) -> int:
@@ -24,7 +26,8 @@ def trajectory_checks(outcome) -> dict:
     """Grid artefacts in a Thermal-Cabin-DP solution (a :class:`DPOutcome` with a cabin state).
 
     Returns ``chatter_pct`` (share of steps where the heater goes to a neighbouring grid value and straight
-    back), ``chatter_longest_s`` (longest stretch of such back-and-forth), ``chatter_off_bound_pct`` (the
+    back; more generally, moves by more than ``FLIP_TOL`` and at most one heater grid step and comes back to
+    within ``FLIP_TOL``), ``chatter_longest_s`` (longest stretch of such back-and-forth), ``chatter_off_bound_pct`` (the
     share of steps with such a flip that ends with the cabin off its comfort bound: on the bound, a heat
     between two grid values is held by an occasional step to the neighbouring value), ``pinned_pct`` (share of times
     the cabin sits within ``ON_NODE_K`` of a grid node above its comfort bound), ``pinned_longest_s``
@@ -39,8 +42,12 @@ def trajectory_checks(outcome) -> dict:
     dq = ex["Q_heat_step"]
     flip = np.zeros(q.size, bool)
     if q.size >= 3:
+        # away by more than FLIP_TOL grid steps but at most one, and straight back to within FLIP_TOL: on a
+        # grid, a neighbouring value and back; with the hold control's off-grid heats, a grid value between two
+        # holds counts too
         a, b, c = q[:-2], q[1:-1], q[2:]
-        flip[1:-1] = (b != a) & (c == a) & (np.abs(b - a) <= 1.0001 * dq)
+        tol = FLIP_TOL * dq
+        flip[1:-1] = (np.abs(b - a) > tol) & (np.abs(c - a) <= tol) & (np.abs(b - a) <= 1.0001 * dq)
     lo, h = ex["T_cab_grid_lo"], ex["T_cab_grid_step"]
     tc = np.asarray(sim.T_cab[1:], float)
     # a grid that moves with the comfort bound has its nodes at offset + lo + j h at each step

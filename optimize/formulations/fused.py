@@ -13,7 +13,8 @@ with the engine to rounding; cross-checked in tests/test_formulations.py) by exp
 * Thermal-Cabin: when the heater is not limited by the coolant, the next cabin temperature depends only on
   (T_cab node, Q_heat): V and L are interpolated along T_cab once per (T_cab node, Q_heat) into 2-D slices
   (the engine's own trilinear formula, first stage), so the inner loop is bilinear; where the heater core
-  limits the heat (cold coolant) the full trilinear interpolation is used.
+  limits the heat (cold coolant) the full trilinear interpolation is used. The "hold the bound" heater
+  control's heat depends on the cabin node only: it is one more (T_cab node, heat) slice per node.
 * levels are signed (negative inside the terminal set) and the true minimum is stored, with the engine's
   choice rule (:func:`optimize.dp.kernels.level_better`).
 
@@ -33,6 +34,7 @@ from optimize.dp.kernels import _hermite, _interp_cubic_last  # the engine's cub
 from optimize.dp.kernels import level_better, level_needs_cost  # the engine's level-set choice rule
 from optimize.dp.engine import ValueFunctions
 from calib.model.equations import cabin_heat_rate, coolant_heat_rate, heater_core_limit
+from optimize.formulations.transition import hold_heat
 
 _SNAP = 1e-9
 
@@ -166,15 +168,80 @@ def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol):
                 LT[k, i * nt + j] = Lmin[j]
 
 
+@njit(inline="always", cache=True)
+def _tri(V, o, s0, s1, t0, t1, t2):
+    a = (1.0 - t2) * V[o] + t2 * V[o + 1]
+    b = (1.0 - t2) * V[o + s1] + t2 * V[o + s1 + 1]
+    c = (1.0 - t2) * V[o + s0] + t2 * V[o + s0 + 1]
+    e = (1.0 - t2) * V[o + s0 + s1] + t2 * V[o + s0 + s1 + 1]
+    return (1.0 - t0) * ((1.0 - t1) * a + t1 * b) + t0 * ((1.0 - t1) * c + t1 * e)
+
+
+@njit(cache=True)  # a call, not inlined: numba cannot inline this many arguments into a parfor; the path is rare
+def _limited(P, tab, ip, a, ta, sidx, c0, pen0, q, Q_fuel, T_cl, loss, T_m, lb, off_n, t_lo, t_inv, nt, c_lo,
+             c_inv, nc, s0, s1, strides, nn, unif, Vn, Ln, ib, tb, cubic, level_tol, best, Lmin, Lsel, feas):
+    """Evaluate the first heater-limited control (heat ``q``, the core limit) at state ``sidx`` by full
+    trilinear interpolation and apply the engine's choice rule to best/Lmin/Lsel/feas."""
+    Ts = P[_C_TS]
+    tn = T_cl + Ts * coolant_heat_rate(P[_MS0 + _GAMMA], Q_fuel, tab[ip, _T_PE], loss, q)[0] / P[_MS0 + _CENG]
+    pen = pen0
+    if tn < P[_C_TLO]:
+        pen += (P[_C_TLO] - tn) / P[_C_TH]
+    elif tn > P[_C_THI]:
+        pen += (tn - P[_C_THI]) / P[_C_TH]
+    tc = T_m + Ts * cabin_heat_rate(P[_MS0 + _UACAB], P[_MS0 + _QSUN], T_m, P[_C_TAMB], q)[0] / P[_MS0 + _CCAB]
+    if tc < lb:
+        pen += (lb - tc) / P[_C_CH]
+    elif tc > P[_C_CHI]:
+        pen += (tc - P[_C_CHI]) / P[_C_CH]
+    bb, tt = _loc(tn, t_lo, t_inv, nt)
+    c, t2 = _loc(tc - off_n, c_lo, c_inv, nc)
+    ib[0] = a
+    ib[1] = bb
+    ib[2] = c
+    tb[0] = ta
+    tb[1] = tt
+    tb[2] = t2
+    o = a * s0 + bb * s1 + c
+    lv = _tri(Ln, o, s0, s1, ta, tt, t2)
+    if not np.isfinite(lv):
+        lv = _slow(Ln, 3, strides, ib, tb)
+    if not (lv < np.inf):
+        return
+    if lv < Lmin[sidx]:
+        Lmin[sidx] = lv
+    if not level_needs_cost(lv, level_tol, feas[sidx], Lsel[sidx]):
+        return
+    if cubic:
+        vv = _interp_cubic_last(Vn, 3, nn, unif, strides, ib, tb)
+    else:
+        vv = _tri(Vn, o, s0, s1, ta, tt, t2)
+        if not np.isfinite(vv):
+            vv = _slow(Vn, 3, strides, ib, tb)
+    v = c0 + P[_C_PEN] * pen + vv
+    if not (v < np.inf):
+        return
+    if level_better(lv, v, level_tol, feas[sidx], Lsel[sidx], best[sidx]):
+        best[sidx] = v
+        Lsel[sidx] = lv
+        feas[sidx] = lv <= level_tol
+
+
 @njit(parallel=True, cache=True)
-def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic):
-    """Thermal-Cabin-DP backward pass (states SOC x T_cl x T_cab, controls power x Q).
+def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold):
+    """Thermal-Cabin-DP backward pass (states SOC x T_cl x T_cab, controls power x (Q grid[, hold])).
 
     Controls whose requested heat exceeds the heater-core limit all deliver the same heat (the limit):
     they are identical transitions, so only the first of them (lowest control index, the one the engine's
     tie rule would keep) is evaluated. ``cubic``: the cost-to-go is interpolated along T_cab by the
-    engine's cubic Hermite (``interp="cubic_last"``, needs >= 3 cabin nodes); the level stays linear."""
+    engine's cubic Hermite (``interp="cubic_last"``, needs >= 3 cabin nodes); the level stays linear.
+    ``hold``: each power control is also paired with "hold the bound" (last in its row of controls), whose
+    heat depends on the cabin node only (:func:`optimize.formulations.transition.hold_heat`): its cabin
+    slices are one more column per cabin node. Where it delivers what a grid control delivers (clipped to
+    the grid's ends or to the core limit) it repeats an earlier control and is skipped, as the engine's tie
+    rule would."""
     ns, nt, nc, nq = socg.size, tclg.size, cabg.size, Q.size
+    nq1 = nq + 1 if hold else nq
     np_ = big.shape[1]
     s_lo, s_inv = socg[0], (ns - 1) / (socg[-1] - socg[0])
     t_lo, t_inv = tclg[0], (nt - 1) / (tclg[-1] - tclg[0])
@@ -192,11 +259,17 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic):
     nplane = ns * nt
     qlim = np.empty((nt, nc))
     nunl = np.empty((nt, nc), np.int64)  # number of Q values not limited at (j, m)
-    pcu = np.empty((nc, nq))
-    cu = np.empty((nc, nq), np.int64)
-    tu = np.empty((nc, nq))
-    SV = np.empty((nc * nq, nplane))
-    SL = np.empty((nc * nq, nplane))
+    pcu = np.empty((nc, nq1))
+    cu = np.empty((nc, nq1), np.int64)
+    tu = np.empty((nc, nq1))
+    SV = np.empty((nc * nq1, nplane))
+    SL = np.empty((nc * nq1, nplane))
+    nh = nc if hold else 0
+    qh = np.empty(nc)  # hold heat per cabin node
+    hsk = np.ones((nt, nc), np.bool_)  # the hold control repeats a grid control (or is off)
+    TBh = np.empty((np_, nt, nh), np.int64)
+    TTh = np.empty((np_, nt, nh))
+    PTh = np.empty((np_, nt, nh))
     TB = np.empty((np_, nt, nq), np.int64)
     TT = np.empty((np_, nt, nq))
     PT = np.empty((np_, nt, nq))
@@ -224,8 +297,24 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic):
                     if not (Q[iq] > ql):
                         cnt += 1
                 nunl[j, m] = cnt
-            for iq in range(nq):
-                tc = T_m + Ts * cabin_heat_rate(P[_MS0 + _UACAB], P[_MS0 + _QSUN], T_m, T_amb, Q[iq])[0] / P[_MS0 + _CCAB]
+            if hold:
+                qh[m] = hold_heat(P, T_m, lb)
+                for j in range(nt):
+                    ql = qlim[j, m]
+                    q = qh[m]
+                    sk = q > ql or q < 0.0  # delivers what the first limited (or zero) grid control does
+                    for iq in range(nq):
+                        d = Q[iq]
+                        if d > ql:
+                            d = ql
+                        if d < 0.0:
+                            d = 0.0
+                        if d == q:
+                            sk = True
+                    hsk[j, m] = sk
+            for iq in range(nq1):
+                q = Q[iq] if iq < nq else qh[m]
+                tc = T_m + Ts * cabin_heat_rate(P[_MS0 + _UACAB], P[_MS0 + _QSUN], T_m, T_amb, q)[0] / P[_MS0 + _CCAB]
                 pc = 0.0
                 if tc < lb:
                     pc = (lb - tc) / P[_C_CH]
@@ -235,9 +324,9 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic):
                 c, tt = _loc(tc - off_n, c_lo, c_inv, nc)
                 cu[m, iq] = c
                 tu[m, iq] = tt
-        for r in prange(nc * nq):
-            m = r // nq
-            iq = r - m * nq
+        for r in prange(nc * nq1):
+            m = r // nq1
+            iq = r - m * nq1
             c = cu[m, iq]
             t2 = tu[m, iq]
             for e in range(nplane):
@@ -268,6 +357,17 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic):
                     bb, tt = _loc(tn, t_lo, t_inv, nt)
                     TB[ip, j, iq] = bb
                     TT[ip, j, iq] = tt
+                for m in range(nh):
+                    tn = tclg[j] + Ts * coolant_heat_rate(P[_MS0 + _GAMMA], Q_fuel, P_e, lossg[j], qh[m])[0] / P[_MS0 + _CENG]
+                    pt = 0.0
+                    if tn < P[_C_TLO]:
+                        pt = (P[_C_TLO] - tn) / P[_C_TH]
+                    elif tn > P[_C_THI]:
+                        pt = (tn - P[_C_THI]) / P[_C_TH]
+                    PTh[ip, j, m] = pt
+                    bb, tt = _loc(tn, t_lo, t_inv, nt)
+                    TBh[ip, j, m] = bb
+                    TTh[ip, j, m] = tt
         for i in prange(ns):
             best = np.full(nt * nc, np.inf)
             Lmin = np.full(nt * nc, np.inf)
@@ -295,7 +395,7 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic):
                         nu_ = nunl[j, m]
                         # controls whose heat is delivered in full: 2-D slices
                         for iq in range(nu_):
-                            rr = m * nq + iq
+                            rr = m * nq1 + iq
                             tt = TT[ip, j, iq]
                             o = oa + TB[ip, j, iq]
                             lv = _bilin(SL[rr], o, nt, ta, tt)
@@ -332,48 +432,45 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic):
                                 best[sidx] = v
                                 Lsel[sidx] = lv
                                 feas[sidx] = lv <= level_tol
-                        if nu_ == nq:
+                        if nu_ < nq:
+                            # the first heater-limited control (the others repeat it)
+                            _limited(P, tab, ip, a, ta, sidx, c0, pen0, qlim[j, m], QFUEL[ip, j], tclg[j],
+                                     lossg[j], cabg[m] + off, lb, off_n, t_lo, t_inv, nt, c_lo, c_inv, nc, s0, s1,
+                                     strides, nn, unif, Vn, Ln, ib, tb, cubic, level_tol, best, Lmin, Lsel, feas)
+                        if hsk[j, m]:
                             continue
-                        # the first heater-limited control (the others repeat it)
-                        q = qlim[j, m]
-                        tn = tclg[j] + Ts * coolant_heat_rate(P[_MS0 + _GAMMA], QFUEL[ip, j], tab[ip, _T_PE], lossg[j],
-                                                              q)[0] / P[_MS0 + _CENG]
-                        pen = pen0
-                        if tn < P[_C_TLO]:
-                            pen += (P[_C_TLO] - tn) / P[_C_TH]
-                        elif tn > P[_C_THI]:
-                            pen += (tn - P[_C_THI]) / P[_C_TH]
-                        T_m = cabg[m] + off
-                        tc = T_m + Ts * cabin_heat_rate(P[_MS0 + _UACAB], P[_MS0 + _QSUN], T_m, T_amb, q)[0] / P[_MS0 + _CCAB]
-                        if tc < lb:
-                            pen += (lb - tc) / P[_C_CH]
-                        elif tc > P[_C_CHI]:
-                            pen += (tc - P[_C_CHI]) / P[_C_CH]
-                        bb, tt = _loc(tn, t_lo, t_inv, nt)
-                        c, t2 = _loc(tc - off_n, c_lo, c_inv, nc)
-                        ib[0] = a
-                        ib[1] = bb
-                        ib[2] = c
-                        tb[0] = ta
-                        tb[1] = tt
-                        tb[2] = t2
-                        o = a * s0 + bb * s1 + c
-                        lv = _tri(Ln, o, s0, s1, ta, tt, t2)
+                        # hold the bound: the slices of column nq, the coolant of the hold heat
+                        rr = m * nq1 + nq
+                        tt = TTh[ip, j, m]
+                        o = oa + TBh[ip, j, m]
+                        lv = _bilin(SL[rr], o, nt, ta, tt)
                         if not np.isfinite(lv):
+                            ib[0] = a
+                            ib[1] = TBh[ip, j, m]
+                            ib[2] = cu[m, nq]
+                            tb[0] = ta
+                            tb[1] = tt
+                            tb[2] = tu[m, nq]
                             lv = _slow(Ln, 3, strides, ib, tb)
-                        if not (lv < np.inf):
-                            continue
+                            if not (lv < np.inf):
+                                continue
                         if lv < Lmin[sidx]:
                             Lmin[sidx] = lv
                         if not level_needs_cost(lv, level_tol, feas[sidx], Lsel[sidx]):
                             continue
-                        if cubic:
-                            vv = _interp_cubic_last(Vn, 3, nn, unif, strides, ib, tb)
-                        else:
-                            vv = _tri(Vn, o, s0, s1, ta, tt, t2)
-                            if not np.isfinite(vv):
+                        vv = _bilin(SV[rr], o, nt, ta, tt)
+                        if not np.isfinite(vv):
+                            ib[0] = a
+                            ib[1] = TBh[ip, j, m]
+                            ib[2] = cu[m, nq]
+                            tb[0] = ta
+                            tb[1] = tt
+                            tb[2] = tu[m, nq]
+                            if cubic:
+                                vv = _interp_cubic_last(Vn, 3, nn, unif, strides, ib, tb)
+                            else:
                                 vv = _slow(Vn, 3, strides, ib, tb)
-                        v = c0 + PEN * pen + vv
+                        v = c0 + PEN * ((pen0 + PTh[ip, j, m]) + pcu[m, nq]) + vv
                         if not (v < np.inf):
                             continue
                         if level_better(lv, v, level_tol, feas[sidx], Lsel[sidx], best[sidx]):
@@ -385,21 +482,12 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic):
                 LT[k, i * nt * nc + e] = Lmin[e]
 
 
-@njit(inline="always", cache=True)
-def _tri(V, o, s0, s1, t0, t1, t2):
-    a = (1.0 - t2) * V[o] + t2 * V[o + 1]
-    b = (1.0 - t2) * V[o + s1] + t2 * V[o + s1 + 1]
-    c = (1.0 - t2) * V[o + s0] + t2 * V[o + s0 + 1]
-    e = (1.0 - t2) * V[o + s0 + s1] + t2 * V[o + s0 + s1 + 1]
-    return (1.0 - t0) * ((1.0 - t1) * a + t1 * b) + t0 * ((1.0 - t1) * c + t1 * e)
-
-
 def backward_pass_fused(prob) -> ValueFunctions:
     """Backward pass of a Thermal-DP (2 states) or Thermal-Cabin-DP (3 states) problem built by
     :func:`optimize.formulations.build_problem`; returns the engine's :class:`ValueFunctions`."""
     import time
 
-    from optimize.formulations.layout import _A_BIG
+    from optimize.formulations.layout import _A_BIG, _C_HOLD, _C_NQ
 
     P = prob.params
     nx = prob.n_x
@@ -412,8 +500,9 @@ def backward_pass_fused(prob) -> ValueFunctions:
     o, n = int(P[_A_BIG]), int(P[_A_BIG + 1])
     shape = prob.table_shape
     big = P[o: o + n].reshape(prob.N, shape[0], shape[1])
-    nq = int(P[1])
-    Q = np.ascontiguousarray(prob.controls[:nq, 2])
+    nq = int(P[_C_NQ])
+    hold = bool(P[_C_HOLD]) if nx == 3 else False
+    Q = np.ascontiguousarray(prob.controls[:nq - 1 if hold else nq, 2])
     t0 = time.perf_counter()
     if prob.interp != "multilinear" and nx != 3:
         raise ValueError(f"interp {prob.interp!r}: the fused kernels offer it for 3 states only")
@@ -421,7 +510,7 @@ def backward_pass_fused(prob) -> ValueFunctions:
         backward2(prob.N, P, big, prob.w, prob.grids[0], prob.grids[1], Q, VT, LT, float(prob.level_tol))
     elif nx == 3:
         backward3(prob.N, P, big, prob.w, prob.grids[0], prob.grids[1], prob.grids[2], Q, VT, LT,
-                  float(prob.level_tol), prob.interp == "cubic_last" and prob.grids[2].size >= 3)
+                  float(prob.level_tol), prob.interp == "cubic_last" and prob.grids[2].size >= 3, hold)
     else:
         raise ValueError("fused kernels cover 2 and 3 states")
     t_b = time.perf_counter() - t0

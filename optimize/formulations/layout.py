@@ -33,6 +33,13 @@ _MS = ("R_tc", "T_bat_ref", "C_bat_As", "kappa", "hA_eng", "T_open", "k_rad", "Q
        "recirc", "LHV", "gamma_exh", "C_eng", "UA_cab", "C_cab", "Q_sun")
 (_R_TC, _TBREF, _CBAT, _KAPPA, _HA, _TOPEN, _KRAD, _QRADMAX, _EPS, _CP, _RECIRC, _LHV, _GAMMA, _CENG, _UACAB,
  _CCAB, _QSUN) = range(len(_MS))
+# heater range and the "hold the bound" switch (after the model scalars, inside the header)
+_C_QLO, _C_QHI, _C_HOLD = 57, 58, 59
+assert _MS0 + len(_MS) <= _C_QLO and _C_HOLD < _HEADER
+#: Heater command of the "hold the bound" control (a control row's Q_heat): the heat that puts the next cabin
+#: temperature on the next step's comfort bound, clipped to the heater grid's ends
+#: (:func:`optimize.formulations.transition.hold_heat`).
+HOLD = float("nan")
 # tab columns per power control
 _T_OK, _T_PE, _T_WF, _T_PBAT, _T_SOC0 = 0, 1, 2, 3, 4
 

@@ -18,11 +18,12 @@ from calib.model.simulate import fuel_equivalents_g
 
 from optimize.dp.engine import DPProblem, DPResult, backward_pass, forward_pass
 from optimize.formulations.artefacts import trajectory_checks
-from optimize.formulations.layout import (LEVEL_TOL, PENALTY_G_PER_STEP, _C_CH, _C_CHI, _C_CREL, _C_NQ, _C_NX, _C_PEN, _C_SH, _C_SHI,
+from optimize.formulations.layout import (HOLD, LEVEL_TOL, PENALTY_G_PER_STEP, _C_CH, _C_CHI, _C_CREL, _C_HOLD, _C_NQ,
+                                          _C_NX, _C_PEN, _C_QHI, _C_QLO, _C_SH, _C_SHI,
                      _C_SLO, _C_TAMB, _C_TBAT, _C_TH, _C_THI, _C_TLO, _C_TS, _C_WBL, _MS, _T_SOC0,
                      pack_params)
 from optimize.formulations.scenario import DPGrids, DPScenario, _grid
-from optimize.formulations.transition import build_tables, hev_precompute, hev_transition
+from optimize.formulations.transition import build_tables, delivered_heat, hev_precompute, hev_transition
 
 
 
@@ -275,13 +276,19 @@ class _Built:
 
 def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: float | None = None,
                   warm: bool = False, cycle=None, interp: str = "multilinear",
-                  cabin: str = "absolute") -> _Built:
+                  cabin: str = "absolute", hold: bool | None = None) -> _Built:
     """Assemble the :class:`DPProblem` of a formulation with ``nx`` states (1, 2 or 3); ``interp``: the
     cost-to-go interpolation (:class:`optimize.dp.engine.DPProblem`); ``cabin`` (3 states): the cabin
     state is the temperature (``"absolute"``) or its height above the step's comfort bound (``"bound"``:
-    the grid moves with the bound, which is a node at every step)."""
+    the grid moves with the bound, which is a node at every step). ``hold`` (3 states; default: with
+    ``cabin="bound"``): besides the heater grid, every power control is paired with "hold the bound", the
+    heat that puts the next cabin temperature on the next step's comfort bound (control value
+    :data:`~optimize.formulations.layout.HOLD`; :func:`optimize.formulations.transition.hold_heat`)."""
     if cabin not in CABIN_STATES:
         raise ScenarioError(f"cabin state {cabin!r}: choose one of {', '.join(CABIN_STATES)}")
+    hold = (cabin == "bound") if hold is None else bool(hold)
+    if hold and nx != 3:
+        raise ScenarioError(f"the hold-the-bound heater control needs the cabin state (3 states), not {nx}")
     mp = _mp(params)
     if warm:
         mp = mp._replace(f_cl=np.ones_like(mp.f_cl))
@@ -350,7 +357,10 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
         extra.update(T_cab_lb_min=float(np.min(lb)), T_cab_ub=float(tcabg[-1] + np.min(off)),
                      T_cab_terminal_min=float(ref[-1]), T_cab_grid_lo=float(tcabg[0]),
                      T_cab_grid_step=float(grids.tcab), Q_heat_step=float(grids.qheat), cabin_state=cabin,
-                     T_cab_grid_offset=off[1:].copy())
+                     T_cab_grid_offset=off[1:].copy(), heater_hold=hold)
+        q_range = (float(Q[0]), float(Q[-1]))  # the hold heat stays within the grid's ends
+        if hold:
+            Q = np.append(Q, HOLD)
     else:
         Q = np.array([scen.Q_heat if heater is None else heater])
     terminal = _terminal_cost(mp, scen, nx, cab_soft, float(off[-1]) if nx == 3 else 0.0,
@@ -374,6 +384,9 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
     c = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
     p = pack_params(cfg, ms, [socg, fclg, lossg, c(mp.soc_bp), c(mp.U_oc), c(mp.soc_bp_R), c(mp.R_int),
                               c(mp.T_fcl), c(mp.f_cl), big])
+    if nx == 3:
+        # clipped to the grid's ends, a hold heat beyond them is what a grid control already delivers
+        p[_C_QLO], p[_C_QHI], p[_C_HOLD] = q_range[0], q_range[1], 1.0 if hold else 0.0
     prob = DPProblem(grids=grid_list, controls=controls, N=N, transition=hev_transition, w=w, params=p,
                      terminal_bounds=bounds, terminal_cost=terminal, boundary="levelset", clip=True,
                      level_tol=LEVEL_TOL, precompute=hev_precompute,
@@ -460,20 +473,30 @@ def solve_thermal(params, scenario: DPScenario | None = None, grids: DPGrids | N
 
 def solve_thermal_cabin(params, scenario: DPScenario | None = None, grids: DPGrids | None = None, *,
                         engine: str = "fused", threads: int | None = None,
-                        interp: str = CABIN_INTERP, cabin: str = CABIN_STATE) -> DPOutcome:
+                        interp: str = CABIN_INTERP, cabin: str = CABIN_STATE,
+                        hold: bool | None = None) -> DPOutcome:
     """Thermal-Cabin-DP (SOC, T_cl, T_cab; Q_heat a control). ``engine``: "fused" (default) or "generic".
     ``interp``: how both passes interpolate the cost-to-go along the cabin axis
     (:class:`optimize.dp.engine.DPProblem`; default :data:`CABIN_INTERP`); ``cabin``: the cabin state's
-    coordinate (:func:`build_problem`; default :data:`CABIN_STATE`)."""
+    coordinate (:func:`build_problem`; default :data:`CABIN_STATE`); ``hold``: offer the "hold the bound"
+    heater control besides the grid (:func:`build_problem`; default: with ``cabin="bound"``).
+    ``.dp.u[:, 2]`` is the heat each step delivered where the hold control was chosen."""
     scen, grids = scenario or DPScenario(), grids or DPGrids()
     t0 = time.perf_counter()
-    b = build_problem(params, scen, grids, 3, interp=interp, cabin=cabin)
+    b = build_problem(params, scen, grids, 3, interp=interp, cabin=cabin, hold=hold)
     with _threads(threads):
         res = _solve(b, engine)
+    held = np.zeros(b.prob.N, bool)
+    if b.extra["heater_hold"] and res.steps_completed == b.prob.N:
+        # the hold control's heat depends on the state: replay the heat the forward pass applied
+        held = np.isnan(res.u[:, 2])
+        q = delivered_heat(b.prob.params, res.x, np.ascontiguousarray(res.u), b.prob.w)
+        res.u[held, 2] = q[held]
     sim = resimulate(params, b.cyc, res.u[:, 0], res.u[:, 1], res.u[:, 2], scen, "Thermal-Cabin-DP")
     out = _outcome("thermal_cabin", params, b, res, scen, grids, sim, t0)
     out.extra["engine"] = engine
     out.extra["interp"] = interp
+    out.extra["heater_hold_pct"] = 100.0 * float(held.mean())
     out.extra["grid_artefacts"] = trajectory_checks(out)
     return out
 

@@ -6,11 +6,11 @@ import math
 import numpy as np
 from numba import njit
 
-from calib.model.equations import (IDLE, OFF, battery_current, battery_ocv_r, cabin_heat_rate, coolant_heat_rate,
-                                   engine_bay_loss, fuel_map, heater_core_limit, power_split, radiator_heat)
+from calib.model.equations import (IDLE, OFF, battery_current, battery_ocv_r, cabin_heat_rate, cabin_heat_to_reach,
+                                   coolant_heat_rate, engine_bay_loss, fuel_map, heater_core_limit, power_split, radiator_heat)
 
 from optimize.formulations.layout import (_A_BIG, _A_FCL, _A_FCLG, _A_LOSSG, _A_RINT, _A_SOCBP, _A_SOCBPR, _A_TFCL, _A_UOC, _CBAT,
-                     _CCAB, _CENG, _CP, _C_CH, _C_CHI, _C_CREL, _C_NQ, _C_NX, _C_PEN, _C_SH, _C_SHI, _C_SLO, _C_TAMB,
+                     _CCAB, _CENG, _CP, _C_CH, _C_CHI, _C_CREL, _C_NQ, _C_QHI, _C_QLO, _C_NX, _C_PEN, _C_SH, _C_SHI, _C_SLO, _C_TAMB,
                      _C_TBAT, _C_TH, _C_THI, _C_TLO, _C_TS, _C_WBL, _EPS, _GAMMA, _HA, _KAPPA, _KRAD, _LHV,
                      _MS0, _QRADMAX, _QSUN, _RECIRC, _R_TC, _TBREF, _TOPEN, _T_OK, _T_PBAT, _T_PE, _T_SOC0,
                      _T_WF, _UACAB, _arr)
@@ -75,10 +75,53 @@ def _soc_next(p, soc, P_bat, Ts):
     return soc - battery_current(U, R, P_bat) * Ts / p[_MS0 + _CBAT]
 
 
+@njit(inline="always", cache=True)
+def hold_heat(p, T_cab, T_target):
+    """Heat of the "hold the bound" control: what takes the cabin from T_cab to T_target in one step
+    (:func:`calib.model.equations.cabin_heat_to_reach`), clipped to the heater grid's ends (Q_heat_min and
+    the grid's top value); the heater-core limit is applied after, as to any command."""
+    q = cabin_heat_to_reach(p[_MS0 + _UACAB], p[_MS0 + _QSUN], p[_MS0 + _CCAB], T_cab, p[_C_TAMB], T_target,
+                            p[_C_TS])
+    if q < p[_C_QLO]:
+        q = p[_C_QLO]
+    if q > p[_C_QHI]:
+        q = p[_C_QHI]
+    return q
+
+
+@njit(inline="always", cache=True)
+def _delivered_heat(p, T_cl, T_cab, q_cmd, T_target):
+    """The heat a command delivers at (T_cl, T_cab): the hold heat for a NaN command, then the core limit."""
+    q_lim = heater_core_limit(p[_MS0 + _EPS], p[_C_WBL], p[_MS0 + _CP], p[_MS0 + _RECIRC], T_cl, T_cab, p[_C_TAMB])
+    q = q_cmd
+    if not (q == q):
+        q = hold_heat(p, T_cab, T_target)
+    if q > q_lim:
+        q = q_lim
+    if q < 0.0:
+        q = 0.0
+    return q
+
+
+@njit(cache=True)
+def delivered_heat(p, x, u, w):  # pragma: no cover - compiled
+    """(N,) heat delivered by the controls u (N, 3) along the trajectory x (N+1, 3) of a Thermal-Cabin
+    problem (the forward pass's states): what :func:`hev_transition` used at each step."""
+    N = u.shape[0]
+    out = np.empty(N)
+    for k in range(N):
+        T_cab = x[k, 2]
+        if p[_C_CREL] != 0.0:
+            T_cab += w[k, 3]
+        out[k] = _delivered_heat(p, x[k, 1], T_cab, u[k, 2], w[k, 2])
+    return out
+
+
 @njit(cache=True)
 def hev_transition(k, x, u, w_k, p, tab, iu, ix, x_next):  # pragma: no cover - compiled
-    """x = (soc[, T_cl[, T_cab]]), u = (e_mode, P_bat_mg, Q_heat_cmd); w_k = (P_trac, T_cab_ref_k, T_cab_LB_k+1,
-    T_cab_LB_k). With the cabin relative to its bound (``p[_C_CREL]``) the cabin state is T_cab - T_cab_LB_k.
+    """x = (soc[, T_cl[, T_cab]]), u = (e_mode, P_bat_mg, Q_heat_cmd; NaN: hold the bound, :func:`hold_heat`);
+    w_k = (P_trac, T_cab_ref_k, T_cab_LB_k+1, T_cab_LB_k). With the cabin relative to its bound
+    (``p[_C_CREL]``) the cabin state is T_cab - T_cab_LB_k.
 
     Returns the fuel (g) of the step, inf if infeasible. Same equations as :func:`calib.model.equations.step`."""
     nq = int(p[_C_NQ])
@@ -119,12 +162,7 @@ def hev_transition(k, x, u, w_k, p, tab, iu, ix, x_next):  # pragma: no cover - 
             T_cab += w_k[3]
     else:
         T_cab = w_k[1]
-    q_lim = heater_core_limit(p[_MS0 + _EPS], p[_C_WBL], p[_MS0 + _CP], p[_MS0 + _RECIRC], T_cl, T_cab, T_amb)
-    q = u[2]
-    if q > q_lim:
-        q = q_lim
-    if q < 0.0:
-        q = 0.0
+    q = _delivered_heat(p, T_cl, T_cab, u[2], w_k[2])
     Q_fuel = p[_MS0 + _LHV] * W_f
     P_e = tab[ip, _T_PE]
     tn = T_cl + Ts * coolant_heat_rate(p[_MS0 + _GAMMA], Q_fuel, P_e, loss, q)[0] / p[_MS0 + _CENG]
