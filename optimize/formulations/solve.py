@@ -22,16 +22,22 @@ from optimize.formulations.layout import (LEVEL_TOL, PENALTY_G_PER_STEP, _C_CH, 
                      _C_SLO, _C_TAMB, _C_TBAT, _C_TH, _C_THI, _C_TLO, _C_TS, _C_WBL, _MS, _T_SOC0,
                      pack_params)
 from optimize.formulations.scenario import DPGrids, DPScenario, _grid
-from optimize.formulations.transition import build_tables, hev_precompute, hev_transition
+from optimize.formulations.transition import build_tables, drift_offsets, hev_precompute, hev_transition
 
 
 
 
+#: Interpolation of the cost-to-go of every formulation (:class:`optimize.dp.engine.DPProblem`): multilinear,
+#: with the reach boundary of SOC_N >= SOC_0 located from the level along SOC.
+INTERP = "reach_first"
 #: Thermal-Cabin-DP's interpolation of the cost-to-go (the cabin is the last state).
-CABIN_INTERP = "multilinear"
+CABIN_INTERP = INTERP
 #: Coordinates of Thermal-Cabin-DP's cabin state (:func:`build_problem`) and the default.
 CABIN_STATES = ("absolute", "bound")
 CABIN_STATE = "bound"
+#: Coordinates of the SOC state of every formulation (:func:`build_problem`) and the default.
+SOC_STATES = ("absolute", "drift")
+SOC_STATE = "drift"
 
 
 def peak_rss_mb() -> float:
@@ -196,14 +202,26 @@ class _Built:
 
 
 def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: float | None = None,
-                  warm: bool = False, cycle=None, interp: str = "multilinear",
-                  cabin: str = "absolute") -> _Built:
+                  warm: bool = False, cycle=None, interp: str = INTERP,
+                  cabin: str = "absolute", soc: str = SOC_STATE) -> _Built:
     """Assemble the :class:`DPProblem` of a formulation with ``nx`` states (1, 2 or 3); ``interp``: the
     cost-to-go interpolation (:class:`optimize.dp.engine.DPProblem`); ``cabin`` (3 states): the cabin
     state is the temperature (``"absolute"``) or its height above the step's comfort bound (``"bound"``:
-    the grid moves with the bound, which is a node at every step)."""
+    the grid moves with the bound, which is a node at every step); ``soc``: the SOC state is the charge
+    (``"absolute"``) or the charge minus the step's engine-off drift (``"drift"``: the SOC grid moves with
+    the charge an engine-off drive carries to SOC_0 at the end, :func:`~optimize.formulations.transition.drift_offsets`;
+    ``extra["soc_grid_offset"]`` holds the offsets, the charge is ``x[:, 0]`` plus them).
+
+    Why the drift: with SOC_N >= SOC_0 the cost-to-go has a convex kink at the charge from which the rest
+    of the drive can be driven on the battery alone. Engine-off steps move the charge by a fraction of a
+    0.01 cell, so on a fixed grid every step re-interpolates the kink linearly and diffuses it; the
+    policy then undervalues charge mid-drive and recovers it at a high marginal cost at the end. On the
+    moving grid the kink stays on a node. The grid spans the charges [soc_min, soc_max] at every step, so
+    it has more nodes (74 instead of 41 on the default drive at 0.01)."""
     if cabin not in CABIN_STATES:
         raise ScenarioError(f"cabin state {cabin!r}: choose one of {', '.join(CABIN_STATES)}")
+    if soc not in SOC_STATES:
+        raise ScenarioError(f"SOC state {soc!r}: choose one of {', '.join(SOC_STATES)}")
     mp = _mp(params)
     if warm:
         mp = mp._replace(f_cl=np.ones_like(mp.f_cl))
@@ -211,17 +229,30 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
     N, Ts = cyc.n_steps, cyc.Ts
     if not (scen.soc_min <= scen.soc0 <= scen.soc_max):
         raise ScenarioError(f"soc0 {scen.soc0} outside the SOC grid [{scen.soc_min}, {scen.soc_max}]")
-    socg = _grid(scen.soc_min, scen.soc_max, grids.soc)
+    phys = _grid(scen.soc_min, scen.soc_max, grids.soc)
     tclg = _grid(scen.T_cl_min, scen.T_cl_max, grids.tcl)
     fclg, lossg = _t_cl_tables(mp, tclg, scen.T_amb)
     pc = _power_controls(mp, grids)
     P_trac = _traction(mp, cyc)
-    extra = {}
-    w = np.zeros((N, 4))
+    extra = {"soc_state": soc}
+    if soc == "drift":
+        soff = drift_offsets(mp, P_trac, float(Ts), float(mp.T_bat_ref), float(scen.soc0))
+        # the same lattice as the fixed grid, extended so that it spans [soc_min, soc_max] at every step
+        h = grids.soc
+        j0 = math.floor((phys[0] - soff.max() - phys[0]) / h + 1e-9)
+        j1 = math.ceil((phys[-1] - soff.min() - phys[0]) / h - 1e-9)
+        socg = phys[0] + h * np.arange(j0, j1 + 1)
+    else:
+        soff = np.zeros(N + 1)
+        socg = phys
+    extra["soc_grid_offset"] = soff.copy()
+    w = np.zeros((N, 6))
     w[:, 0] = P_trac
+    w[:, 4] = soff[:-1]
+    w[:, 5] = soff[1:]
     grid_list = [socg]
-    bounds = [(scen.soc0, None)]
-    x0 = [scen.soc0]
+    bounds = [(scen.soc0 - soff[-1], None)]
+    x0 = [scen.soc0 - soff[0]]
     if nx >= 2:
         if not (scen.T_cl_min <= scen.T_cl0 <= scen.T_cl_max):
             raise ScenarioError(f"T_cl0 {scen.T_cl0} outside the coolant grid")
@@ -275,7 +306,7 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
     nq = Q.size
     controls = np.column_stack([np.repeat(pc, nq, axis=0), np.tile(Q, pc.shape[0])])
     cfg = np.zeros(16)
-    cfg[_C_SLO], cfg[_C_SHI], cfg[_C_SH] = socg[0], socg[-1], socg[1] - socg[0]
+    cfg[_C_SLO], cfg[_C_SHI], cfg[_C_SH] = phys[0], phys[-1], phys[1] - phys[0]
     cfg[_C_TLO], cfg[_C_THI], cfg[_C_TH] = tclg[0], tclg[-1], tclg[1] - tclg[0]
     if nx == 3:
         cfg[_C_CHI], cfg[_C_CH] = scen.T_cab_ub, grids.tcab
@@ -284,7 +315,7 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
     cfg[_C_NX], cfg[_C_NQ], cfg[_C_TAMB], cfg[_C_TS] = nx, nq, scen.T_amb, Ts
     cfg[_C_TBAT], cfg[_C_WBL] = mp.T_bat_ref, mp.W_bl
     ms = np.array([float(getattr(mp, n)) for n in _MS])
-    big = build_tables(mp, pc, socg, P_trac, float(Ts), float(mp.T_bat_ref))
+    big = build_tables(mp, pc, socg, P_trac, float(Ts), float(mp.T_bat_ref), soff)
     c = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
     p = pack_params(cfg, ms, [socg, fclg, lossg, c(mp.soc_bp), c(mp.U_oc), c(mp.soc_bp_R), c(mp.R_int),
                               c(mp.T_fcl), c(mp.f_cl), big])
@@ -334,15 +365,16 @@ def _threads(n):
 
 
 def solve_baseline(params, scenario: DPScenario | None = None, grids: DPGrids | None = None, *,
-                   threads: int | None = 1) -> DPOutcome:
+                   threads: int | None = 1, soc: str = SOC_STATE) -> DPOutcome:
     """Baseline-DP (SOC only, f_cl = 1). ``.sim``: its own optimum (f_cl = 1); ``.on_thermal``: its
-    controls re-simulated on the full thermal model with the scenario's heater demand.
+    controls re-simulated on the full thermal model with the scenario's heater demand. ``soc``: the SOC
+    state's coordinate (:func:`build_problem`).
 
     Solved by the generic engine on one thread by default: 41 states per step are too few to pay for a
     parallel region per step."""
     scen, grids = scenario or DPScenario(), grids or DPGrids()
     t0 = time.perf_counter()
-    b = build_problem(params, scen, grids, 1, warm=True)
+    b = build_problem(params, scen, grids, 1, warm=True, soc=soc)
     with _threads(threads):
         res = _solve(b, "generic")
     mp_warm = b.mp
@@ -356,12 +388,13 @@ def solve_baseline(params, scenario: DPScenario | None = None, grids: DPGrids | 
 
 def solve_thermal(params, scenario: DPScenario | None = None, grids: DPGrids | None = None, *,
                   heater: float | None = None, warm: bool = False, engine: str = "fused",
-                  threads: int | None = None) -> DPOutcome:
+                  threads: int | None = None, soc: str = SOC_STATE) -> DPOutcome:
     """Thermal-DP (SOC, T_cl). ``heater`` overrides the scenario's demand (e.g. 0 W); ``warm=True``
-    sets f_cl = 1 (with heater 0 W it must reproduce Baseline-DP)."""
+    sets f_cl = 1 (with heater 0 W it must reproduce Baseline-DP); ``soc``: the SOC state's coordinate
+    (:func:`build_problem`)."""
     scen, grids = scenario or DPScenario(), grids or DPGrids()
     t0 = time.perf_counter()
-    b = build_problem(params, scen, grids, 2, heater=heater, warm=warm)
+    b = build_problem(params, scen, grids, 2, heater=heater, warm=warm, soc=soc)
     with _threads(threads):
         res = _solve(b, engine)
     mp_used = b.mp
@@ -374,14 +407,16 @@ def solve_thermal(params, scenario: DPScenario | None = None, grids: DPGrids | N
 
 def solve_thermal_cabin(params, scenario: DPScenario | None = None, grids: DPGrids | None = None, *,
                         engine: str = "fused", threads: int | None = None,
-                        interp: str = CABIN_INTERP, cabin: str = CABIN_STATE) -> DPOutcome:
+                        interp: str = CABIN_INTERP, cabin: str = CABIN_STATE,
+                        soc: str = SOC_STATE) -> DPOutcome:
     """Thermal-Cabin-DP (SOC, T_cl, T_cab; Q_heat a control). ``engine``: "fused" (default) or "generic".
     ``interp``: how both passes interpolate the cost-to-go along the cabin axis
     (:class:`optimize.dp.engine.DPProblem`; default :data:`CABIN_INTERP`); ``cabin``: the cabin state's
-    coordinate (:func:`build_problem`; default :data:`CABIN_STATE`)."""
+    coordinate (:func:`build_problem`; default :data:`CABIN_STATE`); ``soc``: the SOC state's coordinate
+    (:func:`build_problem`; default :data:`SOC_STATE`)."""
     scen, grids = scenario or DPScenario(), grids or DPGrids()
     t0 = time.perf_counter()
-    b = build_problem(params, scen, grids, 3, interp=interp, cabin=cabin)
+    b = build_problem(params, scen, grids, 3, interp=interp, cabin=cabin, soc=soc)
     with _threads(threads):
         res = _solve(b, engine)
     sim = resimulate(params, b.cyc, res.u[:, 0], res.u[:, 1], res.u[:, 2], scen, "Thermal-Cabin-DP")
