@@ -18,8 +18,9 @@ def test_full_case_study_ordering(params):
         assert abs(gap) <= 1.0, (k, v0, fwd)
 
 
-@pytest.mark.xfail(reason="the paper's SOC grid is not converged: Baseline-DP 119.62 g on soc=0.01, "
-                          "118.02 g on 0.005, 117.81 g on 0.0025", strict=False)
+@pytest.mark.xfail(reason="every step halved: Thermal-DP's corrected fuel changes by +0.04 % (converged), "
+                          "Baseline-DP's fuel by +0.03 % but its corrected fuel, which values the coolant heat "
+                          "of a run that does not optimise it, by -0.11 %", strict=False)
 def test_convergence_baseline_thermal(params):
     from optimize.convergence import convergence_study
 

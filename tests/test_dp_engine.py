@@ -689,3 +689,31 @@ def test_cubic_last_interpolation_of_a_convex_function_has_no_kink_at_nodes():
     for node in (1.0, 2.0, 3.0):
         left, mid, right = interpolate(prob, V, [[node - e], [node], [node + e]], interp="cubic_last")
         assert (right - mid) / e == pytest.approx((mid - left) / e, rel=1e-3)
+
+
+def test_reach_first_interpolates_a_boundary_cell_from_the_boundary():
+    # levels in grid steps: node 0 outside the reach (0.5), node 1 inside (-0.5): the boundary is at the
+    # cell's middle; the unreachable node's value (its least-level control's cost) is placed there
+    from optimize.dp.kernels import _interp_reach
+
+    V = np.array([10.0, 4.0, 1.0, 0.0], dtype=np.float32)
+    L = np.array([0.5, -0.5, -1.5, -2.5], dtype=np.float32)
+    strides = np.ones(1, np.int64)
+
+    def at(c, t, lev=L, vals=V):
+        return _interp_reach(vals, lev, 0.0, 1, strides, np.array([c], np.int64), np.array([t]))
+
+    assert at(0, 0.75) == pytest.approx(10.0 + 0.5 * (4.0 - 10.0))  # the plain chord gives 5.5
+    assert at(0, 0.5) == pytest.approx(10.0)
+    assert at(0, 0.25) == pytest.approx(8.5)  # unreachable side: the plain chord
+    assert at(1, 0.5) == pytest.approx(2.5)  # both nodes reachable: the plain chord
+    assert at(0, 0.75, lev=V[:0]) == pytest.approx(5.5)  # no level function: multilinear
+    # an upper bound: node 1 outside the reach
+    Lu = np.array([-1.0, 1.0, 3.0, 5.0], dtype=np.float32)
+    Vu = np.array([2.0, 8.0, 9.0, 9.0], dtype=np.float32)
+    assert at(0, 0.25, lev=Lu, vals=Vu) == pytest.approx(2.0 + 0.5 * (8.0 - 2.0))
+    # 2 states: per node of the second state, then linear along it
+    V2 = np.array([[10.0, 20.0], [4.0, 4.0]], dtype=np.float32).ravel()
+    L2 = np.array([[0.5, -0.5], [-0.5, -1.5]], dtype=np.float32).ravel()
+    r = _interp_reach(V2, L2, 0.0, 2, np.array([2, 1], np.int64), np.array([0, 0], np.int64), np.array([0.75, 0.5]))
+    assert r == pytest.approx(0.5 * 7.0 + 0.5 * (0.25 * 20.0 + 0.75 * 4.0))

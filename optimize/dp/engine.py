@@ -55,8 +55,12 @@ Boundary method: level sets (Elbert, Ebbesen & Guzzella, IEEE TCST 2013)
     cost. With "levelset" the terminal set must be given by ``terminal_bounds``; +inf entries of
     ``terminal_cost`` then act as hard exclusions (level +inf) without the level-set benefit. Feasibility
     of the result is judged on the forward trajectory's true final state (``DPResult.feasible``,
-    ``terminal_level``). (The boundary-line method of Sundstrom et al. 2010 is not implemented; the
-    level-set method covers any number of states.)
+    ``terminal_level``). The value of a state outside the reach is its least-level control's cost (the
+    most it can do towards the set), about the cost on the reach boundary itself; with
+    ``interp="reach_first"`` a cell along the first state that the boundary cuts is interpolated from the
+    boundary (located where the cell's linear level crosses ``level_tol``) to the reachable node, in the
+    spirit of the boundary-line method of Sundstrom et al. 2010, instead of by the chord from the
+    unreachable node, which puts too low a cost near the boundary.
 
 User functions (compile them with ``numba.njit(cache=True)`` at module level). Each distinct user function
 compiles its own specialisation of the two kernels (static dispatch, the user code is inlined into the
@@ -121,7 +125,16 @@ __all__ = ["DPProblem", "DPResult", "ValueFunctions", "cartesian", "solve", "bac
 
 
 #: Interpolations of the cost-to-go (``DPProblem.interp``; see :func:`forward_pass`).
-FORWARD_INTERP = ("multilinear", "cubic_last")
+FORWARD_INTERP = ("multilinear", "cubic_last", "reach_first")
+
+
+def _interp_mode(interp: str, n_x: int) -> int:
+    """Kernel code of an interpolation name (:func:`optimize.dp.kernels._interp_v`)."""
+    if interp not in FORWARD_INTERP:
+        raise ValueError(f"interp {interp!r}: choose one of {', '.join(FORWARD_INTERP)}")
+    if interp == "reach_first" and n_x > 3:
+        raise ValueError("interp 'reach_first' is offered for 1 to 3 states")
+    return FORWARD_INTERP.index(interp)
 
 
 def cartesian(*grids: Sequence[float]) -> np.ndarray:
@@ -148,8 +161,10 @@ class DPProblem:
     precompute: optional ``@njit`` hook ``(k, w_k, p, tab)``; table_shape: shape of ``tab`` (2-D).
     level_tol: level values <= level_tol count as feasible (levelset only).
     interp: how the cost-to-go is interpolated at off-grid next states, in both passes: "multilinear"
-    (default) or "cubic_last" (multilinear in the other states, cubic Hermite along the last one; see
-    :func:`forward_pass`). The level function is always multilinear.
+    (default), "cubic_last" (multilinear in the other states, cubic Hermite along the last one; see
+    :func:`forward_pass`) or "reach_first" (multilinear, except along the first state in a cell the reach
+    boundary of the terminal set cuts; levelset only, up to 3 states; see the module docstring). The level
+    function is always multilinear.
     """
 
     grids: Sequence[np.ndarray]
@@ -195,8 +210,7 @@ class DPProblem:
             raise ValueError("boundary must be 'none' or 'levelset'")
         if len(self.table_shape) != 2:
             raise ValueError("table_shape must be 2-D")
-        if self.interp not in FORWARD_INTERP:
-            raise ValueError(f"interp {self.interp!r}: choose one of {', '.join(FORWARD_INTERP)}")
+        _interp_mode(self.interp, len(self.grids))
 
     # ---- derived grid data -------------------------------------------------------------------
     @property
@@ -375,7 +389,7 @@ def backward_pass(prob: DPProblem, store_policy: bool = False) -> ValueFunctions
     t0 = time.perf_counter()
     _k.backward(prob.transition, pre, prob.N, X, prob.controls, prob.w, prob.params, _tab(prob),
                 VT, LT, use_level, float(prob.level_tol), *grid, bool(prob.clip), policy,
-                bool(store_policy), prob.interp == "cubic_last")
+                bool(store_policy), _interp_mode(prob.interp, prob.n_x))
     t_b = time.perf_counter() - t0
     shape = (prob.N + 1,) + prob.grid_shape
     return ValueFunctions(V=VT.reshape(shape), L=LT.reshape(shape) if use_level else None,
@@ -385,28 +399,28 @@ def backward_pass(prob: DPProblem, store_policy: bool = False) -> ValueFunctions
 
 def interpolate(prob: DPProblem, values: np.ndarray, points, interp: str = "multilinear") -> np.ndarray:
     """Interpolation of a grid-shaped array at points (m, n_x) with the engine's rules; ``interp`` as in
-    :func:`forward_pass` (default multilinear)."""
-    if interp not in FORWARD_INTERP:
-        raise ValueError(f"interp {interp!r}: choose one of {', '.join(FORWARD_INTERP)}")
+    :func:`forward_pass` (default multilinear; "reach_first" needs the level function, so here it is
+    multilinear)."""
+    mode = _interp_mode(interp, prob.n_x)
     grid = prob._grid_arrays()
     Q = np.atleast_2d(np.asarray(points, dtype=np.float64))
     V = np.ascontiguousarray(np.asarray(values).reshape(-1))
-    return _k.interp_points(V, Q, *grid, bool(prob.clip), interp == "cubic_last")
+    return _k.interp_points(V, Q, *grid, bool(prob.clip), mode)
 
 
 def forward_pass(prob: DPProblem, vf: ValueFunctions, x0, interp: str | None = None) -> DPResult:
     """Simulate the optimal policy from the true initial state x0 (may be off-grid).
 
     ``interp`` is how the one-step decision interpolates the cost-to-go at the next state (default
-    ``prob.interp``, the backward pass's rule): ``"multilinear"`` or ``"cubic_last"``: multilinear in the other states,
+    ``prob.interp``, the backward pass's rule): ``"multilinear"``, ``"reach_first"`` (see the module
+    docstring) or ``"cubic_last"``: multilinear in the other states,
     cubic Hermite along the last one (central-difference slopes: exact on quadratics, equal to the node
     values at nodes, C1 across them). A cost-to-go convex along an axis is overestimated between nodes by
     linear interpolation, whose kinks then hold the state on a node; the cubic has no kinks. It needs a
     uniform last grid of at least 3 nodes and finite values around the query (elsewhere it falls back to
     multilinear). The level function is always multilinear (it is piecewise linear)."""
     interp = prob.interp if interp is None else interp
-    if interp not in FORWARD_INTERP:
-        raise ValueError(f"interp {interp!r}: choose one of {', '.join(FORWARD_INTERP)}")
+    mode = _interp_mode(interp, prob.n_x)
     x0 = np.ascontiguousarray(np.asarray(x0, dtype=np.float64).ravel())
     if x0.size != prob.n_x:
         raise ValueError(f"x0 must have {prob.n_x} entries")
@@ -423,7 +437,7 @@ def forward_pass(prob: DPProblem, vf: ValueFunctions, x0, interp: str | None = N
     t0 = time.perf_counter()
     done = _k.forward(prob.transition, pre, N, x0, prob.controls, prob.w, prob.params, _tab(prob),
                       VT, LT, use_level, float(prob.level_tol), *grid, bool(prob.clip), X_out, U_idx,
-                      stage, pred, interp == "cubic_last")
+                      stage, pred, mode)
     t_f = time.perf_counter() - t0
     u = np.full((N, prob.controls.shape[1]), np.nan)
     ok = U_idx >= 0

@@ -215,6 +215,88 @@ def _interp_cubic_last(V, nx, n, uniform, strides, ib, tb):
 
 
 @njit(inline="always", cache=True)
+def _lin_reach(v0, v1, l0, l1, tol, t):
+    """Linear interpolation between node values v0, v1 (levels l0, l1) at fraction t, except in a cell the
+    reach boundary cuts (one level above tol, one at or below): there the unreachable node's value is
+    placed where the cell's linear level crosses tol, and a query on the reachable side interpolates
+    between that point and the reachable node.
+
+    Why: the value of a node outside the reach is the cost of its least-level control (the most charging),
+    which is about the cost on the boundary itself; the plain chord from that node puts a lower value on
+    the boundary than the boundary costs, and a policy then lets the charge fall towards the boundary and
+    pays the most charging to recover (the boundary-line idea of Sundstrom et al. 2010, with the boundary
+    located from the signed level)."""
+    if l0 > tol and l1 <= tol:
+        tb = (l0 - tol) / (l0 - l1)
+        if t >= tb:
+            if tb >= 1.0:
+                return v1
+            return v0 + (t - tb) / (1.0 - tb) * (v1 - v0)
+    elif l1 > tol and l0 <= tol:
+        tb = (tol - l0) / (l1 - l0)
+        if t <= tb:
+            if tb <= 0.0:
+                return v0
+            return v0 + t / tb * (v1 - v0)
+    return (1.0 - t) * v0 + t * v1
+
+
+@njit(cache=True)
+def _interp_reach(V, L, tol, nx, strides, ib, tb):
+    """Multilinear interpolation of V, except along the first dimension in a cell the reach boundary of
+    the level L cuts (:func:`_lin_reach`, per node of the other dimensions; with 3 dimensions the last one
+    is interpolated first, as in the fused Thermal-Cabin slices, then the first, then the second). Without
+    levels (L empty), or where the result is not finite, :func:`_interp` (and its +inf rules)."""
+    if L.shape[0] == 0 or nx > 3:
+        return _interp(V, nx, strides, ib, tb)
+    c = ib[0]
+    t = tb[0]
+    s0 = strides[0]
+    if nx == 1:
+        r = _lin_reach(np.float64(V[c]), np.float64(V[c + 1]), np.float64(L[c]), np.float64(L[c + 1]), tol, t)
+    elif nx == 2:
+        t1 = tb[1]
+        o = c * s0 + ib[1]
+        a = _lin_reach(np.float64(V[o]), np.float64(V[o + s0]), np.float64(L[o]), np.float64(L[o + s0]), tol, t)
+        b = _lin_reach(np.float64(V[o + 1]), np.float64(V[o + s0 + 1]), np.float64(L[o + 1]),
+                       np.float64(L[o + s0 + 1]), tol, t)
+        r = (1.0 - t1) * a + t1 * b
+    else:
+        s1 = strides[1]
+        t1 = tb[1]
+        t2 = tb[2]
+        o = c * s0 + ib[1] * s1 + ib[2]
+        r0 = 0.0
+        r1 = 0.0
+        for j in range(2):
+            oj = o + j * s1
+            va = (1.0 - t2) * V[oj] + t2 * V[oj + 1]
+            vb = (1.0 - t2) * V[oj + s0] + t2 * V[oj + s0 + 1]
+            la = (1.0 - t2) * L[oj] + t2 * L[oj + 1]
+            lb = (1.0 - t2) * L[oj + s0] + t2 * L[oj + s0 + 1]
+            if j == 0:
+                r0 = _lin_reach(va, vb, la, lb, tol, t)
+            else:
+                r1 = _lin_reach(va, vb, la, lb, tol, t)
+        r = (1.0 - t1) * r0 + t1 * r1
+    if np.isfinite(r):
+        return r
+    return _interp(V, nx, strides, ib, tb)
+
+
+@njit(inline="always", cache=True)
+def _interp_v(mode, V, L, tol, nx, n, uniform, strides, ib, tb):
+    """The cost-to-go interpolation of ``mode`` (the engine's ``FORWARD_INTERP`` index): 0 multilinear,
+    1 cubic along the last dimension (:func:`_interp_cubic_last`), 2 multilinear with the reach boundary
+    along the first (:func:`_interp_reach`; L is the level function, empty without one)."""
+    if mode == 1:
+        return _interp_cubic_last(V, nx, n, uniform, strides, ib, tb)
+    if mode == 2:
+        return _interp_reach(V, L, tol, nx, strides, ib, tb)
+    return _interp(V, nx, strides, ib, tb)
+
+
+@njit(inline="always", cache=True)
 def level_needs_cost(lv, tol, feas, Lsel):
     """Whether a control of interpolated level ``lv`` can still be chosen (so its cost is needed), given
     the current choice (``feas``: it reaches the terminal set; ``Lsel``: its level)."""
@@ -236,10 +318,10 @@ def level_better(lv, v, tol, feas, Lsel, best):
 
 @njit(parallel=True, cache=False)  # no disk cache: kernels specialised on a user function never hit it
 def backward(transition, precompute, N, X, controls, w, p, tab, VT, LT, use_level, level_tol,
-             lo, inv_dx, n, uniform, pts, strides, clip, policy, store_policy, cubic_last):
+             lo, inv_dx, n, uniform, pts, strides, clip, policy, store_policy, mode):
     """Backward pass. VT[N] (and LT[N] when use_level) must hold the terminal data; fills VT[0..N-1],
     LT[0..N-1] and, when store_policy, policy[0..N-1] (argmin control index, -1 if none).
-    ``cubic_last``: the cost-to-go is interpolated by :func:`_interp_cubic_last`."""
+    ``mode``: the cost-to-go interpolation (:func:`_interp_v`)."""
     n_states = X.shape[0]
     nx = X.shape[1]
     nu = controls.shape[0]
@@ -293,10 +375,7 @@ def backward(transition, precompute, N, X, controls, w, p, tab, VT, LT, use_leve
                             Lmin = lv
                         if not level_needs_cost(lv, level_tol, feas, Lsel):
                             continue
-                    if cubic_last:
-                        v = cst + _interp_cubic_last(Vn, nx, n, uniform, strides, ib, tb)
-                    else:
-                        v = cst + _interp(Vn, nx, strides, ib, tb)
+                    v = cst + _interp_v(mode, Vn, Ln, level_tol, nx, n, uniform, strides, ib, tb)
                     if not (v < np.inf):
                         continue
                     if use_level:
@@ -318,10 +397,10 @@ def backward(transition, precompute, N, X, controls, w, p, tab, VT, LT, use_leve
 
 @njit(cache=False)
 def forward(transition, precompute, N, x0, controls, w, p, tab, VT, LT, use_level, level_tol,
-            lo, inv_dx, n, uniform, pts, strides, clip, X_out, U_idx, stage, pred, cubic_last):
+            lo, inv_dx, n, uniform, pts, strides, clip, X_out, U_idx, stage, pred, mode):
     """Forward pass from the true (off-grid) state x0. Returns the number of steps completed
-    (N unless no admissible control was found at some step). ``cubic_last``: the cost-to-go is
-    interpolated by :func:`_interp_cubic_last` (the level stays multilinear)."""
+    (N unless no admissible control was found at some step). ``mode``: the cost-to-go interpolation
+    (:func:`_interp_v`; the level stays multilinear)."""
     nx = x0.shape[0]
     nu = controls.shape[0]
     x = x0.copy()
@@ -352,10 +431,7 @@ def forward(transition, precompute, N, x0, controls, w, p, tab, VT, LT, use_leve
                     continue
                 if not level_needs_cost(lv, level_tol, feas, Lsel):
                     continue
-                if cubic_last:
-                    v = cst + _interp_cubic_last(Vn, nx, n, uniform, strides, ib, tb)
-                else:
-                    v = cst + _interp(Vn, nx, strides, ib, tb)
+                v = cst + _interp_v(mode, Vn, Ln, level_tol, nx, n, uniform, strides, ib, tb)
                 if not (v < np.inf):
                     continue
                 if level_better(lv, v, level_tol, feas, Lsel, best):
@@ -364,10 +440,7 @@ def forward(transition, precompute, N, x0, controls, w, p, tab, VT, LT, use_leve
                     feas = lv <= level_tol
                     bi = iu
             else:
-                if cubic_last:
-                    v = cst + _interp_cubic_last(Vn, nx, n, uniform, strides, ib, tb)
-                else:
-                    v = cst + _interp(Vn, nx, strides, ib, tb)
+                v = cst + _interp_v(mode, Vn, Ln, level_tol, nx, n, uniform, strides, ib, tb)
                 if v < best:
                     best = v
                     bi = iu
@@ -384,19 +457,15 @@ def forward(transition, precompute, N, x0, controls, w, p, tab, VT, LT, use_leve
 
 
 @njit(cache=True)
-def interp_points(V, Q, lo, inv_dx, n, uniform, pts, strides, clip, cubic_last):
-    """Interpolate flat V at each row of Q (m, nx); +inf off-grid. ``cubic_last``: by
-    :func:`_interp_cubic_last` instead of multilinearly."""
+def interp_points(V, Q, lo, inv_dx, n, uniform, pts, strides, clip, mode):
+    """Interpolate flat V at each row of Q (m, nx); +inf off-grid. ``mode``: as in :func:`_interp_v`."""
     m, nx = Q.shape
     out = np.empty(m)
     ib = np.empty(nx, np.int64)
     tb = np.empty(nx)
     for j in range(m):
         if _locate_all(Q[j], nx, lo, inv_dx, n, uniform, pts, clip, ib, tb):
-            if cubic_last:
-                out[j] = _interp_cubic_last(V, nx, n, uniform, strides, ib, tb)
-            else:
-                out[j] = _interp(V, nx, strides, ib, tb)
+            out[j] = _interp_v(mode, V, V[:0], 0.0, nx, n, uniform, strides, ib, tb)
         else:
             out[j] = np.inf
     return out

@@ -56,6 +56,11 @@ Common choices
       holding arrays: "scalar type ModelParams given for non scalar argument").
     * One compiled transition (:func:`hev_transition`) serves all three formulations (the state count is
       read from the parameters), so the engine's kernels compile once.
+    * The SOC state is the charge minus the step's engine-off drift (``soc="drift"``, default;
+      :func:`~optimize.formulations.transition.drift_offsets`, offsets in ``extra["soc_grid_offset"]``)
+      and the cost-to-go is interpolated from the reach boundary of ``SOC_N >= SOC_0``
+      (``interp="reach_first"``): together they make the paper's 0.01 SOC grid converged (README, "SOC
+      grid convergence"); ``soc="absolute"`` and ``interp="multilinear"`` give the fixed grid and chord.
     * Thermal-DP and Thermal-Cabin-DP use fused backward kernels (:mod:`optimize.formulations.fused`) by default and
       the engine's forward pass; they give the same value functions and trajectory as the generic engine
       (``engine="generic"``), cross-checked in ``tests/test_formulations.py``.

@@ -31,6 +31,7 @@ from optimize.formulations.layout import (_C_CH, _C_CHI, _C_CREL, _C_PEN, _C_SH,
                                           _RECIRC, _T_OK, _T_PE, _T_SOC0, _T_WF, _UACAB, _A_FCLG, _A_LOSSG)
 from optimize.dp.kernels import _interp_slow as _slow  # the engine's exact multilinear interpolation
 from optimize.dp.kernels import _hermite, _interp_cubic_last  # the engine's cubic along the cabin axis
+from optimize.dp.kernels import _interp, _interp_reach, _lin_reach  # the engine's reach-boundary interpolation
 from optimize.dp.kernels import level_better, level_needs_cost  # the engine's level-set choice rule
 from optimize.dp.engine import ValueFunctions
 from calib.model.equations import cabin_heat_rate, coolant_heat_rate, heater_core_limit
@@ -62,8 +63,9 @@ def _bilin(S, o, s0, t0, t1):
 
 
 @njit(parallel=True, cache=True)
-def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol):
-    """Thermal-DP backward pass (states SOC x T_cl, one heater demand Q[0]); fills VT, LT[0..N-1]."""
+def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol, reach):
+    """Thermal-DP backward pass (states SOC x T_cl, one heater demand Q[0]); fills VT, LT[0..N-1].
+    ``reach``: the cost-to-go is interpolated by the engine's ``interp="reach_first"``."""
     ns, nt = socg.size, tclg.size
     np_ = big.shape[1]
     s_lo, s_inv = socg[0], (ns - 1) / (socg[-1] - socg[0])
@@ -83,6 +85,7 @@ def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol):
         tab = big[k]
         Vn = VT[k + 1]
         Ln = LT[k + 1]
+        s_off = w[k, 5]  # the SOC grid's offset at k + 1 (the tables hold the charge)
         T_cab = w[k, 1]
         for j in range(nt):
             q_lim = heater_core_limit(P[_MS0 + _EPS], P[_C_WBL], P[_MS0 + _CP], P[_MS0 + _RECIRC], tclg[j], T_cab,
@@ -131,7 +134,7 @@ def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol):
                     pen0 += (P[_C_SLO] - sn) / P[_C_SH]
                 elif sn > P[_C_SHI]:
                     pen0 += (sn - P[_C_SHI]) / P[_C_SH]
-                a, ta = _loc(sn, s_lo, s_inv, ns)
+                a, ta = _loc(sn - s_off, s_lo, s_inv, ns)
                 oa = a * nt
                 for j in range(nt):
                     tt = TT[ip, j]
@@ -149,13 +152,20 @@ def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol):
                         Lmin[j] = lv
                     if not level_needs_cost(lv, level_tol, feas[j], Lsel[j]):
                         continue
-                    vv = _bilin(Vn, o, nt, ta, tt)
-                    if not np.isfinite(vv):
+                    if reach:
                         ib[0] = a
                         ib[1] = TB[ip, j]
                         tb[0] = ta
                         tb[1] = tt
-                        vv = _slow(Vn, 2, strides, ib, tb)
+                        vv = _interp_reach(Vn, Ln, level_tol, 2, strides, ib, tb)
+                    else:
+                        vv = _bilin(Vn, o, nt, ta, tt)
+                        if not np.isfinite(vv):
+                            ib[0] = a
+                            ib[1] = TB[ip, j]
+                            tb[0] = ta
+                            tb[1] = tt
+                            vv = _slow(Vn, 2, strides, ib, tb)
                     v = C0[ip, j] + PEN * (pen0 + PT[ip, j]) + vv
                     if not (v < np.inf):
                         continue
@@ -179,7 +189,7 @@ def _tri(V, o, s0, s1, t0, t1, t2):
 
 @njit(cache=True)  # a call, not inlined: numba cannot inline this many arguments into a parfor; the path is rare
 def _limited(P, tab, ip, a, ta, sidx, c0, pen0, q, Q_fuel, T_cl, loss, T_m, lb, off_n, t_lo, t_inv, nt, c_lo,
-             c_inv, nc, s0, s1, strides, nn, unif, Vn, Ln, ib, tb, cubic, level_tol, best, Lmin, Lsel, feas):
+             c_inv, nc, s0, s1, strides, nn, unif, Vn, Ln, ib, tb, cubic, reach, level_tol, best, Lmin, Lsel, feas):
     """Evaluate the first heater-limited control (heat ``q``, the core limit) at state ``sidx`` by full
     trilinear interpolation and apply the engine's choice rule to best/Lmin/Lsel/feas."""
     Ts = P[_C_TS]
@@ -214,6 +224,8 @@ def _limited(P, tab, ip, a, ta, sidx, c0, pen0, q, Q_fuel, T_cl, loss, T_m, lb, 
         return
     if cubic:
         vv = _interp_cubic_last(Vn, 3, nn, unif, strides, ib, tb)
+    elif reach:
+        vv = _interp_reach(Vn, Ln, level_tol, 3, strides, ib, tb)
     else:
         vv = _tri(Vn, o, s0, s1, ta, tt, t2)
         if not np.isfinite(vv):
@@ -228,7 +240,7 @@ def _limited(P, tab, ip, a, ta, sidx, c0, pen0, q, Q_fuel, T_cl, loss, T_m, lb, 
 
 
 @njit(parallel=True, cache=True)
-def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold):
+def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold, reach):
     """Thermal-Cabin-DP backward pass (states SOC x T_cl x T_cab, controls power x (Q grid[, hold])).
 
     Controls whose requested heat exceeds the heater-core limit all deliver the same heat (the limit):
@@ -239,7 +251,8 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold)
     heat depends on the cabin node only (:func:`optimize.formulations.transition.hold_heat`): its cabin
     slices are one more column per cabin node. Where it delivers what a grid control delivers (clipped to
     the grid's ends or to the core limit) it repeats an earlier control and is skipped, as the engine's tie
-    rule would."""
+    rule would. ``reach``: the engine's ``interp="reach_first"`` (on the slices: cabin first, then SOC,
+    then T_cl)."""
     ns, nt, nc, nq = socg.size, tclg.size, cabg.size, Q.size
     nq1 = nq + 1 if hold else nq
     np_ = big.shape[1]
@@ -279,6 +292,7 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold)
         tab = big[k]
         Vn = VT[k + 1]
         Ln = LT[k + 1]
+        s_off = w[k, 5]  # the SOC grid's offset at k + 1 (the tables hold the charge)
         lb = w[k, 2]
         # cabin node m is the temperature cabg[m] + off; the next one is located at tc - off_n
         off = 0.0
@@ -386,7 +400,7 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold)
                     pen0 += (P[_C_SLO] - sn) / P[_C_SH]
                 elif sn > P[_C_SHI]:
                     pen0 += (sn - P[_C_SHI]) / P[_C_SH]
-                a, ta = _loc(sn, s_lo, s_inv, ns)
+                a, ta = _loc(sn - s_off, s_lo, s_inv, ns)
                 oa = a * nt
                 for j in range(nt):
                     c0 = C0[ip, j]
@@ -413,7 +427,14 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold)
                                 Lmin[sidx] = lv
                             if not level_needs_cost(lv, level_tol, feas[sidx], Lsel[sidx]):
                                 continue
-                            vv = _bilin(SV[rr], o, nt, ta, tt)
+                            if reach:
+                                S = SV[rr]
+                                SLr = SL[rr]
+                                vv = ((1.0 - tt) * _lin_reach(S[o], S[o + nt], SLr[o], SLr[o + nt], level_tol, ta)
+                                      + tt * _lin_reach(S[o + 1], S[o + nt + 1], SLr[o + 1], SLr[o + nt + 1],
+                                                        level_tol, ta))
+                            else:
+                                vv = _bilin(SV[rr], o, nt, ta, tt)
                             if not np.isfinite(vv):
                                 ib[0] = a
                                 ib[1] = TB[ip, j, iq]
@@ -423,6 +444,8 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold)
                                 tb[2] = tu[m, iq]
                                 if cubic:
                                     vv = _interp_cubic_last(Vn, 3, nn, unif, strides, ib, tb)
+                                elif reach:
+                                    vv = _interp(Vn, 3, strides, ib, tb)
                                 else:
                                     vv = _slow(Vn, 3, strides, ib, tb)
                             v = c0 + PEN * ((pen0 + PT[ip, j, iq]) + pcu[m, iq]) + vv
@@ -436,7 +459,7 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold)
                             # the first heater-limited control (the others repeat it)
                             _limited(P, tab, ip, a, ta, sidx, c0, pen0, qlim[j, m], QFUEL[ip, j], tclg[j],
                                      lossg[j], cabg[m] + off, lb, off_n, t_lo, t_inv, nt, c_lo, c_inv, nc, s0, s1,
-                                     strides, nn, unif, Vn, Ln, ib, tb, cubic, level_tol, best, Lmin, Lsel, feas)
+                                     strides, nn, unif, Vn, Ln, ib, tb, cubic, reach, level_tol, best, Lmin, Lsel, feas)
                         if hsk[j, m]:
                             continue
                         # hold the bound: the slices of column nq, the coolant of the hold heat
@@ -458,7 +481,14 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold)
                             Lmin[sidx] = lv
                         if not level_needs_cost(lv, level_tol, feas[sidx], Lsel[sidx]):
                             continue
-                        vv = _bilin(SV[rr], o, nt, ta, tt)
+                        if reach:
+                            S = SV[rr]
+                            SLr = SL[rr]
+                            vv = ((1.0 - tt) * _lin_reach(S[o], S[o + nt], SLr[o], SLr[o + nt], level_tol, ta)
+                                  + tt * _lin_reach(S[o + 1], S[o + nt + 1], SLr[o + 1], SLr[o + nt + 1],
+                                                    level_tol, ta))
+                        else:
+                            vv = _bilin(SV[rr], o, nt, ta, tt)
                         if not np.isfinite(vv):
                             ib[0] = a
                             ib[1] = TBh[ip, j, m]
@@ -468,6 +498,8 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold)
                             tb[2] = tu[m, nq]
                             if cubic:
                                 vv = _interp_cubic_last(Vn, 3, nn, unif, strides, ib, tb)
+                            elif reach:
+                                vv = _interp(Vn, 3, strides, ib, tb)
                             else:
                                 vv = _slow(Vn, 3, strides, ib, tb)
                         v = c0 + PEN * ((pen0 + PTh[ip, j, m]) + pcu[m, nq]) + vv
@@ -504,13 +536,14 @@ def backward_pass_fused(prob) -> ValueFunctions:
     hold = bool(P[_C_HOLD]) if nx == 3 else False
     Q = np.ascontiguousarray(prob.controls[:nq - 1 if hold else nq, 2])
     t0 = time.perf_counter()
-    if prob.interp != "multilinear" and nx != 3:
+    if prob.interp == "cubic_last" and nx != 3:
         raise ValueError(f"interp {prob.interp!r}: the fused kernels offer it for 3 states only")
+    reach = prob.interp == "reach_first"
     if nx == 2:
-        backward2(prob.N, P, big, prob.w, prob.grids[0], prob.grids[1], Q, VT, LT, float(prob.level_tol))
+        backward2(prob.N, P, big, prob.w, prob.grids[0], prob.grids[1], Q, VT, LT, float(prob.level_tol), reach)
     elif nx == 3:
         backward3(prob.N, P, big, prob.w, prob.grids[0], prob.grids[1], prob.grids[2], Q, VT, LT,
-                  float(prob.level_tol), prob.interp == "cubic_last" and prob.grids[2].size >= 3, hold)
+                  float(prob.level_tol), prob.interp == "cubic_last" and prob.grids[2].size >= 3, hold, reach)
     else:
         raise ValueError("fused kernels cover 2 and 3 states")
     t_b = time.perf_counter() - t0

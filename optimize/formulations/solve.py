@@ -23,16 +23,22 @@ from optimize.formulations.layout import (HOLD, LEVEL_TOL, PENALTY_G_PER_STEP, _
                      _C_SLO, _C_TAMB, _C_TBAT, _C_TH, _C_THI, _C_TLO, _C_TS, _C_WBL, _MS, _T_SOC0,
                      pack_params)
 from optimize.formulations.scenario import DPGrids, DPScenario, _grid
-from optimize.formulations.transition import build_tables, delivered_heat, hev_precompute, hev_transition
+from optimize.formulations.transition import build_tables, delivered_heat, drift_offsets, hev_precompute, hev_transition
 
 
 
 
+#: Interpolation of the cost-to-go of every formulation (:class:`optimize.dp.engine.DPProblem`): multilinear,
+#: with the reach boundary of SOC_N >= SOC_0 located from the level along SOC.
+INTERP = "reach_first"
 #: Thermal-Cabin-DP's interpolation of the cost-to-go (the cabin is the last state).
-CABIN_INTERP = "multilinear"
+CABIN_INTERP = INTERP
 #: Coordinates of Thermal-Cabin-DP's cabin state (:func:`build_problem`) and the default.
 CABIN_STATES = ("absolute", "bound")
 CABIN_STATE = "bound"
+#: Coordinates of the SOC state of every formulation (:func:`build_problem`) and the default.
+SOC_STATES = ("absolute", "drift")
+SOC_STATE = "drift"
 
 
 def peak_rss_mb() -> float:
@@ -275,18 +281,30 @@ class _Built:
 
 
 def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: float | None = None,
-                  warm: bool = False, cycle=None, interp: str = "multilinear",
-                  cabin: str = "absolute", hold: bool | None = None) -> _Built:
+                  warm: bool = False, cycle=None, interp: str = INTERP,
+                  cabin: str = "absolute", soc: str = SOC_STATE, hold: bool | None = None) -> _Built:
     """Assemble the :class:`DPProblem` of a formulation with ``nx`` states (1, 2 or 3); ``interp``: the
     cost-to-go interpolation (:class:`optimize.dp.engine.DPProblem`); ``cabin`` (3 states): the cabin
     state is the temperature (``"absolute"``) or its height above the step's comfort bound (``"bound"``:
-    the grid moves with the bound, which is a node at every step). ``hold`` (3 states; default: with
+    the grid moves with the bound, which is a node at every step); ``soc``: the SOC state is the charge
+    (``"absolute"``) or the charge minus the step's engine-off drift (``"drift"``: the SOC grid moves with
+    the charge an engine-off drive carries to SOC_0 at the end, :func:`~optimize.formulations.transition.drift_offsets`;
+    ``extra["soc_grid_offset"]`` holds the offsets, the charge is ``x[:, 0]`` plus them). ``hold`` (3 states; default: with
     ``cabin="bound"``): besides the heater grid, every power control is paired with "hold the bound", the
     heat that puts the next cabin temperature on the next step's comfort bound (control value
-    :data:`~optimize.formulations.layout.HOLD`; :func:`optimize.formulations.transition.hold_heat`)."""
+    :data:`~optimize.formulations.layout.HOLD`; :func:`optimize.formulations.transition.hold_heat`).
+
+    Why the drift: with SOC_N >= SOC_0 the cost-to-go has a convex kink at the charge from which the rest
+    of the drive can be driven on the battery alone. Engine-off steps move the charge by a fraction of a
+    0.01 cell, so on a fixed grid every step re-interpolates the kink linearly and diffuses it; the
+    policy then undervalues charge mid-drive and recovers it at a high marginal cost at the end. On the
+    moving grid the kink stays on a node. The grid spans the charges [soc_min, soc_max] at every step, so
+    it has more nodes (74 instead of 41 on the default drive at 0.01)."""
     if cabin not in CABIN_STATES:
         raise ScenarioError(f"cabin state {cabin!r}: choose one of {', '.join(CABIN_STATES)}")
-    hold = (cabin == "bound") if hold is None else bool(hold)
+    if soc not in SOC_STATES:
+        raise ScenarioError(f"SOC state {soc!r}: choose one of {', '.join(SOC_STATES)}")
+    hold = (cabin == "bound" and nx == 3) if hold is None else bool(hold)
     if hold and nx != 3:
         raise ScenarioError(f"the hold-the-bound heater control needs the cabin state (3 states), not {nx}")
     mp = _mp(params)
@@ -296,22 +314,36 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
     N, Ts = cyc.n_steps, cyc.Ts
     if not (scen.soc_min <= scen.soc0 <= scen.soc_max):
         raise ScenarioError(f"soc0 {scen.soc0} outside the SOC grid [{scen.soc_min}, {scen.soc_max}]")
-    socg = _grid(scen.soc_min, scen.soc_max, grids.soc)
+    phys = _grid(scen.soc_min, scen.soc_max, grids.soc)
     tclg = _grid(scen.T_cl_min, scen.T_cl_max, grids.tcl)
     fclg, lossg = _t_cl_tables(mp, tclg, scen.T_amb)
     pc = _power_controls(mp, grids)
     P_trac = _traction(mp, cyc)
-    extra = {}
-    w = np.zeros((N, 4))
+    extra = {"soc_state": soc}
+    if soc == "drift":
+        soff = drift_offsets(mp, P_trac, float(Ts), float(mp.T_bat_ref), float(scen.soc0))
+        # the same lattice as the fixed grid, extended so that it spans [soc_min, soc_max] at every step
+        h = grids.soc
+        j0 = math.floor((phys[0] - soff.max() - phys[0]) / h + 1e-9)
+        j1 = math.ceil((phys[-1] - soff.min() - phys[0]) / h - 1e-9)
+        socg = phys[0] + h * np.arange(j0, j1 + 1)
+    else:
+        soff = np.zeros(N + 1)
+        socg = phys
+    extra["soc_grid_offset"] = soff.copy()
+    w = np.zeros((N, 6))
     w[:, 0] = P_trac
+    w[:, 4] = soff[:-1]
+    w[:, 5] = soff[1:]
     grid_list = [socg]
     # the continuation values charge, so with it the terminal SOC is free or held to a band around SOC_0
-    # (Baseline-DP, without it, keeps the set)
-    bounds = [(scen.soc0, None)]
+    # (Baseline-DP, without it, keeps the set); the SOC state at N is the charge minus soff[-1]
+    s_end = scen.soc0 - soff[-1]
+    bounds = [(s_end, None)]
     if scen.terminal == "continued" and nx >= 2:
         band = scen.cont_soc_band
-        bounds = [(None, None) if band is None else (scen.soc0 - band, scen.soc0 + band)]
-    x0 = [scen.soc0]
+        bounds = [(None, None) if band is None else (s_end - band, s_end + band)]
+    x0 = [scen.soc0 - soff[0]]
     if nx >= 2:
         if not (scen.T_cl_min <= scen.T_cl0 <= scen.T_cl_max):
             raise ScenarioError(f"T_cl0 {scen.T_cl0} outside the coolant grid")
@@ -364,14 +396,14 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
     else:
         Q = np.array([scen.Q_heat if heater is None else heater])
     terminal = _terminal_cost(mp, scen, nx, cab_soft, float(off[-1]) if nx == 3 else 0.0,
-                              cab_final=extra.get("T_cab_ref_final"), grid_list=grid_list)
+                              cab_final=extra.get("T_cab_ref_final"), grid_list=[phys] + grid_list[1:])
     if scen.terminal == "continued" and terminal is not None:
         extra["continuation_nodes"] = [a.tolist() for a in terminal.nodes]
     extra["terminal"] = scen.terminal
     nq = Q.size
     controls = np.column_stack([np.repeat(pc, nq, axis=0), np.tile(Q, pc.shape[0])])
     cfg = np.zeros(16)
-    cfg[_C_SLO], cfg[_C_SHI], cfg[_C_SH] = socg[0], socg[-1], socg[1] - socg[0]
+    cfg[_C_SLO], cfg[_C_SHI], cfg[_C_SH] = phys[0], phys[-1], phys[1] - phys[0]
     cfg[_C_TLO], cfg[_C_THI], cfg[_C_TH] = tclg[0], tclg[-1], tclg[1] - tclg[0]
     if nx == 3:
         cfg[_C_CHI], cfg[_C_CH] = scen.T_cab_ub, grids.tcab
@@ -380,7 +412,7 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
     cfg[_C_NX], cfg[_C_NQ], cfg[_C_TAMB], cfg[_C_TS] = nx, nq, scen.T_amb, Ts
     cfg[_C_TBAT], cfg[_C_WBL] = mp.T_bat_ref, mp.W_bl
     ms = np.array([float(getattr(mp, n)) for n in _MS])
-    big = build_tables(mp, pc, socg, P_trac, float(Ts), float(mp.T_bat_ref))
+    big = build_tables(mp, pc, socg, P_trac, float(Ts), float(mp.T_bat_ref), soff)
     c = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
     p = pack_params(cfg, ms, [socg, fclg, lossg, c(mp.soc_bp), c(mp.U_oc), c(mp.soc_bp_R), c(mp.R_int),
                               c(mp.T_fcl), c(mp.f_cl), big])
@@ -433,15 +465,16 @@ def _threads(n):
 
 
 def solve_baseline(params, scenario: DPScenario | None = None, grids: DPGrids | None = None, *,
-                   threads: int | None = 1) -> DPOutcome:
+                   threads: int | None = 1, soc: str = SOC_STATE) -> DPOutcome:
     """Baseline-DP (SOC only, f_cl = 1). ``.sim``: its own optimum (f_cl = 1); ``.on_thermal``: its
-    controls re-simulated on the full thermal model with the scenario's heater demand.
+    controls re-simulated on the full thermal model with the scenario's heater demand. ``soc``: the SOC
+    state's coordinate (:func:`build_problem`).
 
     Solved by the generic engine on one thread by default: 41 states per step are too few to pay for a
     parallel region per step."""
     scen, grids = scenario or DPScenario(), grids or DPGrids()
     t0 = time.perf_counter()
-    b = build_problem(params, scen, grids, 1, warm=True)
+    b = build_problem(params, scen, grids, 1, warm=True, soc=soc)
     with _threads(threads):
         res = _solve(b, "generic")
     mp_warm = b.mp
@@ -455,12 +488,13 @@ def solve_baseline(params, scenario: DPScenario | None = None, grids: DPGrids | 
 
 def solve_thermal(params, scenario: DPScenario | None = None, grids: DPGrids | None = None, *,
                   heater: float | None = None, warm: bool = False, engine: str = "fused",
-                  threads: int | None = None) -> DPOutcome:
+                  threads: int | None = None, soc: str = SOC_STATE) -> DPOutcome:
     """Thermal-DP (SOC, T_cl). ``heater`` overrides the scenario's demand (e.g. 0 W); ``warm=True``
-    sets f_cl = 1 (with heater 0 W it must reproduce Baseline-DP)."""
+    sets f_cl = 1 (with heater 0 W it must reproduce Baseline-DP); ``soc``: the SOC state's coordinate
+    (:func:`build_problem`)."""
     scen, grids = scenario or DPScenario(), grids or DPGrids()
     t0 = time.perf_counter()
-    b = build_problem(params, scen, grids, 2, heater=heater, warm=warm)
+    b = build_problem(params, scen, grids, 2, heater=heater, warm=warm, soc=soc)
     with _threads(threads):
         res = _solve(b, engine)
     mp_used = b.mp
@@ -474,16 +508,17 @@ def solve_thermal(params, scenario: DPScenario | None = None, grids: DPGrids | N
 def solve_thermal_cabin(params, scenario: DPScenario | None = None, grids: DPGrids | None = None, *,
                         engine: str = "fused", threads: int | None = None,
                         interp: str = CABIN_INTERP, cabin: str = CABIN_STATE,
-                        hold: bool | None = None) -> DPOutcome:
+                        soc: str = SOC_STATE, hold: bool | None = None) -> DPOutcome:
     """Thermal-Cabin-DP (SOC, T_cl, T_cab; Q_heat a control). ``engine``: "fused" (default) or "generic".
     ``interp``: how both passes interpolate the cost-to-go along the cabin axis
     (:class:`optimize.dp.engine.DPProblem`; default :data:`CABIN_INTERP`); ``cabin``: the cabin state's
-    coordinate (:func:`build_problem`; default :data:`CABIN_STATE`); ``hold``: offer the "hold the bound"
-    heater control besides the grid (:func:`build_problem`; default: with ``cabin="bound"``).
-    ``.dp.u[:, 2]`` is the heat each step delivered where the hold control was chosen."""
+    coordinate (:func:`build_problem`; default :data:`CABIN_STATE`); ``soc``: the SOC state's coordinate
+    (:func:`build_problem`; default :data:`SOC_STATE`); ``hold``: offer the "hold the bound" heater control
+    besides the grid (:func:`build_problem`; default: with ``cabin="bound"``). ``.dp.u[:, 2]`` is the heat
+    each step delivered where the hold control was chosen."""
     scen, grids = scenario or DPScenario(), grids or DPGrids()
     t0 = time.perf_counter()
-    b = build_problem(params, scen, grids, 3, interp=interp, cabin=cabin, hold=hold)
+    b = build_problem(params, scen, grids, 3, interp=interp, cabin=cabin, soc=soc, hold=hold)
     with _threads(threads):
         res = _solve(b, engine)
     held = np.zeros(b.prob.N, bool)
