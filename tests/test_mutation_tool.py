@@ -53,3 +53,16 @@ def test_every_mutant_differs_and_compiles():
         assert out != base
         seen.add(out)
     assert len(seen) == len(mutation.sites(src))
+
+
+def test_every_argued_equivalent_mutant_still_exists_where_pyproject_says():
+    # equivalences are keyed by module, line and mutation: an edit that moves the code must move the entry
+    import tomllib
+
+    cfg = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["iptm"]["mutation"]
+    missing = []
+    for e in cfg["equivalent"]:
+        here = {(ln, d) for _i, ln, d in mutation.sites((ROOT / e["module"]).read_text())}
+        if (e["line"], e["mutation"]) not in here:
+            missing.append(f'{e["module"]}:{e["line"]} {e["mutation"]}')
+    assert not missing, missing
