@@ -153,11 +153,18 @@ def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol, reach):
                     if not level_needs_cost(lv, level_tol, feas[j], Lsel[j]):
                         continue
                     if reach:
-                        ib[0] = a
-                        ib[1] = TB[ip, j]
-                        tb[0] = ta
-                        tb[1] = tt
-                        vv = _interp_reach(Vn, Ln, level_tol, 2, strides, ib, tb)
+                        # the engine's _interp_reach for 2 states, written out: a call per evaluation costs
+                        # several times the arithmetic
+                        vv = ((1.0 - tt) * _lin_reach(np.float64(Vn[o]), np.float64(Vn[o + nt]), np.float64(Ln[o]),
+                                                      np.float64(Ln[o + nt]), level_tol, ta)
+                              + tt * _lin_reach(np.float64(Vn[o + 1]), np.float64(Vn[o + nt + 1]),
+                                                np.float64(Ln[o + 1]), np.float64(Ln[o + nt + 1]), level_tol, ta))
+                        if not np.isfinite(vv):
+                            ib[0] = a
+                            ib[1] = TB[ip, j]
+                            tb[0] = ta
+                            tb[1] = tt
+                            vv = _interp(Vn, 2, strides, ib, tb)
                     else:
                         vv = _bilin(Vn, o, nt, ta, tt)
                         if not np.isfinite(vv):
