@@ -117,3 +117,15 @@ def test_continued_thermal_cabin(ps):
     assert dp_objective(ps, dp.sim, scen, 3, grids=grids) == pytest.approx(dp.dp_cost, abs=1e-3)
     direct = continuation_corrected(dp.sim, Q_heat=scen.Q_heat, cycle=scen.cont_cycle)
     assert dp.dp_cost == pytest.approx(direct["fuel_continuation_g"], abs=1.5)
+
+
+def test_auto_interpolation_follows_the_terminal_soc_set(ps):
+    # the reach-boundary rule serves the one-sided set SOC_N >= SOC_0; a two-sided band gets plain multilinear
+    from optimize.formulations.solve import build_problem
+
+    one = build_problem(ps, DPScenario(duration_s=30.0), GRIDS, 2)
+    band = build_problem(ps, replace(SHORT, duration_s=30.0, cont_soc_band=0.01), GRIDS, 2)
+    free = build_problem(ps, replace(SHORT, duration_s=30.0), GRIDS, 2)
+    assert (one.prob.interp, band.prob.interp, free.prob.interp) == ("reach_first", "multilinear", "reach_first")
+    assert build_problem(ps, replace(SHORT, duration_s=30.0, cont_soc_band=0.01), GRIDS, 2,
+                         interp="reach_first").prob.interp == "reach_first"  # an explicit choice is kept
