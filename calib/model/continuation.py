@@ -131,7 +131,7 @@ def continuation_credit_per_gram(params, P_e: float, *, soc: float = 0.6, T_cl: 
     dsoc_g = P_e * p.eta_mech * p.eta_em / (p.C_bat_As * U) / W_f
     dT_g = net / p.C_eng / W_f
     x = (soc, T_cl, T_cab)
-    C1 = continuation_value(params, soc + grams * dsoc_g, T_cl + grams * dT_g, T_cab, T_amb=T_amb, Q_heat=Q_heat,
-                            ref=x, cycle=cycle)
-    C0 = continuation_value(params, soc, T_cl, T_cab, T_amb=T_amb, Q_heat=Q_heat, ref=x, cycle=cycle)
+    # both states in one call: the reference continuation is run once
+    C0, C1 = continuation_value(params, np.array([soc, soc + grams * dsoc_g]), np.array([T_cl, T_cl + grams * dT_g]),
+                                T_cab, T_amb=T_amb, Q_heat=Q_heat, ref=x, cycle=cycle)
     return float((C0 - C1) / grams)
