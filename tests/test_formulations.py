@@ -104,12 +104,48 @@ def test_fused_kernel_equals_generic_engine(params, nx, scen, grids, hold, soc, 
     if soc == "drift":  # the grid moves: the offsets are not all zero
         assert np.ptp(b.extra["soc_grid_offset"]) > 0.0
     vg = backward_pass(b.prob)
-    vf = backward_pass_fused(b.prob)
+    vf = backward_pass_fused(b.prob, skip=False)
     np.testing.assert_array_equal(vg.V, vf.V)
     np.testing.assert_array_equal(vg.L, vf.L)
     rg, rf = forward_pass(b.prob, vg, b.x0), forward_pass(b.prob, vf, b.x0)
     np.testing.assert_array_equal(rg.u_index, rf.u_index)
     assert rg.cost == rf.cost
+
+
+@pytest.mark.parametrize("nx,scen,grids", [
+    (2, DPScenario(duration_s=300.0), DPGrids()),
+    (3, DPScenario(duration_s=120.0, T_cl0=40.0), DPGrids(tcl=4.0, pbat=2500.0, qheat=200.0)),
+])
+def test_skipping_soc_nodes_outside_the_range_keeps_the_decisions(params, nx, scen, grids):
+    """The fused kernels skip drifting-grid SOC nodes more than two nodes outside [soc_min, soc_max]: the
+    forward decisions and cost are those of computing every node, the level function is equal, and the
+    value function differs by less than 1e-4 relative (or 1e-3 g) in the range (the engine-off step reads an outer
+    neighbour with a weight of ~1e-3) and by less than 1e-3 g more than 0.02 inside it; fewer evaluations
+    are counted."""
+    from optimize.formulations.fused import backward_pass_fused
+    from optimize.dp.engine import forward_pass
+
+    b = build_problem(params, scen, grids, nx)
+    p = b.prob
+    va, vb = backward_pass_fused(p, skip=False), backward_pass_fused(p, skip=True)
+    assert vb.n_evaluations < va.n_evaluations
+    ra, rb = forward_pass(p, va, b.x0), forward_pass(p, vb, b.x0)
+    np.testing.assert_array_equal(ra.u_index, rb.u_index)
+    assert ra.cost == rb.cost
+    socg = p.grids[0]
+    charge = socg[None, :] + b.extra["soc_grid_offset"][:, None]
+    inside = (charge >= scen.soc_min) & (charge <= scen.soc_max)
+    assert (~inside).any()  # the drive drifts: some nodes are skipped
+    shape = (p.N + 1, socg.size, -1)
+    V1, V2 = va.V.reshape(shape), vb.V.reshape(shape)
+    L1, L2 = va.L.reshape(shape), vb.L.reshape(shape)
+    sel = np.broadcast_to(inside[:, :, None], V1.shape)
+    np.testing.assert_array_equal(L1[sel], L2[sel])
+    core = np.broadcast_to(((charge >= scen.soc_min + 0.02) & (charge <= scen.soc_max - 0.02))[:, :, None], V1.shape)
+    fin = core & np.isfinite(V1)
+    np.testing.assert_allclose(V2[fin], V1[fin], rtol=0.0, atol=1e-3)
+    fin = sel & np.isfinite(V1)
+    np.testing.assert_allclose(V2[fin], V1[fin], rtol=1e-4, atol=1e-3)
 
 
 def test_baseline_soc_grid_converged_on_the_default_drive(params):
@@ -270,7 +306,7 @@ def test_fused_kernel_equals_generic_engine_with_the_cabin_relative_to_its_bound
                       hold=hold)
     assert b.prob.grids[2][0] == 0.0 and b.x0[2] >= 0.0  # node 0 is the bound
     assert np.isnan(b.prob.controls[:, 2]).any() == hold
-    vg, vf = backward_pass(b.prob), backward_pass_fused(b.prob)
+    vg, vf = backward_pass(b.prob), backward_pass_fused(b.prob, skip=False)
     np.testing.assert_array_equal(vg.V, vf.V)
     np.testing.assert_array_equal(vg.L, vf.L)
     rg, rf = forward_pass(b.prob, vg, b.x0), forward_pass(b.prob, vf, b.x0)

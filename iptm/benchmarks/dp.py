@@ -28,6 +28,13 @@ def run(quick: bool = False) -> dict:
     print(f"load average (1 min) before the runs: {load:.2f} on {os.cpu_count()} CPUs (other processes slow "
           "the figures down); OMP_WAIT_POLICY=" + os.environ.get("OMP_WAIT_POLICY", ""))
     out = {"load_average_1min": load}
+    from iptm.benchmarks.machine import measure
+
+    lim = measure(quick)
+    out["machine"] = lim
+    print(f"machine limits, measured now: memory bandwidth {lim['bandwidth_GB_per_s']:.1f} GB/s (array copy), "
+          f"{lim['blas_GFLOP_per_s']:.1f} GFLOP/s (matrix product), {lim['scalar_GFLOP_per_s']:.1f} GFLOP/s "
+          f"(compiled multiply-adds on {lim['threads']} threads)")
     for f in ("baseline", "thermal", "thermal_cabin"):
         t0 = time.perf_counter()
         solve_formulation(f, ps, scen, grids)
@@ -40,9 +47,16 @@ def run(quick: bool = False) -> dict:
              "evals_per_second": o.evals_per_second, "peak_rss_mb_process": rss, "fuel_g": o.sim.fuel_g,
              "engine": o.extra.get("engine", "generic"),
              "threads": 1 if f == "baseline" else numba.get_num_threads()}
+        # what the machine allows: a state-control evaluation does ~30 flops (interpolations, the reach rule, the
+        # stage cost) and reads 8 values (level and cost at 4 corners, 64 bytes) if none comes from cache
+        r["evals_per_s_if_flop_bound"] = lim["scalar_GFLOP_per_s"] * 1e9 / 30.0
+        r["evals_per_s_if_memory_bound"] = lim["bandwidth_GB_per_s"] * 1e9 / 64.0
         out[f] = r
         print(f"{f:>14s}: {o.n_states} states x {o.n_controls} controls: total {o.t_total:.3f} s (backward "
               f"{o.t_backward:.3f} s, forward {o.t_forward:.3f} s, {o.evals_per_second / 1e6:.0f} M state-control "
               f"evals/s, {r['engine']} kernel, {r['threads']} thread(s)); process peak RSS {rss:.0f} MB; fuel {o.sim.fuel_g:.2f} g "
-              f"[first solve incl. compile {t_warm:.1f} s]", flush=True)
+              f"[first solve incl. compile {t_warm:.1f} s]; the machine's bounds: "
+              f"{r['evals_per_s_if_flop_bound'] / 1e6:.0f} M evals/s at ~30 flops each, "
+              f"{r['evals_per_s_if_memory_bound'] / 1e6:.0f} M evals/s if each read its 64 bytes from memory",
+              flush=True)
     return out

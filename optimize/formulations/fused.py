@@ -62,8 +62,38 @@ def _bilin(S, o, s0, t0, t1):
     return (1.0 - t0) * ((1.0 - t1) * S[o] + t1 * S[o + 1]) + t0 * ((1.0 - t1) * S[o + s0] + t1 * S[o + s0 + 1])
 
 
+@njit(inline="always", cache=True)
+def _active(P, off, s_lo, s_inv, ns, skip):
+    """SOC nodes [i_lo, i_hi) computed at a step whose grid offset is ``off``: those whose charge lies in
+    [soc_min, soc_max] and two more on each side; all nodes unless ``skip``.
+
+    The others (the drifting grid spans the range at every step, so about 40 % of its nodes lie outside
+    it) take the nearest computed node's values (:func:`_extend`). An in-range next charge interpolates
+    between computed nodes, with one exception: the engine-off step carries a node to a node of the
+    next step only up to ~1e-3 of a cell, so a node at the edge reads its outer neighbour with that
+    weight. Computing every node, that neighbour holds the penalty of a charge outside the range; skipped,
+    it holds its neighbour's value. The value functions differ there, and attenuated by ~1e-3 a node
+    inwards; the tests check the decisions and the cost at the initial state."""
+    if not skip:
+        return 0, ns
+    lo = int(np.floor((P[_C_SLO] - off - s_lo) * s_inv + 1e-9)) - 2
+    hi = int(np.ceil((P[_C_SHI] - off - s_lo) * s_inv - 1e-9)) + 3
+    return max(lo, 0), min(hi, ns)
+
+
+@njit(inline="always", cache=True)
+def _extend(V, L, i_lo, i_hi, ns, row):
+    """Skipped SOC nodes take the values of the nearest computed one (rows of ``row`` values)."""
+    for i in range(ns):
+        src = i_lo if i < i_lo else (i_hi - 1 if i >= i_hi else i)
+        if src != i:
+            for e in range(row):
+                V[i * row + e] = V[src * row + e]
+                L[i * row + e] = L[src * row + e]
+
+
 @njit(parallel=True, cache=True)
-def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol, reach):
+def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol, reach, skip):
     """Thermal-DP backward pass (states SOC x T_cl, one heater demand Q[0]); fills VT, LT[0..N-1].
     ``reach``: the cost-to-go is interpolated by the engine's ``interp="reach_first"``."""
     ns, nt = socg.size, tclg.size
@@ -116,7 +146,9 @@ def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol, reach):
                 bb, tt = _loc(tn, t_lo, t_inv, nt)
                 TB[ip, j] = bb
                 TT[ip, j] = tt
-        for i in prange(ns):
+        i_lo, i_hi = _active(P, w[k, 4], s_lo, s_inv, ns, skip)
+        for ii in prange(i_hi - i_lo):
+            i = i_lo + ii
             best = np.full(nt, np.inf)
             Lmin = np.full(nt, np.inf)
             Lsel = np.full(nt, np.inf)
@@ -183,6 +215,7 @@ def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol, reach):
             for j in range(nt):
                 VT[k, i * nt + j] = best[j]
                 LT[k, i * nt + j] = Lmin[j]
+        _extend(VT[k], LT[k], i_lo, i_hi, ns, nt)
 
 
 @njit(inline="always", cache=True)
@@ -247,7 +280,7 @@ def _limited(P, tab, ip, a, ta, sidx, c0, pen0, q, Q_fuel, T_cl, loss, T_m, lb, 
 
 
 @njit(parallel=True, cache=True)
-def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold, reach):
+def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold, reach, skip):
     """Thermal-Cabin-DP backward pass (states SOC x T_cl x T_cab, controls power x (Q grid[, hold])).
 
     Controls whose requested heat exceeds the heater-core limit all deliver the same heat (the limit):
@@ -389,7 +422,9 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold,
                     bb, tt = _loc(tn, t_lo, t_inv, nt)
                     TBh[ip, j, m] = bb
                     TTh[ip, j, m] = tt
-        for i in prange(ns):
+        i_lo, i_hi = _active(P, w[k, 4], s_lo, s_inv, ns, skip)
+        for ii in prange(i_hi - i_lo):
+            i = i_lo + ii
             best = np.full(nt * nc, np.inf)
             Lmin = np.full(nt * nc, np.inf)
             Lsel = np.full(nt * nc, np.inf)
@@ -519,11 +554,15 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold,
             for e in range(nt * nc):
                 VT[k, i * nt * nc + e] = best[e]
                 LT[k, i * nt * nc + e] = Lmin[e]
+        _extend(VT[k], LT[k], i_lo, i_hi, ns, nt * nc)
 
 
-def backward_pass_fused(prob) -> ValueFunctions:
+def backward_pass_fused(prob, skip: bool = True) -> ValueFunctions:
     """Backward pass of a Thermal-DP (2 states) or Thermal-Cabin-DP (3 states) problem built by
-    :func:`optimize.formulations.build_problem`; returns the engine's :class:`ValueFunctions`."""
+    :func:`optimize.formulations.build_problem`; returns the engine's :class:`ValueFunctions`.
+
+    ``skip``: SOC nodes whose charge is more than two nodes outside [soc_min, soc_max] at a step are not
+    computed (:func:`_active`); ``False`` computes every node, as the generic engine does."""
     import time
 
     from optimize.formulations.layout import _A_BIG, _C_HOLD, _C_NQ
@@ -547,13 +586,17 @@ def backward_pass_fused(prob) -> ValueFunctions:
         raise ValueError(f"interp {prob.interp!r}: the fused kernels offer it for 3 states only")
     reach = prob.interp == "reach_first"
     if nx == 2:
-        backward2(prob.N, P, big, prob.w, prob.grids[0], prob.grids[1], Q, VT, LT, float(prob.level_tol), reach)
+        backward2(prob.N, P, big, prob.w, prob.grids[0], prob.grids[1], Q, VT, LT, float(prob.level_tol), reach,
+                  skip)
     elif nx == 3:
         backward3(prob.N, P, big, prob.w, prob.grids[0], prob.grids[1], prob.grids[2], Q, VT, LT,
-                  float(prob.level_tol), prob.interp == "cubic_last" and prob.grids[2].size >= 3, hold, reach)
+                  float(prob.level_tol), prob.interp == "cubic_last" and prob.grids[2].size >= 3, hold, reach, skip)
     else:
         raise ValueError("fused kernels cover 2 and 3 states")
     t_b = time.perf_counter() - t0
     gs = (prob.N + 1,) + prob.grid_shape
+    socg = prob.grids[0]
+    s_inv = (socg.size - 1) / (socg[-1] - socg[0])
+    rows = sum(b - a for a, b in (_active(P, prob.w[k, 4], socg[0], s_inv, socg.size, skip) for k in range(prob.N)))
     return ValueFunctions(V=VT.reshape(gs), L=LT.reshape(gs), policy=None, t_backward=t_b,
-                          n_evaluations=prob.N * ns * prob.n_controls)
+                          n_evaluations=rows * (ns // socg.size) * prob.n_controls)
