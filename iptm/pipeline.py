@@ -242,9 +242,11 @@ def _states_text(outcome: dict | None) -> str:
     return f"{outcome['n_states']:,} states x {outcome.get('n_controls', 0):,} controls, "
 
 
-def optimize_cached(params, scen, grids, strategies, store: Store | None, progress=True, cycle_log=None):
+def optimize_cached(params, scen, grids, strategies, store: Store | None, progress=True, cycle_log=None,
+                    hold: bool | None = None):
     """Run the case study strategy by strategy, reusing cached results keyed by parameter values,
-    scenario (with the cycle file's hash), grids, strategy and software version."""
+    scenario (with the cycle file's hash), grids, strategy, solver options (``hold``: Thermal-Cabin-DP's
+    hold-the-bound heater control; None: its default) and software version."""
     from dataclasses import replace
 
     from tqdm import tqdm
@@ -268,7 +270,9 @@ def optimize_cached(params, scen, grids, strategies, store: Store | None, progre
     pvals = {k: v["value"] for k, v in params.to_dict()["parameters"].items()}
     sims, outcomes, timings, rule = {}, {}, {}, None
     for i, strat in enumerate(strategies):
-        key = content_key(pvals, {**scen.to_dict(), "cycle": cyc_id}, grids.to_dict(), strat, code_version("calib", "optimize"))
+        opts = {} if hold is None or strat != "thermal_cabin" else {"hold": bool(hold)}
+        key = content_key(pvals, {**scen.to_dict(), "cycle": cyc_id}, grids.to_dict(), strat, code_version("calib", "optimize"),
+                          *([opts] if opts else []))
         entry = store.get_json("dp", key) if store else None
         arrays = {name: store.get_npz("dp", f"{key}-{name}") for name in (entry or {}).get("sims", [])}
         # one bar per strategy, named, with its state count: a single bar over all strategies gives a
@@ -285,7 +289,7 @@ def optimize_cached(params, scen, grids, strategies, store: Store | None, progre
                 bar.set_postfix_str(_states_text(entry.get("outcome")) + "from the cache")
             else:
                 bar.set_postfix_str("solving" if strat != "rule" else "tuning the thresholds")
-                cs = run_case_study(params, scen, (strat,), progress=False, grids=grids)
+                cs = run_case_study(params, scen, (strat,), progress=False, grids=grids, hold=hold)
                 sims.update(cs.sims)
                 outcomes.update(cs.outcomes)
                 timings.update(cs.timings)

@@ -165,8 +165,9 @@ class CaseStudy:
 
 
 def run_case_study(params, scenario: DPScenario | None = None, strategies=STRATEGIES, progress: bool = True,
-                   grids: DPGrids | None = None) -> CaseStudy:
-    """Run the chosen strategies (``rule``, ``baseline``, ``thermal``, ``thermal_cabin``) on a scenario."""
+                   grids: DPGrids | None = None, hold: bool | None = None) -> CaseStudy:
+    """Run the chosen strategies (``rule``, ``baseline``, ``thermal``, ``thermal_cabin``) on a scenario.
+    ``hold``: Thermal-Cabin-DP's "hold the bound" heater control on or off (None: the solver's default)."""
     from calib.errors import ScenarioError
 
     from optimize.tuning import tune_rule_based
@@ -196,7 +197,7 @@ def run_case_study(params, scenario: DPScenario | None = None, strategies=STRATE
     for key in ("baseline", "thermal", "thermal_cabin"):
         if key not in strategies:
             continue
-        o = solvers[key](params, scen, grids)
+        o = solvers[key](params, scen, grids, **({"hold": hold} if key == "thermal_cabin" and hold is not None else {}))
         outs[key] = o
         timings[key] = o.t_total
         if key == "baseline":

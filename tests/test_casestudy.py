@@ -107,3 +107,23 @@ def test_cli_params_file_and_scenario_file(params, tmp_path, capsys):
     rc = main(["optimize", "--params", str(p), "--duration", "30", "--formulation", "baseline", "--convergence",
                "--grid", "pbat=2000"])
     assert rc == 0 and "change %" in capsys.readouterr().out
+
+
+def test_cli_optimize_no_hold_drops_the_hold_control(tmp_path, capsys):
+    """``--no-hold`` solves Thermal-Cabin-DP on the heater grid alone: one control fewer per power control
+    (the printed control count), and a separate cache entry from the default run."""
+    import re
+
+    from iptm.cli import main
+
+    args = ["optimize", "--duration", "20", "--formulation", "thermal_cabin", "--cache", str(tmp_path / "c"),
+            "--grid", "soc=0.02,tcl=4,pbat=2500,qheat=200"]
+    counts = {}
+    for extra in ([], ["--no-hold"]):
+        assert main(args + extra) == 0
+        out = capsys.readouterr().out
+        m = re.search(r"thermal_cabin: (\d+) states x (\d+) controls", out)
+        assert m and "(from the cache)" not in out, out
+        counts[bool(extra)] = int(m.group(2))
+    n_heat = 4  # 1200:200:1800 W
+    assert counts[False] * n_heat == counts[True] * (n_heat + 1)

@@ -36,6 +36,9 @@ def register(sub):
     p.add_argument("--no-cache", action="store_true", help="solve everything again")
     p.add_argument("--plots", metavar="DIR", help="write the paper's figures (PNG) into DIR")
     p.add_argument("--json", metavar="FILE", help="write the table and DP figures as JSON")
+    p.add_argument("--no-hold", action="store_true",
+                   help="Thermal-Cabin-DP without the 'hold the bound' heater control (heater grid only; the "
+                        "heater then alternates between grid values while the cabin rides its bound)")
     p.set_defaults(func=run)
 
 
@@ -96,7 +99,7 @@ def run(args) -> int:
 
     # the same store entries as `iptm run`: the identical problem is solved once
     store = None if args.no_cache else Store(Path(args.cache))
-    cs = optimize_cached(ps, scen, grids, chosen, store, progress=True)
+    cs = optimize_cached(ps, scen, grids, chosen, store, progress=True, hold=False if args.no_hold else None)
     cyc = scen.load_cycle()
     d = cyc.describe()
     print(f"\ncase study: {d['name']} ({d['duration_s']:.0f} s, {d['distance_km']:.2f} km), ambient "
