@@ -28,13 +28,11 @@ from optimize.formulations.transition import build_tables, delivered_heat, drift
 
 
 
-#: Interpolation of the cost-to-go of every formulation (:class:`optimize.dp.engine.DPProblem`). ``"auto"``:
-#: multilinear with the reach boundary located from the level along SOC (``"reach_first"``) where the
-#: terminal SOC set is one-sided (SOC_N >= SOC_0), plain ``"multilinear"`` where it is a two-sided band
-#: (``continued`` with ``cont_soc_band``): there the reach rule is measured to be worse (NYCC at 0 degC,
-#: continuation-corrected 55.33 g against 54.41 g, and 58.37 g on the fixed SOC grid), and the drifting
-#: grid alone converges (54.41 / 54.36 g at SOC steps 0.01 / 0.005).
-INTERP = "auto"
+#: Interpolation of the cost-to-go of every formulation (:class:`optimize.dp.engine.DPProblem`): multilinear
+#: with the cell the terminal SOC set's reach boundary cuts interpolated from the boundary, located from the
+#: level along SOC (``"reach_first"``), for the one-sided set SOC_N >= SOC_0 and the ``continued`` terminal's
+#: two-sided band alike (the band needs phi clamped to it beyond its edges, :func:`_continued_phi`).
+INTERP = "reach_first"
 #: Thermal-Cabin-DP's interpolation of the cost-to-go (the cabin is the last state).
 CABIN_INTERP = INTERP
 #: Coordinates of Thermal-Cabin-DP's cabin state (:func:`build_problem`) and the default.
@@ -172,7 +170,15 @@ def continuation_table(mp, scen: DPScenario, soc_nodes, tcl_nodes, tcab_nodes) -
 def _continued_phi(mp, scen: DPScenario, grid_list, cab_offset: float, cab_final: float | None):
     """phi(X) = C(X) - C(x_0) on the DP grid ``grid_list``: C tabulated on a sub-grid (every
     ``cont_soc_every``-th SOC node, coolant every ``cont_tcl_step`` K, cabin every ``cont_tcab_step`` K over
-    the grids' ranges) and interpolated multilinearly; the offset at x_0 is removed so that phi(x_0) = 0."""
+    the grids' ranges) and interpolated multilinearly; the offset at x_0 is removed so that phi(x_0) = 0.
+
+    With a SOC band (``cont_soc_band``) phi outside it is phi at the band's nearest edge. The level-set
+    method stores, at a node that cannot reach the band, the cost of its least-level control, and the
+    reach-boundary interpolation (:func:`optimize.dp.kernels._lin_reach`) places that value on the reach
+    boundary as the boundary's cost. With C extended beyond the band that cost includes the credit for
+    the charge above the band the drive ends with, which no feasible run gets: the boundary looked cheap,
+    the policy drifted to it and paid to get back (NYCC at 0 degC: 55.33 g against 54.39 g with phi
+    clamped, continuation-corrected). Runs that end in the band are valued the same either way."""
     from scipy.interpolate import RegularGridInterpolator
 
     socg, tclg = grid_list[0], grid_list[1]
@@ -195,9 +201,14 @@ def _continued_phi(mp, scen: DPScenario, grid_list, cab_offset: float, cab_final
     x0 = [scen.soc0, scen.T_cl0] + ([scen.T_cab0] if use_cab else [])
     c0 = float(f(np.array([x0]))[0])
 
+    band = scen.cont_soc_band
+    lo, hi = (-np.inf, np.inf) if band is None else (scen.soc0 - band, scen.soc0 + band)
+
     def phi(X):
         X = np.atleast_2d(np.asarray(X, dtype=np.float64))
-        pts = np.column_stack([X[:, 0], X[:, 1]] + ([X[:, 2] + cab_offset] if use_cab else []))
+        # outside the terminal SOC band, the value at the band's nearest edge: a state the drive cannot
+        # bring into the band is not credited the charge it would end with (see the docstring)
+        pts = np.column_stack([np.clip(X[:, 0], lo, hi), X[:, 1]] + ([X[:, 2] + cab_offset] if use_cab else []))
         return f(pts) - c0
     phi.nodes = (soc_n, tcl_n, tcab_n)
     return phi
@@ -273,13 +284,6 @@ def dp_objective(params, sim, scen: DPScenario, nx: int, T_cab_terminal_min: flo
         return float(sim.fuel_g)
     X = np.array([[sim.soc[-1], sim.T_cl[-1], sim.T_cab[-1]]])
     return float(sim.fuel_g + phi(X)[0])
-
-
-def _resolve_interp(interp: str, soc_bounds) -> str:
-    """:data:`INTERP`'s ``"auto"`` for the terminal SOC set ``soc_bounds`` (lo, hi); other names unchanged."""
-    if interp != "auto":
-        return interp
-    return "reach_first" if soc_bounds[1] is None else "multilinear"
 
 
 @dataclass
@@ -433,7 +437,7 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
     prob = DPProblem(grids=grid_list, controls=controls, N=N, transition=hev_transition, w=w, params=p,
                      terminal_bounds=bounds, terminal_cost=terminal, boundary="levelset", clip=True,
                      level_tol=LEVEL_TOL, precompute=hev_precompute,
-                     table_shape=(pc.shape[0], _T_SOC0 + socg.size), interp=_resolve_interp(interp, bounds[0]))
+                     table_shape=(pc.shape[0], _T_SOC0 + socg.size), interp=interp)
     return _Built(prob, np.array(x0), cyc, extra, mp)
 
 
