@@ -67,6 +67,18 @@ def main() -> None:
     pe = ps.param("eta_ool")
     print("  calibrated eta_ool (prior): " + ", ".join(f"{x / 1e3:g} kW {v:.3f} ({p:.3f})" for x, v, p in
                                                     zip(pe.x, pe.value, pe.prior_value) if 5e3 <= x <= 60e3))
+    pf = ps.param("f_cl")
+    print("  calibrated f_cl above the 80 degC reference (prior 1): " + ", ".join(
+        f"{x:g} degC {v:.3f} +- {s:.3f} ({st}, informed {i:.2f})" for x, v, s, st, i in
+        zip(pf.x, pf.value, pf.stderr, pf.entry_status, pf.informed) if x > 80))
+    old = default_parameters()
+    fo = old.param("f_cl")
+    keep = [j for j, x in enumerate(fo.x) if x <= 80]
+    fo.x, fo.value, fo.prior_sd = [fo.x[j] for j in keep], [fo.value[j] for j in keep], [fo.prior_sd[j] for j in keep]
+    r80 = calibrate([logs[n] for n in names[:2]], base=old, progress=False, diagnose=False)
+    print("  the same calibration with the f_cl table ending at 80 degC (1 above it): " + "; ".join(
+        f"{n} cumulative fuel {replay(logs[n], r80.params).metrics()['cumulative_fuel']['error_pct']:+.2f} %"
+        for n in names[2:]))
     for n in names:
         la = log_arrays(logs[n], mp)
         Wm = replay(logs[n], ps).measured["fuel_rate"]
@@ -80,15 +92,19 @@ def main() -> None:
     k = 1.0 / (1.0 + errs[names[2]] / 100.0)
     print(f"  one warm fuel level for both held-out drives: scaling the calibrated fuel rate by {k:.3f} (what the "
           f"warm restart asks) moves {names[3]} from {errs[names[3]]:+.2f} % to {100 * (k * (1 + errs[names[3]] / 100) - 1):+.2f} %")
-    print("  FASTSim's engine efficiency at 14-16 kW (its noise-free output), by engine temperature:")
+    print("  FASTSim's engine efficiency at 14-16 kW (its noise-free output), by engine temperature (in brackets "
+          "the 80-85 degC efficiency over it: the f_cl that would reproduce it):")
     P = np.concatenate([trues[n]["engine_power_W"] for n in names])
     F = np.concatenate([trues[n]["fuel_rate_g_per_s"] for n in names]) * LHV_J_PER_G
     T = np.concatenate([trues[n]["coolant_temp_degC"] for n in names])
     pt = (P > 14e3) & (P < 16e3) & (F > 0)
+    ref = pt & (T >= 80) & (T < 85)
+    e_ref = P[ref].sum() / F[ref].sum()
     for lo, hi in [(60, 70), (70, 80), (80, 85), (85, 90), (90, 95), (95, 105), (105, 120), (120, 200)]:
         sel = pt & (T >= lo) & (T < hi)
         if sel.sum() >= 5:
-            print(f"    {lo:3d}-{hi:<3d} degC: {P[sel].sum() / F[sel].sum():.3f} ({int(sel.sum())} s)")
+            e = P[sel].sum() / F[sel].sum()
+            print(f"    {lo:3d}-{hi:<3d} degC: {e:.3f} ({e_ref / e:.3f}; {int(sel.sum())} s)")
     for n in names:
         tr = trues[n]
         sel = tr["engine_on"] & (tr["coolant_temp_degC"] >= 80)
