@@ -1,12 +1,13 @@
-"""Where the FASTSim Sonata's held-out fuel and SOC errors come from (docs/test_cars.md, "Structure the
-calibration cannot remove").
+"""Where the FASTSim Sonata's held-out fuel and SOC errors come from (docs/test_cars.md, "Fuel above the
+thermostat, and structure the calibration cannot remove").
 
 Runs the scenarios of ``iptm bench calib`` (same seeds), calibrates on the two cold drives and prints:
 
 1. fuel: for every drive, measured against replayed fuel by measured coolant band, the replay also with
-   the measured coolant (so the thermal model's error is out), engine-on seconds and starts; and
-   FASTSim's own engine efficiency (engine power / fuel power) at its one operating point (14-16 kW) by
-   coolant band, from its noise-free output;
+   the measured coolant (so the thermal model's error is out), engine-on seconds and starts; the fitted
+   ``f_cl`` above its 80 degC reference, and the held-out fuel of the same calibration with the table
+   ending at 80 degC; FASTSim's own engine efficiency (engine power / fuel power) at its one operating
+   point (14-16 kW) by coolant band, from its noise-free output;
 2. battery: FASTSim's chemical over electrical energy by power band (from its SOC and the pack energy of
    its vehicle resource), our battery fitted on each drive alone (the resistance that drive asks for at
    its own battery temperature), and the held-out SOC RMSE with the calibrated parameters.
@@ -65,8 +66,9 @@ def main() -> None:
           f"{fm['engine_power_max_W'] / 1e3:.1f} kW, RMSE {fm['rmse_g_per_s']:.3f} g/s, noise sd "
           f"{fm['noise_sd_g_per_s']:.3f} g/s, effective sample size {fm['n_eff']:.1f}")
     pe = ps.param("eta_ool")
-    print("  calibrated eta_ool (prior): " + ", ".join(f"{x / 1e3:g} kW {v:.3f} ({p:.3f})" for x, v, p in
-                                                    zip(pe.x, pe.value, pe.prior_value) if 5e3 <= x <= 60e3))
+    print("  calibrated eta_ool (prior; status, informed): " + ", ".join(
+        f"{x / 1e3:g} kW {v:.3f} ({p:.3f}; {st} {i:.2f})" for x, v, p, st, i in
+        zip(pe.x, pe.value, pe.prior_value, pe.entry_status, pe.informed) if 5e3 <= x <= 60e3))
     pf = ps.param("f_cl")
     print("  calibrated f_cl above the 80 degC reference (prior 1): " + ", ".join(
         f"{x:g} degC {v:.3f} +- {s:.3f} ({st}, informed {i:.2f})" for x, v, s, st, i in
