@@ -121,17 +121,25 @@ def _data_start(mode, P, T, W, mp0, Tbp, rT, eta_names, d_names, u_names, eta_bo
     if wt[rT] < MIN_COVER:
         return []
     m = np.where(wt >= MIN_COVER, (H * ratio[:, None]).sum(axis=0) / np.maximum(wt, 1e-12), np.nan)
-    level = m[rT] if eta_names else 1.0
-    g = m / level
-    g[rT] = 1.0
-    for j in range(rT - 1, -1, -1):  # colder: never below the next warmer entry
-        g[j] = max(g[j] if np.isfinite(g[j]) else g[j + 1], g[j + 1])
-    for j in range(rT + 1, len(Tbp)):  # hotter: never above the next colder entry
-        g[j] = min(g[j] if np.isfinite(g[j]) else g[j - 1], g[j - 1])
-    start = {nm: float(g[j] - g[j + 1]) for j, nm in enumerate(d_names)}
-    start.update({nm: float(g[j - 1] - g[j]) for j, nm in enumerate(u_names, start=rT + 1)})
-    start.update({nm: float(np.clip(mp0.eta_ool[j] / level, *eta_bounds)) for j, nm in enumerate(eta_names, start=1)})
-    return [start]
+    # the warm level from the samples on both sides of the reference, and from those at or above it only
+    # (a table whose far end falls steeply puts the two modes of the posterior on either side)
+    hot = T[on][ok] >= Tbp[rT]
+    wh = H[hot, rT].sum()
+    levels = [m[rT]] + ([float((H[hot, rT] * ratio[hot]).sum() / wh)] if u_names and wh >= MIN_COVER else [])
+    starts = []
+    for level in (levels if eta_names else [1.0]):
+        g = m / level
+        g[rT] = 1.0
+        for j in range(rT - 1, -1, -1):  # colder: never below the next warmer entry
+            g[j] = max(g[j] if np.isfinite(g[j]) else g[j + 1], g[j + 1])
+        for j in range(rT + 1, len(Tbp)):  # hotter: never above the next colder entry
+            g[j] = min(g[j] if np.isfinite(g[j]) else g[j - 1], g[j - 1])
+        start = {nm: float(g[j] - g[j + 1]) for j, nm in enumerate(d_names)}
+        start.update({nm: float(g[j - 1] - g[j]) for j, nm in enumerate(u_names, start=rT + 1)})
+        start.update({nm: float(np.clip(mp0.eta_ool[j] / level, *eta_bounds))
+                      for j, nm in enumerate(eta_names, start=1)})
+        starts.append(start)
+    return starts
 
 
 def _gather(use, mp0, fit):
