@@ -226,14 +226,14 @@ def comparable_truth(p: dict, base=None) -> dict:
 
     Returns ``{"values": {name: float or list}, "no_counterpart": {name: why}}``.
     """
-    from calib.model.params import default_parameters
+    from calib.model.params import default_parameters, f_cl_ref_index
 
     base = base or default_parameters()
     bias = 1.0 + p["fuel_meter_bias"]
-    # the fitter's f_cl is 1 at its warmest breakpoint (the warm reference); this plant's factor is not
-    # quite 1 there, so the comparable table and idle rate are taken relative to that temperature
+    # the fitter's f_cl is 1 at its warm reference breakpoint; this plant's factor is not quite 1 there,
+    # so the comparable table and idle rate are taken relative to that temperature
     xs_f = base.param("f_cl").x
-    f_ref = float(f_cold(p, xs_f[-1]))
+    f_ref = float(f_cold(p, xs_f[f_cl_ref_index(xs_f)]))
     xs_b = base.param("U_oc_V").x
     vals = {
         "C_bat_Ah": p["C_bat_Ah"], "C_eng_J_per_K": p["C_eng_J_per_K"], "gamma_exh": p["gamma_exh"],

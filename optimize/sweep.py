@@ -27,7 +27,7 @@ A *study* is a TOML file::
 
 Monte-Carlo draws: every parameter of the artifact with status ``estimated`` and a standard error is drawn
 from normal(value, stderr), clipped to its bounds; scalar parameters independently, a table parameter with
-one standard normal for the whole table (its shape is kept, e.g. a monotone ``f_cl`` stays monotone). A
+one standard normal for the whole table (its shape is kept; ``f_cl`` is held non-increasing). A
 draw that fails validation is redrawn (up to 50 times). Draw ``i`` of a study is the same on every run
 (numpy ``default_rng([seed, i])``).
 
@@ -204,6 +204,10 @@ def _fingerprint(pset) -> dict:
     return out
 
 
+#: Tables that validation requires to be non-increasing; a Monte-Carlo draw is held to that.
+_NON_INCREASING = ("f_cl",)
+
+
 def montecarlo_draws(artifact, n: int, seed: int = 1, label: str | None = None) -> list[ParamSpec]:
     """``n`` parameter sets drawn from the estimated parameters' normal(value, stderr), clipped to bounds."""
     from calib.errors import ParameterError
@@ -227,7 +231,12 @@ def montecarlo_draws(artifact, n: int, seed: int = 1, label: str | None = None) 
                 z = rng.standard_normal()
                 if p.is_table:
                     se = np.broadcast_to(np.asarray(p.stderr, dtype=float), (len(p.value),))
-                    vals[nm] = np.clip(np.asarray(p.value, dtype=float) + se * z, lo, hi).tolist()
+                    v = np.clip(np.asarray(p.value, dtype=float) + se * z, lo, hi)
+                    if nm in _NON_INCREASING:
+                        # the calibration's constraint: an entry drawn above a colder one (f_cl above its
+                        # warm reference, whose sd is 0) is held at it, as the fit's estimate would be
+                        v = np.minimum.accumulate(v)
+                    vals[nm] = v.tolist()
                 else:
                     vals[nm] = float(np.clip(p.value + float(p.stderr) * z, lo, hi))
             try:

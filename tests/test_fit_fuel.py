@@ -63,8 +63,9 @@ def test_fuel_recovers_truth(seed):
     assert abs(w.value - truth["W_idle_g_per_s"]) <= max(3 * w.stderr, 0.002)
     f = fit.estimates["f_cl"]
     assert all(abs(v - t) < 0.02 for v, t in zip(f.value, truth["f_cl"]))
-    # the warm reference entry is fixed at 1; the table never rises with temperature
-    assert f.value[-1] == 1.0 and f.entry_status[-1] == "fixed"
+    # the warm reference entry (80 degC) is fixed at 1; the table never rises with temperature
+    r = base.param("f_cl").x.index(80.0)
+    assert f.value[r] == 1.0 and f.entry_status[r] == "fixed"
     assert all(b <= a for a, b in zip(f.value, f.value[1:]))
 
 
@@ -98,3 +99,80 @@ def test_cold_only_log_leaves_the_warm_map_to_the_prior():
     # no warm running: the high-power entries are weakly informed, near their prior
     assert fit.metrics["warm_on_samples"] < 60
     assert e.entry_status[-1] == "weak" and e.informed[-1] < 0.3
+
+
+# ---- above the thermostat, on a hand-written engine-test plant (not calib.model: its own efficiency
+# curve, a fuel factor that is smooth below 80 degC and falls linearly above it, a coolant trace given as
+# an input, a biased and noisy fuel meter, a 1 degC-quantised coolant reading)
+HOT_SLOPE = 0.002  # plant: fuel factor falls 0.2 %/K above 80 degC (8 % at 120 degC)
+
+
+def _plant_factor(T):
+    T = np.asarray(T, float)
+    return 1.0 + 0.7 * np.exp(-(T + 10.0) / 35.0) - HOT_SLOPE * np.maximum(T - 80.0, 0.0)
+
+
+def _engine_test_log(seed, T_hot_max):
+    """Steady engine-power blocks (off, idle, 4-30 kW) over a coolant trace that warms from -5 degC and
+    then swings between 82 and ``T_hot_max`` degC (held below 80 when ``T_hot_max`` is None)."""
+    from calib.drivelog import DriveLog, LogMeta
+    import pandas as pd
+
+    rng = np.random.default_rng(seed)
+    n = 5400
+    t = np.arange(n, dtype=float)
+    warm = -5.0 + 90.0 * (1.0 - np.exp(-t / 500.0))
+    if T_hot_max is None:
+        T = np.minimum(warm, 76.0 - 6.0 * np.sin(2 * np.pi * t / 700.0) ** 2)
+    else:
+        swing = 82.0 + (T_hot_max - 82.0) * 0.5 * (1.0 - np.cos(2 * np.pi * (t - 1500.0) / 900.0))
+        T = np.where(t < 1500.0, np.minimum(warm, 82.0), swing)
+    P = np.zeros(n)
+    k = 0
+    while k < n:
+        d = int(rng.integers(15, 60))
+        u = rng.uniform()
+        P[k:k + d] = 0.0 if u < 0.15 else (-1.0 if u < 0.25 else rng.uniform(4e3, 30e3))
+        k += d
+    idle = P < 0
+    P = np.maximum(P, 0.0)
+    eta = 0.39 * (1.0 - np.exp(-P / 4500.0)) * (1.0 - 0.18 * (P / 72e3) ** 2)
+    W = np.where(P > 0, P / (np.maximum(eta, 1e-6) * 43.0e3), np.where(idle, 0.13, 0.0)) * _plant_factor(T)
+    W_meas = W * 1.02 * (1.0 + 0.02 * rng.standard_normal(n)) + 0.005 * rng.standard_normal(n) * (W > 0)
+    df = pd.DataFrame({"engine_power_W": np.round(P / 100.0) * 100.0, "fuel_rate_g_per_s": np.maximum(W_meas, 0.0),
+                       "coolant_temp_degC": np.round(T + 0.2 * rng.standard_normal(n))},
+                      index=pd.Index(t, name="time_s"))
+    return DriveLog(df, LogMeta(source=f"SYNTHETIC_engine_test_{seed}.csv", synthetic=True))
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_f_cl_above_the_thermostat_recovers_a_hot_engine(seed):
+    base = default_parameters()
+    x = base.param("f_cl").x
+    r = x.index(80.0)
+    fit = fit_fuel([_engine_test_log(seed, 120.0)], base)
+    f = fit.estimates["f_cl"]
+    truth = _plant_factor(x) / _plant_factor(80.0)
+    for j in range(r + 1, len(x)):
+        v, s = f.value[j], f.stderr[j]
+        assert f.entry_status[j] == "estimated", (x[j], f.informed[j])
+        assert abs(v - truth[j]) <= 1.96 * s, (x[j], v, s, truth[j])  # its 95 % interval holds the truth
+        assert abs(v - truth[j]) < 0.5 * (1.0 - truth[j]), (x[j], v, truth[j])  # most of the way from the prior
+    assert f.value[r] == 1.0 and f.entry_status[r] == "fixed"
+    assert "f_cl_hot_weak_degC" in fit.metrics and not fit.metrics["f_cl_hot_weak_degC"]
+
+
+def test_f_cl_above_the_thermostat_stays_at_its_prior_without_hot_data():
+    base = default_parameters()
+    x = base.param("f_cl").x
+    r = x.index(80.0)
+    lg = _engine_test_log(3, None)
+    assert lg.data["coolant_temp_degC"].max() < 80.0
+    fit = fit_fuel([lg], base)
+    f = fit.estimates["f_cl"]
+    for j in range(r + 1, len(x)):
+        assert f.value[j] == pytest.approx(1.0, abs=1e-3), (x[j], f.value[j])
+        assert f.entry_status[j] == "weak" and f.informed[j] < 0.3, (x[j], f.informed[j])
+    assert fit.metrics["f_cl_hot_weak_degC"] == [x[j] for j in range(r + 1, len(x))]
+    # the cold side is still determined by the same log
+    assert f.entry_status[1] == "estimated"

@@ -90,6 +90,24 @@ def test_fuel_modes_and_cold_factor(mp):
     assert M.fuel_rate(mp, M.ON, 10.0, 90.0) == pytest.approx(mp.W_idle)  # never below idle
 
 
+def test_fuel_above_the_thermostat(mp):
+    """The coolant factor's nodes above the warm reference (80 degC): at their default (1) the fuel is that
+    of a table that ends at 80 degC; below 1 they lower the fuel there, and only there."""
+    assert list(mp.T_fcl[mp.T_fcl >= 80.0]) == [80.0, 90.0, 100.0, 120.0]
+    old = mp._replace(T_fcl=np.array([-10.0, 20.0, 60.0, 80.0]), f_cl=np.array([1.5, 1.2, 1.05, 1.0]))
+    for T in (-20.0, -10.0, 5.0, 40.0, 70.0, 80.0, 85.0, 95.0, 110.0, 120.0, 150.0):
+        for mode, P in ((M.IDLE, 0.0), (M.ON, 14e3), (M.ON, 40e3)):
+            assert M.fuel_rate(mp, mode, P, T) == M.fuel_rate(old, mode, P, T), (T, mode, P)
+    hot = mp._replace(f_cl=np.array([1.5, 1.2, 1.05, 1.0, 0.98, 0.95, 0.9]))
+    w80 = M.fuel_rate(mp, M.ON, 14e3, 80.0)
+    assert M.fuel_rate(hot, M.ON, 14e3, 80.0) == w80
+    assert M.fuel_rate(hot, M.ON, 14e3, 40.0) == M.fuel_rate(mp, M.ON, 14e3, 40.0)  # cold side unchanged
+    assert M.fuel_rate(hot, M.ON, 14e3, 95.0) == pytest.approx(0.965 * w80)  # halfway 90-100
+    assert M.fuel_rate(hot, M.ON, 14e3, 120.0) == pytest.approx(0.9 * w80)
+    assert M.fuel_rate(hot, M.ON, 14e3, 140.0) == pytest.approx(0.9 * w80)  # flat beyond the last node
+    assert M.fuel_rate(hot, M.IDLE, 0.0, 100.0) == pytest.approx(0.95 * mp.W_idle)
+
+
 def test_engine_speed_on_ool_matches_rating(mp):
     w = M.engine_speed(mp, M.ON, 72e3)
     assert w * 60 / (2 * math.pi) == pytest.approx(5200, rel=0.01)

@@ -38,7 +38,9 @@ def test_partial_file_with_unit_conversion(tmp_path):
     ('[parameters.C_eng_J_per_K]\nvalue = 80.0\nunit = "kg"\n', "cannot be converted"),
     ('[parameters.C_eng_J_per_K]\nvalue = 1.0\n', "outside its bounds"),
     ('[parameters.f_cl]\nvalue = [1.5, 1.2, 1.05, 1.0]\nx = [-10.0, 60.0, 20.0, 80.0]\n', "strictly increasing"),
-    ('[parameters.f_cl]\nvalue = [1.0, 1.2, 1.05, 1.0]\n', "must not increase"),
+    ('[parameters.f_cl]\nvalue = [1.0, 1.2, 1.05, 1.0]\nx = [-10.0, 20.0, 60.0, 80.0]\n', "must not increase"),
+    ('[parameters.f_cl]\nvalue = [1.5, 1.2, 1.05, 1.0, 0.98, 0.99, 0.97]\n', "must not increase"),
+    ('[parameters.f_cl]\nvalue = [1.5, 1.2, 1.05, 1.0]\n', "7 breakpoints but 4 values"),
     ('[parameters.f_cl]\nvalue = 1.2\n', "must be a table"),
     ('[parameters\n', "not a valid TOML"),
     # unit texts that pint's own parser fails on with a TokenError or a TypeError (found by the fuzz harness)

@@ -317,3 +317,22 @@ def test_scheduler_address_and_montecarlo_spread(client, tmp_path):
     paths = plot_study(df, tmp_path / "plots")
     assert sorted(os.path.basename(p) for p in paths) == ["saving_spread.png", "saving_vs_ambient.png"]
     assert len(client.scheduler_info()["workers"]) == 2  # the shared cluster is untouched
+
+
+def test_montecarlo_draws_keep_f_cl_non_increasing_above_its_reference():
+    """A calibrated f_cl whose hot entries sit at the reference (1) with a posterior sd: every draw is
+    valid, and a hot entry drawn above the reference is held at it (the fit's constraint)."""
+    ps = default_parameters()
+    f = ps.param("f_cl")
+    f.value = [1.6, 1.25, 1.05, 1.0, 1.0, 0.99, 0.95]
+    f.stderr = [0.05, 0.03, 0.01, 0.0, 0.015, 0.02, 0.04]
+    f.status = "estimated"
+    draws = montecarlo_draws(ps, 12, seed=2)
+    r = f.x.index(80.0)
+    hot_below = 0
+    for d in draws:
+        v = d.pset.param("f_cl").value
+        assert all(b <= a for a, b in zip(v, v[1:])), v
+        assert v[r] == 1.0 and v[r + 1] <= 1.0
+        hot_below += v[-1] < 0.95
+    assert 0 < hot_below < len(draws)  # drawn on both sides of the estimate, not pinned

@@ -61,6 +61,11 @@ def advise(fits) -> list[str]:
         if f is not None and isinstance(f.informed, list) and f.informed and f.informed[0] < WEAK_INFORMED:
             out.append("f_cl at the coldest breakpoint comes mostly from the prior: a cold start at or below that "
                        "coolant temperature would determine it.")
+        hot = fu.metrics.get("f_cl_hot_weak_degC")
+        if hot:
+            out.append(f"f_cl above the thermostat ({', '.join(f'{x:g}' for x in hot)} degC) comes mostly from "
+                       "its prior (1): a drive whose coolant runs there (a long climb, a hot day) would "
+                       "determine it.")
         if _weak(fu, "W_idle_g_per_s"):
             out.append("W_idle comes mostly from the prior: a minute of idling (stationary, engine running) would "
                        "determine it.")

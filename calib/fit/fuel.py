@@ -10,9 +10,13 @@ and ``W_idle f_cl(T_cl)`` idling (:func:`calib.model.equations.fuel_rate`). Esti
   prior on the second differences of ``log(eta / eta_prior)`` (:data:`SMOOTH_SD` per breakpoint), so
   entries the logs do not reach follow their neighbours and the prior rather than jumping;
 - ``W_idle_g_per_s`` from idle bins;
-- ``f_cl``: parametrised as ``f_cl_j = 1 + sum_{k >= j} d_k`` with increments ``d_k >= 0``, so the
-  table can only fall towards the warm reference (last breakpoint, 1): monotone by construction; its prior
-  is on the entries and a smoothness prior on the change of slope (:data:`F_SLOPE_SD` per K).
+- ``f_cl``: 1 at the warm reference breakpoint ``r`` (:func:`calib.model.params.f_cl_ref_index`, 80 degC);
+  below it ``f_cl_j = 1 + sum_{j <= k < r} d_k``, above it ``f_cl_j = 1 - sum_{r < k <= j} u_k``, with
+  increments ``d_k, u_k >= 0``: monotone (non-increasing) by construction. Above the reference the factor
+  can fall below 1 (a hotter engine's lower friction), with a prior of 1 and a few % sd
+  (:data:`calib.model.params.F_CL_HOT_SD_PER_K`). Its prior is on the entries and a smoothness prior on
+  the change of slope (:data:`F_SLOPE_SD` per K). Entries with fewer than :data:`MIN_COVER` samples near
+  them (cold samples below the reference, warm ones above) are reported as not reached.
 
 Data: the *stable* 1 s bins of every log with fuel rate and coolant temperature and an engine operating
 point (logged speed x torque, logged engine power, or inferred from the power balance: see
@@ -38,7 +42,7 @@ from calib.fit.replay import fuel_replay, log_arrays
 from calib.fit.toolkit import (INPUT_REL_SD, WEAK_INFORMED, ParamEstimate, SubsystemFit, confounded_pairs, map_fit,
                                not_fitted, posterior_estimate)
 from calib.model.equations import IDLE, ON
-from calib.model.params import prior_sd_of
+from calib.model.params import f_cl_ref_index, prior_sd_of
 from calib.units import RPM
 
 NEEDS = ("fuel_rate_g_per_s", "coolant_temp_degC")  # + an engine operating point (logged or inferred)
@@ -82,10 +86,60 @@ def _steady_power(P, rel=0.03, abs_W=300.0):
     return d < abs_W + rel * np.abs(P)
 
 
-def f_cl_from_increments(d):
-    """Table values ``1 + sum_{k >= j} d_k`` (length ``len(d) + 1``, last entry 1)."""
+def f_cl_from_increments(d, u=()):
+    """Table values ``1 + sum_{k >= j} d_k`` below the reference entry (1), then ``1 - sum_{k <= j} u_k``
+    above it (length ``len(d) + 1 + len(u)``; entry ``len(d)`` is the reference)."""
     d = np.asarray(d, float)
-    return np.concatenate([1.0 + np.cumsum(d[::-1])[::-1], [1.0]])
+    u = np.asarray(u, float)
+    return np.concatenate([1.0 + np.cumsum(d[::-1])[::-1], [1.0], 1.0 - np.cumsum(u)])
+
+
+def _f_cl_jacobian(r, n):
+    """Matrix M (n, n - 1) with f = 1 + M [d, u] (:func:`f_cl_from_increments`, reference entry r)."""
+    M = np.zeros((n, n - 1))
+    for j in range(r):
+        M[j, j:r] = 1.0
+    for j in range(r + 1, n):
+        M[j, r:j] = -1.0
+    return M
+
+
+def _data_start(mode, P, T, W, mp0, Tbp, rT, eta_names, d_names, u_names, eta_bounds):
+    """A second starting point from the data: the measured over the prior warm fuel rate of the engine-on
+    bins, averaged near each coolant breakpoint (weights of linear interpolation). Its value near the
+    reference is the warm level (it scales the efficiency table), the others over it the ``f_cl`` entries
+    (held monotone). A car far from the prior (a cold factor of 4, a level 10 % off, a hot engine that
+    burns less) otherwise leaves the fit in a mode near the prior. ``[]`` when the data cannot say."""
+    on = mode == ON
+    if not (d_names or u_names) or on.sum() < MIN_COVER:
+        return []
+    w0 = fuel_replay(mp0._replace(f_cl=np.ones_like(mp0.f_cl)), mode[on], P[on], T[on])
+    ok = w0 > 0
+    H = hat_basis(T[on][ok], Tbp)
+    wt = H.sum(axis=0)
+    ratio = W[on][ok] / w0[ok]
+    if wt[rT] < MIN_COVER:
+        return []
+    m = np.where(wt >= MIN_COVER, (H * ratio[:, None]).sum(axis=0) / np.maximum(wt, 1e-12), np.nan)
+    # the warm level from the samples on both sides of the reference, and from those at or above it only
+    # (a table whose far end falls steeply puts the two modes of the posterior on either side)
+    hot = T[on][ok] >= Tbp[rT]
+    wh = H[hot, rT].sum()
+    levels = [m[rT]] + ([float((H[hot, rT] * ratio[hot]).sum() / wh)] if u_names and wh >= MIN_COVER else [])
+    starts = []
+    for level in (levels if eta_names else [1.0]):
+        g = m / level
+        g[rT] = 1.0
+        for j in range(rT - 1, -1, -1):  # colder: never below the next warmer entry
+            g[j] = max(g[j] if np.isfinite(g[j]) else g[j + 1], g[j + 1])
+        for j in range(rT + 1, len(Tbp)):  # hotter: never above the next colder entry
+            g[j] = min(g[j] if np.isfinite(g[j]) else g[j - 1], g[j - 1])
+        start = {nm: float(g[j] - g[j + 1]) for j, nm in enumerate(d_names)}
+        start.update({nm: float(g[j - 1] - g[j]) for j, nm in enumerate(u_names, start=rT + 1)})
+        start.update({nm: float(np.clip(mp0.eta_ool[j] / level, *eta_bounds))
+                      for j, nm in enumerate(eta_names, start=1)})
+        starts.append(start)
+    return starts
 
 
 def _gather(use, mp0, fit):
@@ -166,8 +220,11 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
     eta_sd = np.array(prior_sd_of(pe), float)
     Tbp, f0 = np.array(pf.x, float), np.array(pf.value, float)
     f_sd = np.array(prior_sd_of(pf), float)
+    rT = f_cl_ref_index(Tbp)
     cold = T < WARM_DEGC
     coverT = hat_basis(T[cold], Tbp).sum(axis=0) if cold.any() else np.zeros(len(Tbp))
+    # above the reference: the warm samples near each breakpoint
+    coverT[rT + 1:] = (hat_basis(T[~cold], Tbp).sum(axis=0) if (~cold).any() else np.zeros(len(Tbp)))[rT + 1:]
     coverP = hat_basis(P[on], Pbp).sum(axis=0) if on.any() else np.zeros(len(Pbp))
     fit.metrics.update(samples=int(P.size), warm_on_samples=warm_on, idle_samples=n_idle,
                        cold_samples=int(cold.sum()), engine_power_max_W=float(P[on].max()) if on.any() else 0.0)
@@ -193,8 +250,9 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
     fit_fcl = "f_cl" in allowed
     # eta entries from the second breakpoint (the first is at zero power, where the idle floor rules)
     eta_names = [f"eta_{j}" for j in range(1, len(Pbp))] if fit_eta else []
-    d_names = [f"d_{j}" for j in range(len(Tbp) - 1)] if fit_fcl else []
-    d0 = np.maximum(-np.diff(f0), 0.0)
+    d_names = [f"d_{j}" for j in range(rT)] if fit_fcl else []
+    u_names = [f"u_{j}" for j in range(rT + 1, len(Tbp))] if fit_fcl else []
+    d0 = np.maximum(-np.diff(f0), 0.0)  # d0[j]: f0[j] - f0[j + 1]; u_j starts at d0[j - 1]
     prior, psd, bnd = {}, {}, {}
     for j, nm in enumerate(eta_names, start=1):
         prior[nm], psd[nm], bnd[nm] = float(eta0[j]), float(eta_sd[j]), pe.bounds
@@ -202,7 +260,7 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
         pw = base.param("W_idle_g_per_s")
         prior["W_idle_g_per_s"], psd["W_idle_g_per_s"] = float(pw.value), float(prior_sd_of(pw))
         bnd["W_idle_g_per_s"] = pw.bounds
-    cand = eta_names + (["W_idle_g_per_s"] if fit_idle else []) + d_names
+    cand = eta_names + (["W_idle_g_per_s"] if fit_idle else []) + d_names + u_names
 
     def make_params():
         ps = lmfit.Parameters()
@@ -211,13 +269,18 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
             ps.add(nm, value=prior[nm], min=lo, max=hi)
         for j, nm in enumerate(d_names):
             ps.add(nm, value=max(float(d0[j]), 1e-4), min=0.0, max=5.0)
+        for j, nm in enumerate(u_names, start=rT + 1):
+            # the table's lower bound over the increments above the reference
+            ps.add(nm, value=max(float(d0[j - 1]), 2e-3), min=0.0, max=(1.0 - pf.bounds[0]) / max(len(u_names), 1))
         return ps
 
     def tables(v):
         eta = eta0.copy()
         for j, nm in enumerate(eta_names, start=1):
             eta[j] = v[nm]
-        f = f_cl_from_increments([v[nm] for nm in d_names]) if d_names else f0
+        # within the parameter's bounds (the increments alone do not bound their sum)
+        f = np.clip(f_cl_from_increments([v[nm] for nm in d_names], [v[nm] for nm in u_names]),
+                    *pf.bounds) if fit_fcl else f0
         return eta, f
 
     def model_of(ps, sP=1.0, dT=0.0, lag=False):
@@ -233,8 +296,9 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
         if eta_names:
             le = np.log(eta[1:] / eta0[1:])
             out.append(np.diff(le, 2) / SMOOTH_SD)
-        if d_names:
-            out.append((f[:-1] - f0[:-1]) / f_sd[:-1])
+        if fit_fcl:
+            keep = np.arange(len(f)) != rT
+            out.append((f[keep] - f0[keep]) / f_sd[keep])
             slope = np.diff(f) / np.diff(Tbp)
             out.append(np.diff(slope) / F_SLOPE_SD)
         return np.concatenate(out) if out else np.zeros(0)
@@ -245,7 +309,8 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
     perturbed = [lambda ps: segments(ps, sP=1.0 + INPUT_REL_SD), lambda ps: segments(ps, dT=T_SD),
                  lambda ps: segments(ps, sW=1.0 + FUEL_METER_REL_SD), lambda ps: segments(ps, lag=True)]
     out = map_fit(make_params, segments, cand, prior=prior, prior_sd=psd, noise_sd=NOISE_G_PER_S, extra=extra,
-                  perturbed=perturbed, floor=0.002, max_tau=MAX_TAU)
+                  perturbed=perturbed, floor=0.002, max_tau=MAX_TAU,
+                  starts=_data_start(mode, P, T, W, mp0, Tbp, rT, eta_names, d_names, u_names, pe.bounds))
     fit.metrics.update(rmse_g_per_s=out["rmse"], n_eff=out["n_eff"], noise_sd_g_per_s=out["noise_sd"])
     fit.correlations = {k: v for k, v in out["correl"].items()}
     fit.confounded = confounded_pairs(out["correl"])
@@ -254,7 +319,7 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
     ix = {k: i for i, k in enumerate(names_cov)}
     if fit_eta:
         v = out["values"]
-        eta, _ = tables({**{nm: v[nm] for nm in eta_names}, **{nm: v[nm] for nm in d_names}})
+        eta, _ = tables({nm: v[nm] for nm in eta_names + d_names + u_names})
         post = np.concatenate([[float(eta_sd[0])], [out["post_sd"][nm] for nm in eta_names]])
         inf = np.concatenate([[0.0], [out["informed"][nm] for nm in eta_names]])
         st = ["estimated" if x >= WEAK_INFORMED else "weak" for x in inf]
@@ -273,26 +338,32 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
                                                               prior["W_idle_g_per_s"])
     if fit_fcl:
         v = out["values"]
-        f = f_cl_from_increments([v[nm] for nm in d_names])
-        # posterior sd of the entries: f = 1 + A d (delta method on the joint covariance of the increments)
-        m = len(d_names)
-        A = np.triu(np.ones((m, m)))
-        idx = [ix[nm] for nm in d_names]
-        C = cov[np.ix_(idx, idx)]
-        post = np.sqrt(np.maximum(np.diag(A @ C @ A.T), 0.0))
-        jd = [cand.index(nm) for nm in d_names]
-        ref = np.sqrt(np.maximum(np.diag(A @ out["prior_cov"][np.ix_(jd, jd)] @ A.T), 0.0))
+        inc = d_names + u_names
+        f = tables(v)[1]
+        # posterior sd of the entries: f = 1 + M [d, u] (delta method on the joint covariance of the increments)
+        M = _f_cl_jacobian(rT, len(Tbp))
+        idx = [ix[nm] for nm in inc]
+        post = np.sqrt(np.maximum(np.diag(M @ cov[np.ix_(idx, idx)] @ M.T), 0.0))
+        jd = [cand.index(nm) for nm in inc]
+        ref = np.sqrt(np.maximum(np.diag(M @ out["prior_cov"][np.ix_(jd, jd)] @ M.T), 0.0))
         inf = np.where(ref > 0, np.maximum(0.0, 1.0 - post / np.maximum(ref, 1e-12)), 0.0)
-        st = ["estimated" if x >= WEAK_INFORMED else "weak" for x in inf] + ["fixed"]
-        reach = [f"{Tbp[j]:g}" for j in range(m) if coverT[j] >= MIN_COVER]
-        moved = float(np.max(np.abs((f[:-1] - f0[:-1]) / f_sd[:-1])))
+        inf[rT] = 0.0
+        st = ["estimated" if x >= WEAK_INFORMED else "weak" for x in inf]
+        st[rT] = "fixed"
+        keep = np.arange(len(Tbp)) != rT
+        reach = [f"{Tbp[j]:g}" for j in range(rT) if coverT[j] >= MIN_COVER]
+        reach_hot = [f"{Tbp[j]:g}" for j in range(rT + 1, len(Tbp)) if coverT[j] >= MIN_COVER]
+        moved = float(np.max(np.abs((f[keep] - f0[keep]) / f_sd[keep])))
+        hot = (f"; above it (may fall below 1), breakpoints with >= {MIN_COVER:g} warm samples: "
+               f"{', '.join(reach_hot) or 'none'} degC" if rT + 1 < len(Tbp) else "")
         note = (f"posterior up to {moved:.1f} prior sd from the prior; "
-                f"monotone (non-increasing increments), smooth; entry at {Tbp[-1]:g} degC is the warm reference "
-                f"(1); breakpoints with >= {MIN_COVER:g} cold samples: {', '.join(reach) or 'none'} degC")
+                f"monotone (non-increasing increments), smooth; entry at {Tbp[rT]:g} degC is the warm reference "
+                f"(1); breakpoints with >= {MIN_COVER:g} cold samples: {', '.join(reach) or 'none'} degC{hot}")
+        fit.metrics["f_cl_hot_weak_degC"] = [float(Tbp[j]) for j in range(rT + 1, len(Tbp)) if st[j] == "weak"]
         fit.estimates["f_cl"] = ParamEstimate(
-            "f_cl", [float(x) for x in f], [float(x) for x in post] + [0.0],
+            "f_cl", [float(x) for x in f], [float(x) for x in post],
             "estimated" if any(s == "estimated" for s in st) else "weak", note, prior=list(map(float, f0)),
-            entry_status=st, prior_sd=list(map(float, f_sd)), informed=[float(x) for x in inf] + [0.0])
+            entry_status=st, prior_sd=list(map(float, f_sd)), informed=[float(x) for x in inf])
     if "fuel_scale" in allowed:
         fs = base.param("fuel_scale")
         fit.estimates["fuel_scale"] = ParamEstimate(

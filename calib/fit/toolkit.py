@@ -181,7 +181,7 @@ def prior_residual(values, prior, prior_sd):
 
 
 def map_fit(make_params, data_segments, cand, *, prior, prior_sd, noise_sd, extra=None, perturbed=(),
-            floor=None, loss="linear", max_tau=None):
+            floor=None, loss="linear", max_tau=None, starts=()):
     """Maximum a posteriori fit with lmfit: data misfit plus prior penalty.
 
     The objective is ``sum (r_data / s)^2 + sum ((p - prior) / prior_sd)^2 (+ extra^2)``: the data residuals
@@ -213,6 +213,10 @@ def map_fit(make_params, data_segments, cand, *, prior, prior_sd, noise_sd, extr
     max_tau : float, optional
         Cap on the autocorrelation time used for ``s`` (for residuals that are not a time series, such as
         selected operating points, where slow drifts of the selection are not lost information).
+    starts : sequence of dict name -> float
+        Further starting points (values of some parameters; the others as ``make_params`` gives them): the
+        first minimisation runs from each, and the one with the lowest objective is carried on (a
+        posterior with more than one mode, e.g. a level traded against a table's far end).
     loss : str
         ``linear`` (least squares) or a robust loss of scipy's ``least_squares`` (``soft_l1``, residuals
         beyond 3 sd weigh less): for a first look that finds outliers; the posterior sd assume squares.
@@ -234,15 +238,32 @@ def map_fit(make_params, data_segments, cand, *, prior, prior_sd, noise_sd, extr
         v = ps.valuesdict()
         return np.concatenate([r, prior_residual(v, prior, prior_sd), extra(ps)])
 
+    def minimise(ps, s):
+        mini = lmfit.Minimizer(total, ps, fcn_args=(s,))
+        if loss == "linear":
+            return mini.minimize(method="leastsq")
+        # robust first look (outliers weigh less); the caller drops them and refits with squares
+        return mini.minimize(method="least_squares", loss=loss, f_scale=3.0)
+
+    def cost(ps, s):
+        r = total(ps, s)
+        return float(np.sum(r[np.isfinite(r)] ** 2))
+
     s = float(noise_sd)
     params = make_params()
     res = None
-    for _ in range(2):
-        mini = lmfit.Minimizer(total, params, fcn_args=(s,))
-        if loss == "linear":
-            res = mini.minimize(method="leastsq")
-        else:  # robust first look (outliers weigh less); the caller drops them and refits with squares
-            res = mini.minimize(method="least_squares", loss=loss, f_scale=3.0)
+    for it in range(2):
+        res = minimise(params, s)
+        if it == 0 and starts:
+            best = cost(res.params, s)
+            for st in starts:
+                p1 = make_params()
+                for k, v in st.items():
+                    p1[k].set(value=float(np.clip(v, p1[k].min, p1[k].max)))
+                r1 = minimise(p1, s)
+                c1 = cost(r1.params, s)
+                if c1 < best:
+                    res, best = r1, c1
         params = res.params
         segs = data_segments(params)
         n, ne = neff(segs)

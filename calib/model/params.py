@@ -215,8 +215,13 @@ def default_parameters() -> "ParameterSet":
            "tuned to EPA warm UDDS/HWFET/US06 with the rule-based controller (calib.model.epa.tune_fuel_scale)",
            "warm fuel-map scale"),
         _p("W_idle_g_per_s", 0.10, "g/s", 0.02, 0.5, "docs/model.md s.4", "idle fuel rate, warm"),
-        _p("f_cl", [1.5, 1.2, 1.05, 1.0], "dimensionless", 1.0, 6.0, "docs/model.md s.4 (prior shape)",
-           "cold-coolant fuel factor", x=[-10.0, 20.0, 60.0, 80.0], x_name="T_cl", x_unit="degC"),
+        # above the warm reference (80 degC) the factor may fall below 1: oil and coolant hotter than the
+        # thermostat's lower friction and wall-heat loss by a few % (docs/model.md s.4); prior 1 there
+        _p("f_cl", [1.5, 1.2, 1.05, 1.0, 1.0, 1.0, 1.0], "dimensionless", 0.5, 6.0,
+           "docs/model.md s.4 (prior shape below 80 degC); above it 1 +- 1.5 % per 10 K (Brace et al. 2008, "
+           "Proc. IMechE D 222(4) 579-591: about 3 % lower bsfc at low load from hotter coolant and oil)",
+           "coolant fuel factor (1 at the warm reference)",
+           x=[-10.0, 20.0, 60.0, F_CL_REF_DEGC, 90.0, 100.0, 120.0], x_name="T_cl", x_unit="degC"),
         _p("LHV_J_per_g", 42.6e3, "J/g", 40e3, 45e3, "gasoline, 42.6 MJ/kg", "lower heating value", vary=False),
         # engine coolant
         _p("C_eng_J_per_K", 80e3, "J/K", 20e3, 400e3, "docs/model.md s.5 (prior)", "engine+coolant heat capacity"),
@@ -243,9 +248,8 @@ def default_parameters() -> "ParameterSet":
         _p("Q_sun_W", 0.0, "W", -500.0, 2000.0, "docs/model.md s.6 (prior)", "solar and occupant gains"),
     ]
     for p in plist:
-        if p.name in PRIOR_SD:
-            sd = PRIOR_SD[p.name]
-            p.prior_sd = [float(sd(v)) for v in p.value] if p.is_table else float(sd(p.value))
+        if p.name in PRIOR_SD or p.name in TABLE_PRIOR_SD:
+            p.prior_sd = prior_sd_of(p)
     return ParameterSet({p.name: p for p in plist}, meta={"name": "2017 Toyota Prius, default",
                                                          "origin": "calib.model.params.default_parameters"})
 
@@ -262,7 +266,6 @@ PRIOR_SD = {
     "eta_ool": lambda v: 0.20 * v,  # another engine, or this one with a biased fuel meter
     "fuel_scale": lambda v: 0.15,
     "W_idle_g_per_s": lambda v: 0.04,
-    "f_cl": lambda v: 0.05 + 1.0 * (v - 1.0),  # engines differ most when cold (x2-x5 at -7 degC seen)
     "C_eng_J_per_K": lambda v: 0.3 * v,
     "gamma_exh": lambda v: 0.1,
     "hA_eng_W_per_K": lambda v: 0.5 * v,
@@ -276,10 +279,39 @@ PRIOR_SD = {
 }
 
 
+#: Warm reference of the coolant fuel factor ``f_cl`` (degC): the table is 1 at its last breakpoint at or
+#: below this temperature, so the warm fuel map is the fuel rate of an engine at 80 degC.
+F_CL_REF_DEGC = 80.0
+#: Prior sd of ``f_cl`` above the warm reference, per K above it: 1.5 % per 10 K (3 % at 100 degC, 6 % at
+#: 120 degC), the size of the measured bsfc gain of an engine run hotter than its thermostat (source above).
+F_CL_HOT_SD_PER_K = 0.0015
+
+
+def f_cl_ref_index(x) -> int:
+    """Index of the warm reference breakpoint of an ``f_cl`` table: the last one at or below
+    :data:`F_CL_REF_DEGC` (the first one when every breakpoint is above it)."""
+    x = np.asarray(x, float)
+    return max(int(np.searchsorted(x, F_CL_REF_DEGC, side="right")) - 1, 0)
+
+
+def _f_cl_prior_sd(p: "Parameter") -> list:
+    r = f_cl_ref_index(p.x)
+    # below the reference engines differ most when cold (x2-x5 at -7 degC seen); above it a few %
+    return [0.05 + 1.0 * (v - 1.0) if j <= r else F_CL_HOT_SD_PER_K * (x - p.x[r])
+            for j, (x, v) in enumerate(zip(p.x, p.value))]
+
+
+#: Prior sd of table parameters that depends on the breakpoints, not only on the values.
+TABLE_PRIOR_SD = {"f_cl": _f_cl_prior_sd}
+
+
 def prior_sd_of(p: "Parameter"):
-    """Prior sd of a parameter: its own ``prior_sd``, else :data:`PRIOR_SD` of its value, else 25 %."""
+    """Prior sd of a parameter: its own ``prior_sd``, else :data:`TABLE_PRIOR_SD` or :data:`PRIOR_SD` of its
+    value, else 25 %."""
     if p.prior_sd is not None:
         return p.prior_sd
+    if p.name in TABLE_PRIOR_SD and p.is_table:
+        return [float(v) for v in TABLE_PRIOR_SD[p.name](p)]
     f = PRIOR_SD.get(p.name, lambda v: 0.25 * abs(v) if v else 1.0)
     return [float(f(v)) for v in p.value] if p.is_table else float(f(p.value))
 
@@ -452,12 +484,14 @@ class ParameterSet:
             unit = entry.get("unit", p.unit)
             val = _convert(val, unit, p.unit, f"{origin}: parameter {name}")
             p.value = [float(v) for v in val] if p.is_table else float(val)
-            if "prior_sd" not in entry and p.name in PRIOR_SD:  # the default uncertainty of the new value
-                p.prior_sd = None
-                p.prior_sd = prior_sd_of(p)
             if p.is_table and "x" in entry:
                 xu = entry.get("x_unit", p.x_unit)
                 p.x = [float(v) for v in _convert(entry["x"], xu, p.x_unit, f"{origin}: breakpoints of {name}")]
+            if "prior_sd" not in entry and (p.name in PRIOR_SD or p.name in TABLE_PRIOR_SD):
+                # the default uncertainty of the new value (and breakpoints)
+                p.prior_sd = None
+                if not p.is_table or len(p.x) == len(p.value):  # else validate() names the mismatch
+                    p.prior_sd = prior_sd_of(p)
             for key in ("source", "description", "status", "note"):
                 if key in entry:
                     setattr(p, key, str(entry[key]))

@@ -162,7 +162,9 @@ def fastsim_section() -> dict:
     print("   structure mismatch: FASTSim's radiator acts only while the car is stopped, so its engine runs to "
           "120-160 degC on a highway where our thermostat model holds ~90 degC; its engine runs at one power "
           "(~14.8 kW), so the warm fuel map is seen at one point; its heater passes up to 15 kW from a cold engine; "
-          "its engine efficiency keeps rising above the thermostat (our f_cl is 1 from 80 degC up); its battery "
+          "its engine efficiency keeps rising above the thermostat, its fuel per unit work 21 % lower above 120 degC "
+          "than at 80-85 degC (our f_cl may fall "
+          "below 1 above 80 degC, with a prior sd of 1.5 % per 10 K, and is flat beyond 120 degC); its battery "
           "losses stop growing above 5 C and do not depend on temperature below 23 degC (ours: R I^2, R falling with "
           "temperature). Evidence: scripts/fastsim_structure.py, docs/test_cars.md.")
     return fig

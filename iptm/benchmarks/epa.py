@@ -49,8 +49,10 @@ def _causes(ps):
     from calib.model.rulebased import RuleParams
 
     no_rule = RuleParams(T_heat_on_degC=-273.0)
-    f_steep = ps.with_values(f_cl=[2.0, 1.6, 1.2, 1.0])
-    f_steep.param("f_cl").x = [-10.0, 20.0, 50.0, 70.0]
+    f_steep = ps.copy()
+    fp = f_steep.param("f_cl")
+    fp.x, fp.value, fp.prior_sd = [-10.0, 20.0, 50.0, 70.0], [2.0, 1.6, 1.2, 1.0], None
+    f_steep.validate()
     cases = [
         ("previous default: gamma_exh 0.5, Q_rad_max 30 kW, engine may stop at 40 degC with heat on",
          ps.with_values(gamma_exh=0.5, Q_rad_max_W=30e3), no_rule, None),
