@@ -52,7 +52,7 @@ def main(argv=None) -> int:
     for T in AMBIENTS:
         for c in TRAIN_CYCLES:
             ref[(c, T)] = solve_thermal(ps, replace(base, cycle=c, T_amb=T), None).sim.summary()["fuel_corrected_g"]
-    # (regen_fraction, regen_slope_per_mps): the setting before the fit, and the fit to the training cycles
+    # (regen_fraction, regen_slope_per_mps): half at every speed, or the line fitted to the training cycles
     regen = {"constant": (0.5, 0.0), "fit": fit_stop_regen(mp, TRAIN_CYCLES, base.soc0)}
     print("regen share: " + ", ".join(f"{k} {f0:.3f}{f1:+.4f} v" for k, (f0, f1) in regen.items()), flush=True)
     rows = []
