@@ -1,13 +1,15 @@
 """Choose the SDP controller's settings on the training drives only.
 
-For every combination of the grid below (the Markov chain's transition prior ``alpha`` and the SDP's
-SOC anchor ``w_soc_g_per_s`` and ``soc_bias``), the demand chain is estimated from the training sources
+For every combination of the grid below (the Markov chain's transition prior ``alpha``, the SDP's
+SOC anchor ``w_soc_g_per_s`` and ``soc_bias``, and the controller's share of kinetic energy counted as
+charge, ``regen``: ``constant`` 0.5 at every speed, or ``fit``, the line in speed through the training
+cycles' stops, :func:`optimize.causal.onestep.fit_stop_regen`), the demand chain is estimated from the training sources
 of ``iptm bench causal`` (UDDS, HWFET, US06 and the SYNTHETIC log ``winter_cold_start``), the policy is
 built at each ambient, and the controller drives every training cycle at that ambient. Rule: among the
 settings that end every training drive within 0.01 of its starting SOC, the least mean corrected-fuel
 gap to Thermal-DP of the same drive. Held-out drives are never simulated here.
 
-Usage: ``python scripts/causal_select.py [--out reports/causal-select.json]`` (about 15 minutes on
+Usage: ``python scripts/causal_select.py [--out reports/causal-select.json]`` (about 20 minutes on
 2 cores). Prints one line per setting and the chosen one.
 """
 from __future__ import annotations
@@ -20,7 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-GRID = {"alpha": [0.1, 0.3, 1.0], "w_soc_g_per_s": [50.0, 100.0, 200.0], "soc_bias": [0.0, 0.01]}
+GRID = {"alpha": [0.1, 0.3, 1.0], "w_soc_g_per_s": [50.0, 100.0, 200.0], "soc_bias": [0.0, 0.01],
+        "regen": ["constant", "fit"]}
 SOC_TOL = 0.01
 
 
@@ -37,6 +40,7 @@ def main(argv=None) -> int:
     from optimize.causal import DemandMarkov, SDPConfig, build_policy
     from optimize.causal.compare import AMBIENTS, TRAIN_CYCLES
     from optimize.causal.controllers import SDPController
+    from optimize.causal.onestep import fit_stop_regen
     from optimize.formulations.scenario import DPScenario
     from optimize.formulations.solve import solve_thermal
 
@@ -48,37 +52,46 @@ def main(argv=None) -> int:
     for T in AMBIENTS:
         for c in TRAIN_CYCLES:
             ref[(c, T)] = solve_thermal(ps, replace(base, cycle=c, T_amb=T), None).sim.summary()["fuel_corrected_g"]
+    # (regen_fraction, regen_slope_per_mps): half at every speed, or the line fitted to the training cycles
+    regen = {"constant": (0.5, 0.0), "fit": fit_stop_regen(mp, TRAIN_CYCLES, base.soc0)}
+    print("regen share: " + ", ".join(f"{k} {f0:.3f}{f1:+.4f} v" for k, (f0, f1) in regen.items()), flush=True)
     rows = []
-    for alpha, w, bias in itertools.product(*GRID.values()):
+    for alpha, w, bias in itertools.product(GRID["alpha"], GRID["w_soc_g_per_s"], GRID["soc_bias"]):
         t0 = time.perf_counter()
         mk = DemandMarkov.estimate(ps, sources, alpha=alpha)
-        res = []
+        res = {k: [] for k in GRID["regen"]}
         for T in AMBIENTS:
             cfg = replace(SDPConfig(), T_amb=T, Q_heat=base.Q_heat, soc_target=base.soc0, w_soc_g_per_s=w,
                           soc_bias=bias)
             pol = build_policy(ps, mk, cfg, threads=2)
-            for c in TRAIN_CYCLES:
-                scen = replace(base, cycle=c, T_amb=T)
-                s = simulate(ps, scen.load_cycle(), SDPController(mp, pol, T), T_amb=T, soc0=scen.soc0,
-                             T_cl0=scen.T_cl0, T_cab0=scen.T_cab0, Q_heat=scen.Q_heat).summary()
-                res.append({"cycle": c, "T_amb": T, "fuel_corrected_g": s["fuel_corrected_g"],
-                            "gap_to_dp_pct": 100.0 * (s["fuel_corrected_g"] / ref[(c, T)] - 1.0),
-                            "dsoc": s["soc_final"] - s["soc_initial"]})
-        row = {"alpha": alpha, "w_soc_g_per_s": w, "soc_bias": bias,
-               "mean_gap_pct": float(np.mean([r["gap_to_dp_pct"] for r in res])),
-               "max_abs_dsoc": float(max(abs(r["dsoc"]) for r in res)), "drives": res,
-               "seconds": time.perf_counter() - t0}
-        row["charge_sustaining"] = row["max_abs_dsoc"] <= SOC_TOL
-        rows.append(row)
-        print(f"alpha {alpha:<4g} w_soc {w:<5g} soc_bias {bias:<5g}: mean gap to DP {row['mean_gap_pct']:+.2f} %, "
-              f"max |dSOC| {row['max_abs_dsoc']:.4f} ({'charge sustaining' if row['charge_sustaining'] else 'NOT'})"
-              f" [{row['seconds']:.0f} s]", flush=True)
+            for kind in GRID["regen"]:  # a controller setting: the same tables
+                f0, f1 = regen[kind]
+                pk = replace(pol, config=replace(cfg, regen_fraction=f0, regen_slope_per_mps=f1))
+                for c in TRAIN_CYCLES:
+                    scen = replace(base, cycle=c, T_amb=T)
+                    s = simulate(ps, scen.load_cycle(), SDPController(mp, pk, T), T_amb=T, soc0=scen.soc0,
+                                 T_cl0=scen.T_cl0, T_cab0=scen.T_cab0, Q_heat=scen.Q_heat).summary()
+                    res[kind].append({"cycle": c, "T_amb": T, "fuel_corrected_g": s["fuel_corrected_g"],
+                                      "gap_to_dp_pct": 100.0 * (s["fuel_corrected_g"] / ref[(c, T)] - 1.0),
+                                      "dsoc": s["soc_final"] - s["soc_initial"]})
+        for kind in GRID["regen"]:
+            row = {"alpha": alpha, "w_soc_g_per_s": w, "soc_bias": bias, "regen": kind,
+                   "regen_fraction": regen[kind][0], "regen_slope_per_mps": regen[kind][1],
+                   "mean_gap_pct": float(np.mean([r["gap_to_dp_pct"] for r in res[kind]])),
+                   "max_abs_dsoc": float(max(abs(r["dsoc"]) for r in res[kind])), "drives": res[kind],
+                   "seconds": time.perf_counter() - t0}
+            row["charge_sustaining"] = row["max_abs_dsoc"] <= SOC_TOL
+            rows.append(row)
+            print(f"alpha {alpha:<4g} w_soc {w:<5g} soc_bias {bias:<5g} regen {kind:<8}: mean gap to DP "
+                  f"{row['mean_gap_pct']:+.2f} %, max |dSOC| {row['max_abs_dsoc']:.4f} "
+                  f"({'charge sustaining' if row['charge_sustaining'] else 'NOT'}) [{row['seconds']:.0f} s]", flush=True)
     ok = [r for r in rows if r["charge_sustaining"]]
     best = min(ok, key=lambda r: r["mean_gap_pct"]) if ok else None
     if best is None:
         print("no setting is charge sustaining on every training drive")
     else:
-        print(f"chosen: alpha {best['alpha']:g}, w_soc {best['w_soc_g_per_s']:g} g/s, soc_bias {best['soc_bias']:g} "
+        print(f"chosen: alpha {best['alpha']:g}, w_soc {best['w_soc_g_per_s']:g} g/s, soc_bias {best['soc_bias']:g}, "
+              f"regen {best['regen']} ({best['regen_fraction']:.3f}{best['regen_slope_per_mps']:+.4f} v) "
               f"(mean gap {best['mean_gap_pct']:+.2f} %, max |dSOC| {best['max_abs_dsoc']:.4f})")
     write_json(Path(a.out), {"grid": GRID, "rule": f"|dSOC| <= {SOC_TOL} on every training drive, then least mean "
                              "corrected-fuel gap to Thermal-DP", "rows": rows, "chosen": best})

@@ -58,19 +58,20 @@ class SDPController(_Causal):
         self.g_cl = cfg.mu_cl * coolant_g_per_K(mp)
         self.g_el = cfg.mu_el * electric_g_per_soc(mp, cfg.soc_target)
         self.kin = kinetic_soc_per_v2(mp, cfg.soc_target, cfg.regen_fraction)
+        self.kin_slope = kinetic_soc_per_v2(mp, cfg.soc_target, cfg.regen_slope_per_mps)
 
     def describe(self) -> str:
         c = self.policy.config
         return (f"SDP (stationary policy, {self.policy.demand_W.size} demand bins, discount {c.discount:g}, "
                 f"w_soc {c.w_soc_g_per_s:g} g/s, mu_el {c.mu_el:g}, mu_cl {c.mu_cl:g}, "
-                f"regen_fraction {c.regen_fraction:g}, built at {c.T_amb:g} degC)")
+                f"regen_fraction {c.regen_fraction:g}{c.regen_slope_per_mps:+g} v, built at {c.T_amb:g} degC)")
 
     def __call__(self, k, soc, T_cl, T_cab, P_trac, Ts=1.0):
         c, pol = self.policy.config, self.policy
         u, self.v = lookahead_choice(self.mp, soc, T_cl, T_cab, P_trac, self.controls, self.Q_heat, self.T_amb,
                                      self.T_bat, self.W_bl, Ts, pol.soc_grid, pol.tcl_grid, pol.demand_W, self.EV,
                                      c.discount, c.w_soc_g_per_s, c.soc_target + c.soc_bias, PENALTY_G_PER_STEP,
-                                     self.g_cl, self.g_el, self.kin, self.v, self.work)
+                                     self.g_cl, self.g_el, self.kin, self.v, self.work, self.kin_slope)
         return self._emit(u, k, soc, T_cl, T_cab, P_trac, Ts)
 
 

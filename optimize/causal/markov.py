@@ -79,7 +79,7 @@ class DemandMarkov:
     counts: np.ndarray
     bands_degC: tuple = DEFAULT_BANDS_DEGC
     sources: list = field(default_factory=list)
-    alpha: float = 0.1
+    alpha: float = 1.0
 
     @property
     def n_bins(self) -> int:
@@ -97,9 +97,10 @@ class DemandMarkov:
         return self.values_W[b], self.P[b]
 
     @classmethod
-    def estimate(cls, params, sources, *, edges_W=None, bands_degC=DEFAULT_BANDS_DEGC, alpha: float = 0.1,
+    def estimate(cls, params, sources, *, edges_W=None, bands_degC=DEFAULT_BANDS_DEGC, alpha: float = 1.0,
                  Ts: float = 1.0) -> DemandMarkov:
-        """Count transitions of every source (cycle names, CSV paths, Cycles, DriveLogs)."""
+        """Count transitions of every source (cycle names, CSV paths, Cycles, DriveLogs). The default
+        ``alpha`` was chosen with the SDP's settings on the training drives (``scripts/causal_select.py``)."""
         edges = np.asarray(DEFAULT_EDGES_W if edges_W is None else edges_W, float)
         if np.any(np.diff(edges) <= 0):
             raise IptmError("Markov demand bins: edges must increase strictly")

@@ -92,3 +92,46 @@ def kinetic_soc_per_v2(mp, soc: float, regen_fraction: float) -> float:
     energy ``m_eq v^2 / 2`` (road load and friction brakes take the rest), over ``C_bat U_oc(soc)``."""
     U, _ = battery_ocv_r(mp, soc, mp.T_bat_ref)
     return float(regen_fraction * 0.5 * mp.m_eq / (mp.C_bat_As * U))
+
+
+def stop_regen(mp, cycle, soc: float = 0.6, T_amb: float = 0.0) -> np.ndarray:
+    """Every braking to a stop of ``cycle`` (speed falling from above 3 m/s to below 0.5 m/s): rows
+    ``(v0 m/s, share)``, the SOC the model's battery gains from the first slower sample to the stop with the
+    engine off, as a share of the kinetic energy at ``v0`` (:func:`kinetic_soc_per_v2` with share 1).
+
+    The share falls with speed: from highway speed the way down is longer, and road load takes more."""
+    from calib.model.cycles import load_cycle
+
+    c = load_cycle(cycle) if isinstance(cycle, str) else cycle
+    v, n, k1 = np.asarray(c.v, float), len(c.v), kinetic_soc_per_v2(mp, soc, 1.0)
+    rows, i = [], 0
+    while i < n - 1:
+        if v[i] > 3.0 and v[i + 1] < v[i]:
+            j = i
+            while j < n - 1 and v[j + 1] <= v[j] + 0.05 and v[j] > 0.3:  # tolerate sensor wiggle
+                j += 1
+            if v[j] <= 0.5:
+                s = soc
+                for k in range(i, j):
+                    P = traction_power(mp, v[k], v[k + 1], 0.0, c.Ts)
+                    s = step_demand(mp, s, 70.0, 20.0, OFF, 0.0, 0.0, P, T_amb, mp.T_bat_ref, mp.W_bl, c.Ts)[0]
+                rows.append((v[i], (s - soc) / (k1 * v[i] ** 2)))
+            i = j + 1
+        else:
+            i += 1
+    return np.array(rows, float).reshape(-1, 2)
+
+
+def fit_stop_regen(mp, cycles, soc: float = 0.6) -> tuple[float, float]:
+    """``(share at standstill, change per m/s)``: the line through the stops of ``cycles``
+    (:func:`stop_regen`) by least squares weighted by each stop's kinetic energy."""
+    from calib.errors import IptmError
+
+    r = np.vstack([stop_regen(mp, c, soc) for c in cycles])
+    if r.shape[0] < 2 or np.ptp(r[:, 0]) < 1.0:
+        raise IptmError(f"fit_stop_regen: {r.shape[0]} stops in {list(cycles)} span too few speeds to fit a line; "
+                        "give drives that brake to a stop from different speeds")
+    w = r[:, 0]  # residuals times speed: squared, weighted by kinetic energy
+    A = np.column_stack([np.ones(r.shape[0]), r[:, 0]]) * w[:, None]
+    f0, f1 = np.linalg.lstsq(A, r[:, 1] * w, rcond=None)[0]
+    return float(f0), float(f1)
