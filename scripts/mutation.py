@@ -12,9 +12,11 @@ scratch copy of the repository; the selected tests run there in a fresh process.
 Numba: a cached kernel in another file inlines the *old* version of a mutated compiled function, so a
 module with compiled code runs either with ``NUMBA_DISABLE_JIT=1`` (plain Python: no compilation, no cache)
 or compiled with an empty numba cache per mutant (``jit = "fresh"``, for the DP kernels, too slow as plain
-Python). A module without compiled code of its own (a fitter, the DP engine's Python side) runs compiled
-with a cache shared by all its mutants (``jit = "shared"``). Set per module in ``[tool.iptm.mutation]`` of
-pyproject.toml.
+Python). A module without compiled code of its own (a fitter, the DP engine's Python side), or whose
+compiled code no compiled function of another file calls (the fused DP kernels), runs compiled with a cache
+shared by all its mutants (``jit = "shared"``): numba checks a cached function against its own source
+file's time stamp and size, so the mutated file is compiled again and only callers elsewhere could be stale.
+Set per module in ``[tool.iptm.mutation]`` of pyproject.toml.
 
 Operators (as mutmut's numeric ones): ``+ <-> -``, ``* <-> /``, ``** -> *``, ``//, % -> /``; comparison
 boundaries ``< <-> <=``, ``> <-> >=``, ``== <-> !=``, ``in <-> not in``, ``is <-> is not``; ``and <-> or``;
