@@ -247,3 +247,23 @@ def test_coolant_above_the_thermostat_loses_the_radiator_heat_as_in_the_model(pa
         assert xn[1] == pytest.approx(m["T_cl_next"], rel=1e-12)
         assert xn[0] == pytest.approx(m["soc_next"], abs=1e-14)
         assert cost == pytest.approx(m["W_f"] * b.cyc.Ts, rel=1e-12)
+
+
+def test_peak_rss_mb_is_the_process_high_water_mark():
+    # Linux reports the peak resident set as VmHWM (kB) in /proc/self/status, as ru_maxrss (kB) does
+    from pathlib import Path
+
+    from optimize.formulations.solve import peak_rss_mb
+
+    status = Path("/proc/self/status")
+    if not status.exists():
+        pytest.skip("needs Linux /proc")
+
+    def hwm_kb():
+        line = next(x for x in status.read_text().splitlines() if x.startswith("VmHWM:"))
+        return float(line.split()[1])
+
+    before = hwm_kb()
+    mb = peak_rss_mb()
+    after = hwm_kb()
+    assert before / 1024.0 - 1e-9 <= mb <= after / 1024.0 + 1e-9
