@@ -129,3 +129,22 @@ def test_auto_interpolation_follows_the_terminal_soc_set(ps):
     assert (one.prob.interp, band.prob.interp, free.prob.interp) == ("reach_first", "multilinear", "reach_first")
     assert build_problem(ps, replace(SHORT, duration_s=30.0, cont_soc_band=0.01), GRIDS, 2,
                          interp="reach_first").prob.interp == "reach_first"  # an explicit choice is kept
+
+
+def test_continued_terminal_cost_is_zero_at_the_initial_state_and_c_differences_at_its_nodes(ps):
+    # phi(x) = C(x) - C(x_0) on the sub-grid: 0 at the initial state, and between two sub-grid nodes the
+    # difference of the continuation values computed directly (Thermal-DP: at the reference run's final cabin)
+    from optimize.formulations.solve import build_problem
+
+    scen = replace(SHORT, duration_s=30.0)
+    b = build_problem(ps, scen, GRIDS, 2)
+    phi = b.prob.terminal_cost
+    assert phi(np.array([[scen.soc0, scen.T_cl0]]))[0] == pytest.approx(0.0, abs=1e-12)
+    soc_n, tcl_n, _ = (np.array(a) for a in b.extra["continuation_nodes"])
+    xa, xb = (soc_n[0], tcl_n[0]), (soc_n[-1], tcl_n[-1])
+    C = continuation_value(ps, np.array([xa[0], xb[0]]), np.array([xa[1], xb[1]]), b.extra["T_cab_ref_final"],
+                           ref=(scen.soc0, scen.T_cl0, scen.T_cab0), T_amb=scen.T_amb, Q_heat=scen.Q_heat,
+                           cycle=scen.cont_cycle)
+    d = phi(np.array([xb, xa]))
+    assert d[0] - d[1] == pytest.approx(C[1] - C[0], abs=1e-9)
+    assert abs(C[1] - C[0]) > 1.0  # the nodes are states of different value
