@@ -4,7 +4,7 @@ tables) and the cheapest charge-sustaining one is the reference the DP must reac
 import numpy as np
 import pytest
 
-from calib.model.equations import OFF, ON, evaluate, f_cold, fuel_map
+from calib.model.equations import IDLE, OFF, ON, evaluate, f_cold, fuel_map
 from optimize.formulations import DPGrids, DPScenario, solve_baseline
 from optimize.formulations.layout import PENALTY_G_PER_STEP
 from optimize.dp.engine import backward_pass, forward_pass
@@ -267,3 +267,13 @@ def test_peak_rss_mb_is_the_process_high_water_mark():
     mb = peak_rss_mb()
     after = hwm_kb()
     assert before / 1024.0 - 1e-9 <= mb <= after / 1024.0 + 1e-9
+
+
+def test_power_controls_are_off_idle_then_the_battery_grid_less_the_auxiliaries(params):
+    # off and idle carry no battery command (the demand sets it); on: P_bat_mg = P_bat - P_aux per grid node
+    mp = params.model_params()
+    pc = _power_controls(mp, DPGrids(pbat=5000.0))
+    assert pc[:2].tolist() == [[OFF, 0.0], [IDLE, 0.0]]
+    n = int(round((mp.P_bat_max - mp.P_bat_min) / 5000.0)) + 1
+    assert pc.shape == (2 + n, 2) and np.all(pc[2:, 0] == ON)
+    np.testing.assert_allclose(pc[2:, 1] + mp.P_aux, mp.P_bat_min + 5000.0 * np.arange(n), rtol=0, atol=1e-9)
