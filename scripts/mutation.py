@@ -12,9 +12,11 @@ scratch copy of the repository; the selected tests run there in a fresh process.
 Numba: a cached kernel in another file inlines the *old* version of a mutated compiled function, so a
 module with compiled code runs either with ``NUMBA_DISABLE_JIT=1`` (plain Python: no compilation, no cache)
 or compiled with an empty numba cache per mutant (``jit = "fresh"``, for the DP kernels, too slow as plain
-Python). A module without compiled code of its own (a fitter, the DP engine's Python side) runs compiled
-with a cache shared by all its mutants (``jit = "shared"``). Set per module in ``[tool.iptm.mutation]`` of
-pyproject.toml.
+Python). A module without compiled code of its own (a fitter, the DP engine's Python side), or whose
+compiled code no compiled function of another file calls (the fused DP kernels), runs compiled with a cache
+shared by all its mutants (``jit = "shared"``): numba checks a cached function against its own source
+file's time stamp and size, so the mutated file is compiled again and only callers elsewhere could be stale.
+Set per module in ``[tool.iptm.mutation]`` of pyproject.toml.
 
 Operators (as mutmut's numeric ones): ``+ <-> -``, ``* <-> /``, ``** -> *``, ``//, % -> /``; comparison
 boundaries ``< <-> <=``, ``> <-> >=``, ``== <-> !=``, ``in <-> not in``, ``is <-> is not``; ``and <-> or``;
@@ -233,7 +235,12 @@ def main(argv=None) -> int:
                                                      "adding tests); the report merges the two runs")
     ap.add_argument("--resummarise", metavar="JSON", help="recompute a report's score with the current list of "
                                                            "equivalent mutants (no test is run)")
+    ap.add_argument("--pool", nargs="+", metavar="JSON", help="pooled score of several reports (first passes of "
+                                                                "different seeds) with its 95 %% interval; no test is run")
     a = ap.parse_args(argv)
+    if a.pool:
+        print(json.dumps(pooled([json.loads(Path(f).read_text()) for f in a.pool]), indent=1))
+        return 0
     cfg = config()
     if a.resummarise:
         old = json.loads(Path(a.resummarise).read_text())
@@ -340,6 +347,21 @@ def main(argv=None) -> int:
     for s in report["survivors"]:
         print(f"SURVIVED {s['module']}:{s['line']} {s['mutation']}  {s['source'][:90]}")
     return 0
+
+
+def pooled(reports) -> dict:
+    """Killed / scored mutants over several reports as they were recorded, with the exact (Clopper-Pearson)
+    95 % interval of a binomial proportion: the mutants of a seeded sample are a random draw from all."""
+    from scipy.stats import beta
+
+    k = sum(r["killed"] for r in reports)
+    n = k + sum(r["survived"] for r in reports)
+    if n == 0:
+        raise SystemExit("--pool: the reports score no mutant")
+    lo = float(beta.ppf(0.025, k, n - k + 1)) if k > 0 else 0.0
+    hi = float(beta.ppf(0.975, k + 1, n - k)) if k < n else 1.0
+    return {"killed": k, "scored": n, "score": round(k / n, 4), "ci95": [round(lo, 4), round(hi, 4)],
+            "seeds": [r.get("seed") for r in reports]}
 
 
 def summarise(results, plan, cfg) -> dict:

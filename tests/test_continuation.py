@@ -149,3 +149,46 @@ def test_reach_rule_with_a_soc_band_is_not_worse_than_the_chord(ps):
         out[interp] = continuation_corrected(sim, Q_heat=scen.Q_heat, T_amb=scen.T_amb,
                                              cycle=scen.cont_cycle)["fuel_continuation_g"]
     assert out["reach_first"] <= out["multilinear"] + 0.05, out
+
+
+def test_continued_terminal_cost_is_zero_at_the_initial_state_and_c_differences_at_its_nodes(ps):
+    # phi(x) = C(x) - C(x_0) on the sub-grid: 0 at the initial state, and between two sub-grid nodes the
+    # difference of the continuation values computed directly (Thermal-DP: at the reference run's final cabin)
+    from optimize.formulations.solve import build_problem
+
+    scen = replace(SHORT, duration_s=30.0)
+    b = build_problem(ps, scen, GRIDS, 2)
+    phi = b.prob.terminal_cost
+    assert phi(np.array([[scen.soc0, scen.T_cl0]]))[0] == pytest.approx(0.0, abs=1e-12)
+    soc_n, tcl_n, _ = (np.array(a) for a in b.extra["continuation_nodes"])
+    xa, xb = (soc_n[0], tcl_n[0]), (soc_n[-1], tcl_n[-1])
+    C = continuation_value(ps, np.array([xa[0], xb[0]]), np.array([xa[1], xb[1]]), b.extra["T_cab_ref_final"],
+                           ref=(scen.soc0, scen.T_cl0, scen.T_cab0), T_amb=scen.T_amb, Q_heat=scen.Q_heat,
+                           cycle=scen.cont_cycle)
+    d = phi(np.array([xb, xa]))
+    assert d[0] - d[1] == pytest.approx(C[1] - C[0], abs=1e-9)
+    assert abs(C[1] - C[0]) > 1.0  # the nodes are states of different value
+
+
+def test_corrected_fuel_of_a_drive_ending_where_it_started_is_its_fuel_and_the_residual_the_end_state_gap(ps):
+    # a drive that ends in its initial state: both continuations are the same run, nothing to correct
+    from types import SimpleNamespace
+
+    from calib.model.simulate import fuel_equivalents_g
+
+    def drive(x_end):
+        return SimpleNamespace(mp=ps.model_params(), info={"T_amb_degC": -10.0}, fuel_g=42.0,
+                               soc=np.array([X0[0], x_end[0]]), T_cl=np.array([X0[1], x_end[1]]),
+                               T_cab=np.array([X0[2], x_end[2]]))
+
+    c = continuation_corrected(drive(X0), Q_heat=1500.0, cycle="udds")
+    assert c["fuel_continuation_g"] == 42.0 and c["continuation_credit_g"] == 0.0
+    assert (c["residual_g"], c["residual_dsoc"], c["residual_dT_cl"], c["residual_dT_cab"]) == (0.0, 0.0, 0.0, 0.0)
+    # otherwise the residual is the fuel equivalent of the continuation end states' differences
+    c = continuation_corrected(drive((0.65, 85.0, 22.0)), Q_heat=1500.0, cycle="udds")
+    ref = simulate(ps, "udds", T_amb=-10.0, soc0=X0[0], T_cl0=X0[1], T_cab0=X0[2], Q_heat=1500.0)
+    end = (ref.soc[-1], ref.T_cl[-1], ref.T_cab[-1])
+    eq = fuel_equivalents_g(ps.model_params(), end[0], end[0] + c["residual_dsoc"], end[1],
+                            end[1] + c["residual_dT_cl"], end[2], end[2] + c["residual_dT_cab"])
+    assert c["residual_g"] == pytest.approx(eq["electric_g"] + eq["coolant_g"] + eq["cabin_g"], abs=1e-9)
+    assert abs(c["residual_g"]) > 1e-3

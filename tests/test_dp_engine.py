@@ -453,6 +453,17 @@ def test_result_built_without_timings_reports_none():
     assert np.isnan(h.evals_per_second) and h.cost == r.cost
 
 
+def test_result_repr_leaves_out_the_value_level_and_policy_tables():
+    """The repr of a result stays a few lines: the per-node tables V, L and policy are not printed."""
+    r = solve(_twostate_problem(11), [0.05, 0.02])
+    text = repr(r)
+    assert text.startswith("DPResult(t=")
+    for name in ("V", "L", "policy"):
+        assert f" {name}=" not in text and f"({name}=" not in text
+    for name in ("cost", "feasible", "steps_completed", "n_evaluations"):
+        assert f" {name}=" in text
+
+
 def test_result_plot(tmp_path):
     """The result draws itself: one panel per state and control plus the cumulative cost, saved atomically."""
     r = solve(_twostate_problem(11), [0.05, 0.02])

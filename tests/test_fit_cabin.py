@@ -205,3 +205,20 @@ def test_heater_heat_missing_at_every_sample_counts_as_0_W():
         assert fit_g.estimates[n].value == pytest.approx(fit_0.estimates[n].value, rel=1e-9, abs=1e-9), n
         assert fit_g.estimates[n].stderr == pytest.approx(fit_0.estimates[n].stderr, rel=1e-9), n
     assert fit_g.metrics["rmse_degC"] < 1e-3 and abs(fit_g.estimates["Q_sun_W"].value) < 0.1  # the truth: 0 W
+
+
+def test_eps_iteration_stops_only_below_3_binding_samples():
+    """Ratios 0.30 (54 samples) and 0.60, 0.62, 0.64, 0.90, 0.92, 0.97, all 50 K above the inlet air (3 s_r
+    about 0.027): the 90th percentile 0.33 binds the six high ones, their weighted mean 0.752 binds 0.90,
+    0.92 and 0.97, three, which still give an estimate: 0.929, which binds 0.92 and 0.97 only (0.90 is
+    below 0.929 - 0.028). Two binding samples end the iteration, and the fit is refused with that count."""
+    import numpy as np
+
+    from calib.fit.cabin import _eps
+    from calib.fit.toolkit import SubsystemFit
+
+    r = np.r_[np.full(54, 0.30), [0.60, 0.62, 0.64, 0.90, 0.92, 0.97]]
+    fit = SubsystemFit("t", ())
+    out, msg = _eps([_vent_log(np.full(r.size, 50.0), r)], default_parameters(), fit)
+    assert out is None and msg == "the heater-core limit bound in only 2 samples (need 60)"
+    assert fit.metrics == {"eps_binding_samples": 2, "eps_candidate_samples": 60}

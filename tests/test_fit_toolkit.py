@@ -250,3 +250,17 @@ def test_map_fit_covariance_with_a_nuisance_parameter_near_zero_matches_the_anal
     cov = np.linalg.inv(J.T @ J)
     np.testing.assert_allclose(out["cov"], cov, rtol=2e-5)
     assert out["post_sd"]["a"] == pytest.approx(np.sqrt(cov[0, 0]), rel=2e-5)
+
+
+@pytest.mark.parametrize("statuses,logs,fitted", [
+    (("estimated", "prior"), ["a"], True),
+    (("fixed", "weak"), ["a"], True),
+    (("prior", "fixed"), ["a"], False),
+    (("estimated",), [], False),
+    ((), ["a"], False),
+])
+def test_subsystem_is_fitted_when_a_parameter_is_estimated_or_weak_from_some_log(statuses, logs, fitted):
+    from calib.fit.toolkit import ParamEstimate, SubsystemFit
+
+    est = {f"p{i}": ParamEstimate(f"p{i}", 1.0, 0.1, s) for i, s in enumerate(statuses)}
+    assert SubsystemFit("t", (), estimates=est, logs=logs).fitted is fitted

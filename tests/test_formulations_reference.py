@@ -4,7 +4,7 @@ tables) and the cheapest charge-sustaining one is the reference the DP must reac
 import numpy as np
 import pytest
 
-from calib.model.equations import OFF, ON, evaluate, f_cold, fuel_map
+from calib.model.equations import IDLE, OFF, ON, evaluate, f_cold, fuel_map
 from optimize.formulations import DPGrids, DPScenario, solve_baseline
 from optimize.formulations.layout import PENALTY_G_PER_STEP
 from optimize.dp.engine import backward_pass, forward_pass
@@ -247,3 +247,32 @@ def test_coolant_above_the_thermostat_loses_the_radiator_heat_as_in_the_model(pa
         assert xn[1] == pytest.approx(m["T_cl_next"], rel=1e-12)
         assert xn[0] == pytest.approx(m["soc_next"], abs=1e-14)
         assert cost == pytest.approx(m["W_f"] * b.cyc.Ts, rel=1e-12)
+
+
+def test_peak_rss_mb_is_the_process_high_water_mark():
+    # Linux reports the peak resident set as VmHWM (kB) in /proc/self/status, as ru_maxrss (kB) does; the
+    # two are read from per-CPU cached counters and differ by a few hundred kB
+    from pathlib import Path
+
+    from optimize.formulations.solve import peak_rss_mb
+
+    status = Path("/proc/self/status")
+    if not status.exists():
+        pytest.skip("needs Linux /proc")
+
+    def hwm_kb():
+        line = next(x for x in status.read_text().splitlines() if x.startswith("VmHWM:"))
+        return float(line.split()[1])
+
+    mb = peak_rss_mb()
+    assert mb == pytest.approx(hwm_kb() / 1024.0, rel=0.05)
+
+
+def test_power_controls_are_off_idle_then_the_battery_grid_less_the_auxiliaries(params):
+    # off and idle carry no battery command (the demand sets it); on: P_bat_mg = P_bat - P_aux per grid node
+    mp = params.model_params()
+    pc = _power_controls(mp, DPGrids(pbat=5000.0))
+    assert pc[:2].tolist() == [[OFF, 0.0], [IDLE, 0.0]]
+    n = int(round((mp.P_bat_max - mp.P_bat_min) / 5000.0)) + 1
+    assert pc.shape == (2 + n, 2) and np.all(pc[2:, 0] == ON)
+    np.testing.assert_allclose(pc[2:, 1] + mp.P_aux, mp.P_bat_min + 5000.0 * np.arange(n), rtol=0, atol=1e-9)

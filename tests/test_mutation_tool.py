@@ -4,6 +4,8 @@ import ast
 import importlib.util
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parent.parent
 _spec = importlib.util.spec_from_file_location("mutation", ROOT / "scripts" / "mutation.py")
 mutation = importlib.util.module_from_spec(_spec)
@@ -66,3 +68,19 @@ def test_every_argued_equivalent_mutant_still_exists_where_pyproject_says():
         if (e["line"], e["mutation"]) not in here:
             missing.append(f'{e["module"]}:{e["line"]} {e["mutation"]}')
     assert not missing, missing
+
+
+def test_pooled_score_has_the_exact_binomial_interval():
+    from scipy.stats import binom
+
+    out = mutation.pooled([{"killed": 29, "survived": 5}, {"killed": 38, "survived": 14}])
+    assert (out["killed"], out["scored"]) == (67, 86)
+    lo, hi = out["ci95"]
+    # Clopper-Pearson: each end is the proportion at which the observed count is just 2.5 % likely
+    assert binom.sf(66, 86, lo) == pytest.approx(0.025, abs=1e-4)
+    assert binom.cdf(67, 86, hi) == pytest.approx(0.025, abs=1e-4)
+    # all killed: the upper end is 1 and the lower end solves p ** n = 0.025
+    all_k = mutation.pooled([{"killed": 20, "survived": 0}])
+    assert all_k["ci95"] == [pytest.approx(0.025 ** (1 / 20), abs=1e-4), 1.0]
+    with pytest.raises(SystemExit, match="no mutant"):
+        mutation.pooled([{"killed": 0, "survived": 0}])
