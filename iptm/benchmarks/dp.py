@@ -49,7 +49,8 @@ def run(quick: bool = False) -> dict:
              "evals_per_second": o.evals_per_second, "peak_rss_mb_process": rss, "fuel_g": o.sim.fuel_g,
              "engine": o.extra.get("engine", "generic"),
              "threads": 1 if f == "baseline" else numba.get_num_threads()}
-        paper = o.sim.summary()
+        if f == "thermal_cabin":
+            paper = o.sim.summary()  # the reference of the coarser grid's halving check below
         # what the machine allows: a state-control evaluation does ~30 flops (interpolations, the reach rule, the
         # stage cost) and reads 8 values (level and cost at 4 corners, 64 bytes) if none comes from cache
         r["evals_per_s_if_flop_bound"] = lim["scalar_GFLOP_per_s"] * 1e9 / 30.0

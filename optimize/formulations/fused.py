@@ -320,12 +320,11 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold,
     nh = nc if hold else 0
     qh = np.empty(nc)  # hold heat per cabin node
     hsk = np.ones((nt, nc), np.bool_)  # the hold control repeats a grid control (or is off)
-    TBh = np.empty((np_, nt, nh), np.int64)
-    TTh = np.empty((np_, nt, nh))
-    PTh = np.empty((np_, nt, nh))
-    TB = np.empty((np_, nt, nq), np.int64)
-    TT = np.empty((np_, nt, nq))
-    PT = np.empty((np_, nt, nq))
+    # next coolant per (power control, T_cl node, column): the heater grid's nq columns, then the hold
+    # control's heat of each cabin node (column nq + m)
+    TB = np.empty((np_, nt, nq + nh), np.int64)
+    TT = np.empty((np_, nt, nq + nh))
+    PT = np.empty((np_, nt, nq + nh))
     QFUEL = np.empty((np_, nt))
     C0 = np.empty((np_, nt))
     for k in range(N - 1, -1, -1):
@@ -400,28 +399,18 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold,
                 Q_fuel = P[_MS0 + _LHV] * W_f
                 QFUEL[ip, j] = Q_fuel
                 C0[ip, j] = W_f * Ts
-                for iq in range(nq):
-                    tn = tclg[j] + Ts * coolant_heat_rate(P[_MS0 + _GAMMA], Q_fuel, P_e, lossg[j], Q[iq])[0] / P[_MS0 + _CENG]
+                for c in range(nq + nh):
+                    q = Q[c] if c < nq else qh[c - nq]
+                    tn = tclg[j] + Ts * coolant_heat_rate(P[_MS0 + _GAMMA], Q_fuel, P_e, lossg[j], q)[0] / P[_MS0 + _CENG]
                     pt = 0.0
                     if tn < P[_C_TLO]:
                         pt = (P[_C_TLO] - tn) / P[_C_TH]
                     elif tn > P[_C_THI]:
                         pt = (tn - P[_C_THI]) / P[_C_TH]
-                    PT[ip, j, iq] = pt
+                    PT[ip, j, c] = pt
                     bb, tt = _loc(tn, t_lo, t_inv, nt)
-                    TB[ip, j, iq] = bb
-                    TT[ip, j, iq] = tt
-                for m in range(nh):
-                    tn = tclg[j] + Ts * coolant_heat_rate(P[_MS0 + _GAMMA], Q_fuel, P_e, lossg[j], qh[m])[0] / P[_MS0 + _CENG]
-                    pt = 0.0
-                    if tn < P[_C_TLO]:
-                        pt = (P[_C_TLO] - tn) / P[_C_TH]
-                    elif tn > P[_C_THI]:
-                        pt = (tn - P[_C_THI]) / P[_C_TH]
-                    PTh[ip, j, m] = pt
-                    bb, tt = _loc(tn, t_lo, t_inv, nt)
-                    TBh[ip, j, m] = bb
-                    TTh[ip, j, m] = tt
+                    TB[ip, j, c] = bb
+                    TT[ip, j, c] = tt
         i_lo, i_hi = _active(P, w[k, 4], s_lo, s_inv, ns, skip)
         for ii in prange(i_hi - i_lo):
             i = i_lo + ii
@@ -506,12 +495,12 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold,
                             continue
                         # hold the bound: the slices of column nq, the coolant of the hold heat
                         rr = m * nq1 + nq
-                        tt = TTh[ip, j, m]
-                        o = oa + TBh[ip, j, m]
+                        tt = TT[ip, j, nq + m]
+                        o = oa + TB[ip, j, nq + m]
                         lv = _bilin(SL[rr], o, nt, ta, tt)
                         if not np.isfinite(lv):
                             ib[0] = a
-                            ib[1] = TBh[ip, j, m]
+                            ib[1] = TB[ip, j, nq + m]
                             ib[2] = cu[m, nq]
                             tb[0] = ta
                             tb[1] = tt
@@ -533,7 +522,7 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold,
                             vv = _bilin(SV[rr], o, nt, ta, tt)
                         if not np.isfinite(vv):
                             ib[0] = a
-                            ib[1] = TBh[ip, j, m]
+                            ib[1] = TB[ip, j, nq + m]
                             ib[2] = cu[m, nq]
                             tb[0] = ta
                             tb[1] = tt
@@ -544,7 +533,7 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold,
                                 vv = _interp(Vn, 3, strides, ib, tb)
                             else:
                                 vv = _slow(Vn, 3, strides, ib, tb)
-                        v = c0 + PEN * ((pen0 + PTh[ip, j, m]) + pcu[m, nq]) + vv
+                        v = c0 + PEN * ((pen0 + PT[ip, j, nq + m]) + pcu[m, nq]) + vv
                         if not (v < np.inf):
                             continue
                         if level_better(lv, v, level_tol, feas[sidx], Lsel[sidx], best[sidx]):
