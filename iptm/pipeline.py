@@ -46,6 +46,7 @@ class RunConfig:
     cache_dir: Path | None = None
     progress: bool = True
     command_line: str = ""
+    convergence: bool = True  # also solve Baseline- and Thermal-DP with every grid step halved
 
 
 def load_scenario(path=None):
@@ -378,6 +379,14 @@ def run(cfg: RunConfig) -> RunOutcome:
     _say(f"[3/4] optimising {', '.join(cfg.strategies)} on {scen.cycle if cyc_log is None else cyc_log.label()}",
          cfg.progress)
     cs = optimize_cached(params, scen, grids, cfg.strategies, store, cfg.progress, cycle_log=cyc_log)
+    if cfg.convergence:
+        from optimize.convergence import ROUTINE_HALVING, case_study_halving
+
+        halve = [s for s in cfg.strategies if s in ROUTINE_HALVING]
+        if halve:
+            _say(f"[3/4] grid convergence: {', '.join(halve)} with every grid step halved", cfg.progress)
+            cs_half = optimize_cached(params, scen, grids.halved(), halve, store, cfg.progress, cycle_log=cyc_log)
+            cs.convergence = case_study_halving(cs, cs_half)
 
     # 4. report
     _say("[4/4] writing the report", cfg.progress)

@@ -222,6 +222,14 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
               + ordering + ".")
     if hasattr(cs, "format_value_check") and cs.outcomes:
         opt.pre(cs.format_value_check())
+    conv = getattr(cs, "convergence", None)
+    if conv is not None:
+        from optimize.convergence import CABIN_TOL_K, FUEL_TOL_PCT, format_case_study_convergence
+
+        checked = {r["formulation"] for r in conv}
+        opt.p(f"Grid convergence: each DP solved again with every grid step halved; converged when the corrected "
+              f"fuel changes by less than {FUEL_TOL_PCT:g} % and the mean cabin by less than {CABIN_TOL_K:g} K.")
+        opt.pre(format_case_study_convergence(conv, [k for k in cs.outcomes if k not in checked]))
     if cs.rule:
         opt.p("Tuned rule-based thresholds: " + ", ".join(f"{k} = {v:g}" for k, v in cs.rule["thresholds"].items()))
     for png in cs.plot(out / "figures"):
@@ -250,6 +258,9 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
     summary = {"run_id": run_id, "synthetic_data": synthetic, "strategies": strat, "ordering_ok": ok,
                "ordering": ordering, "terminal": scenario.terminal,
                "n_estimated": statuses.count("estimated"), "n_weak": statuses.count("weak"),
+               "convergence": None if getattr(cs, "convergence", None) is None else [
+                   {k: r[k] for k in ("formulation", "rel_change_corrected_pct", "T_cab_mean_change_K", "converged")}
+                   for r in cs.convergence],
                "wall_s": wall_s}
     summ.p(f"Fuel over the scenario. Terminal condition on coolant and cabin: {scenario.terminal}; corrected fuel "
            "values each strategy's final SOC, coolant and cabin heat in grams of fuel, so strategies that end in "

@@ -35,6 +35,9 @@ class CaseStudy:
     grids: DPGrids
     rule: dict | None = None
     timings: dict = field(default_factory=dict)
+    #: grid-convergence rows (:func:`optimize.convergence.case_study_halving`), when the case study was also
+    #: solved with every grid step halved; None when it was not
+    convergence: list | None = None
 
     def table(self) -> pd.DataFrame:
         """One row per strategy. ``saving_*`` are on corrected fuel (equal final stored energy: the fair
@@ -127,7 +130,7 @@ class CaseStudy:
                 "terminal": self.scenario.terminal,
                 "value_check": {k: dict(zip(("V0_g", "forward_g", "gap_pct"), v)) for k, v in
                                 self.value_check().items()},
-                "paper_savings": PAPER_SAVINGS}
+                "paper_savings": PAPER_SAVINGS, "convergence": self.convergence}
 
     def format_table(self) -> str:
         """The comparison table as text, as ``iptm optimize`` prints it."""

@@ -20,33 +20,57 @@ from optimize.formulations.solve import solve_formulation
 #: Convergence criteria: relative change of corrected fuel (%) and of the mean cabin temperature (degC).
 FUEL_TOL_PCT = 0.1
 CABIN_TOL_K = 0.1
+#: Formulations whose every-step-halved solve is cheap enough to run beside every case study (Baseline-DP
+#: 4 times, Thermal-DP 8 times the work); Thermal-Cabin-DP's is 32 times, run on request.
+ROUTINE_HALVING = ("baseline", "thermal")
+def halving_row(formulation: str, grids: DPGrids, sim, sim_half, o=None, o_half=None) -> dict:
+    """One convergence row from a formulation's re-simulated runs on ``grids`` and on ``grids.halved()``
+    (``o``, ``o_half``: their DP outcomes, for time and size)."""
+    r = {"formulation": formulation, "grid": grids.to_dict(), "grid_half": grids.halved().to_dict()}
+    for tag, sm, oo in (("", sim, o), ("_half", sim_half, o_half)):
+        summ = sm.summary()
+        r["fuel_g" + tag] = sm.fuel_g
+        r["fuel_corrected_g" + tag] = summ["fuel_corrected_g"]
+        r["T_cab_mean_degC" + tag] = summ["T_cab_mean_degC"]
+        r["soc_final" + tag] = float(sm.soc[-1])
+        r["time_s" + tag] = getattr(oo, "t_total", None)
+        r["n_states" + tag] = getattr(oo, "n_states", None)
+        r["n_controls" + tag] = getattr(oo, "n_controls", None)
+    r["rel_change_pct"] = 100.0 * (r["fuel_g_half"] - r["fuel_g"]) / r["fuel_g"]
+    r["rel_change_corrected_pct"] = 100.0 * (r["fuel_corrected_g_half"] - r["fuel_corrected_g"]) / abs(
+        r["fuel_corrected_g"])
+    r["T_cab_mean_change_K"] = r["T_cab_mean_degC_half"] - r["T_cab_mean_degC"]
+    r["converged"] = bool(abs(r["rel_change_corrected_pct"]) < FUEL_TOL_PCT
+                          and abs(r["T_cab_mean_change_K"]) < CABIN_TOL_K)
+    return r
+
+
+def case_study_halving(cs, cs_half) -> list:
+    """Convergence rows of a case study (:class:`optimize.casestudy.CaseStudy`) against the same case study
+    solved with every grid step halved, for each DP formulation both hold (Baseline-DP: its controls
+    re-simulated on the thermal model, the run the case study compares)."""
+    rows = []
+    for f in ("baseline", "thermal", "thermal_cabin"):
+        if f in cs.sims and f in cs_half.sims and f in cs.outcomes:
+            rows.append(halving_row(f, cs.grids, cs.sims[f], cs_half.sims[f], cs.outcomes.get(f),
+                                    cs_half.outcomes.get(f)))
+    return rows
+
+
 def convergence_study(params, scenario: DPScenario | None = None, formulations=("baseline", "thermal"),
                       grids: DPGrids | None = None, progress: bool = False) -> list:
     """One row per formulation: fuel on ``grids`` and on ``grids.halved()``, relative change (%)."""
     scen, g = scenario or DPScenario(), grids or DPGrids()
     rows = []
     for f in formulations:
-        r = {"formulation": f, "grid": g.to_dict(), "grid_half": g.halved().to_dict()}
+        runs = []
         for tag, gg in (("", g), ("_half", g.halved())):
             o = solve_formulation(f, params, scen, gg)
-            r["fuel_g" + tag] = o.sim.fuel_g
-            summ = o.sim.summary()
-            r["fuel_corrected_g" + tag] = summ["fuel_corrected_g"]
-            r["T_cab_mean_degC" + tag] = summ["T_cab_mean_degC"]
-            r["soc_final" + tag] = float(o.sim.soc[-1])
-            r["time_s" + tag] = o.t_total
-            r["n_states" + tag] = o.n_states
-            r["n_controls" + tag] = o.n_controls
+            runs.append(o)
             if progress:
                 print(f"{f} {'halved' if tag else 'default'} grid: {o.sim.fuel_g:.3f} g, SOC_N "
                       f"{o.sim.soc[-1]:.4f} [{o.t_total:.1f} s]", flush=True)
-        r["rel_change_pct"] = 100.0 * (r["fuel_g_half"] - r["fuel_g"]) / r["fuel_g"]
-        r["rel_change_corrected_pct"] = 100.0 * (r["fuel_corrected_g_half"] - r["fuel_corrected_g"]) / abs(
-            r["fuel_corrected_g"])
-        r["T_cab_mean_change_K"] = r["T_cab_mean_degC_half"] - r["T_cab_mean_degC"]
-        r["converged"] = bool(abs(r["rel_change_corrected_pct"]) < FUEL_TOL_PCT
-                              and abs(r["T_cab_mean_change_K"]) < CABIN_TOL_K)
-        rows.append(r)
+        rows.append(halving_row(f, g, runs[0].sim, runs[1].sim, runs[0], runs[1]))
     return rows
 
 
@@ -58,4 +82,14 @@ def format_convergence(rows) -> str:
         lines.append(f"{r['formulation']:<14s} {r['fuel_g']:14.3f} {r['fuel_g_half']:16.3f} "
                      f"{r['rel_change_pct']:9.3f} {r['rel_change_corrected_pct']:12.3f} "
                      f"{r['T_cab_mean_change_K']:13.3f}  {'yes' if r['converged'] else 'NO'}")
+    return "\n".join(lines)
+
+
+def format_case_study_convergence(rows, not_checked=()) -> str:
+    """:func:`format_convergence` of a case study's rows, and one line per DP formulation of the case study
+    whose halved grid was not solved (``not_checked``), saying how to run it."""
+    lines = [format_convergence(rows)] if rows else []
+    for f in not_checked:
+        lines.append(f"{f}: not checked with this run (every step halved is 32 times the work); "
+                     f"`iptm optimize --formulation {f} --convergence` solves it")
     return "\n".join(lines)

@@ -61,6 +61,27 @@ def test_report_complete_and_matches_library(first_run):
     assert set(rep["time_series"]) >= {"rule", "baseline", "thermal", "thermal_cabin"}
 
 
+def test_report_prints_the_grid_convergence_check(first_run):
+    """The run solves Baseline- and Thermal-DP again with every grid step halved: the report's change is the
+    one between the direct library runs on the two grids, and Thermal-Cabin-DP is named as not checked."""
+    from optimize.convergence import FUEL_TOL_PCT
+
+    cfg, out = first_run
+    d = out.report_dir
+    conv = {r["formulation"]: r for r in json.loads((d / "report.json").read_text())["summary"]["convergence"]}
+    assert set(conv) == {"baseline", "thermal"}
+    ps = ParameterSet.load(d / "calibration.toml")
+    half = run_case_study(ps, SCEN, ("baseline", "thermal"), progress=False, grids=GRIDS.halved())
+    full = run_case_study(ps, SCEN, ("baseline", "thermal"), progress=False, grids=GRIDS)
+    for f in ("baseline", "thermal"):
+        c0 = full.sims[f].summary()["fuel_corrected_g"]
+        c1 = half.sims[f].summary()["fuel_corrected_g"]
+        assert conv[f]["rel_change_corrected_pct"] == pytest.approx(100.0 * (c1 - c0) / c0, rel=1e-9, abs=1e-12)
+        assert conv[f]["converged"] == (abs(100.0 * (c1 - c0) / c0) < FUEL_TOL_PCT)
+    html = (d / "index.html").read_text()
+    assert "Grid convergence" in html and "thermal_cabin: not checked with this run" in html
+
+
 def test_rerun_reuses_cache_and_never_overwrites(first_run):
     cfg, out = first_run
     again = pipeline.run(cfg)
