@@ -36,6 +36,9 @@ def register(sub):
                    help="causal: how final states are valued: corrected (fuel equivalents of the stored energy, "
                         "default) or continuation (the rule-based controller's fuel over UDDS six times from the final "
                         "state; Thermal-DP with the 'continued' terminal)")
+    p.add_argument("--halve", action="store_true",
+                   help="dp: also solve the converged Thermal-Cabin-DP grid with every step halved (about 32 times "
+                        "its time) and print the change")
     p.set_defaults(func=run)
 
 
@@ -59,6 +62,8 @@ def run(args) -> int:
         extra = {"n": args.n, "seed": args.seed} if n == "fuzz" else {}
         if n == "causal":
             extra = {"valuation": args.valuation}
+        if n == "dp":
+            extra = {"halve": args.halve}
         results[n] = mod.run(quick=args.quick, **extra)
     if args.json:
         write_json(args.json, results)

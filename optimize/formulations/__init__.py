@@ -71,11 +71,11 @@ Common choices
       per event, until after ~40 braking events no SOC node is finite (the level-set method of the engine
       covers terminal sets only). Re-simulated results are checked to stay inside the boxes.
 """
-from optimize.formulations.scenario import FORMULATIONS, DPGrids, DPScenario, parse_grid_spec
+from optimize.formulations.scenario import CABIN_CONVERGED_GRIDS, FORMULATIONS, DPGrids, DPScenario, parse_grid_spec
 from optimize.formulations.scenario import TERMINALS
 from optimize.formulations.solve import (DPOutcome, dp_objective, peak_rss_mb, resimulate, solve_baseline, solve_formulation,
                     solve_thermal, solve_thermal_cabin)
 
-__all__ = ["DPScenario", "DPGrids", "DPOutcome", "parse_grid_spec", "solve_baseline", "solve_thermal",
+__all__ = ["DPScenario", "DPGrids", "CABIN_CONVERGED_GRIDS", "DPOutcome", "parse_grid_spec", "solve_baseline", "solve_thermal",
            "solve_thermal_cabin", "solve_formulation", "FORMULATIONS", "TERMINALS", "resimulate", "peak_rss_mb",
            "dp_objective"]

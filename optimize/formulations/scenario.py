@@ -125,6 +125,12 @@ class DPGrids:
         return asdict(self)
 
 
+#: A Thermal-Cabin-DP grid coarser than the paper's in coolant, cabin, battery power and heater, converged on
+#: the default car and drive by the halving criterion (README "A converged grid for Thermal-Cabin-DP" gives
+#: the figures and the command); ``iptm bench dp`` times it.
+CABIN_CONVERGED_GRIDS = DPGrids(tcl=2.0, tcab=1.5, pbat=750.0, qheat=100.0)
+
+
 def parse_grid_spec(spec: str | None, base: DPGrids | None = None) -> DPGrids:
     """``"soc=0.01,tcl=1,tcab=1,pbat=500,qheat=50"`` (any subset) -> :class:`DPGrids`."""
     g = base or DPGrids()
