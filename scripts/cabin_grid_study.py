@@ -1,5 +1,6 @@
 """Thermal-Cabin-DP on the default car and drive on chosen grids: corrected fuel, mean cabin, states,
-controls, evaluations and time, one JSON line per grid (the grid-convergence figures of the README's
+controls, evaluations, time and the trajectory's grid artefacts (heater chatter, cabin pinned to a node;
+:func:`optimize.convergence.trajectory_checks`), one JSON line per grid (the grid-convergence figures of the README's
 speed section).
 
     .venv/bin/python scripts/cabin_grid_study.py '{}' '{"tcl": 2, "qheat": 100}' \
@@ -34,7 +35,9 @@ def main(argv):
                           "t_s": round(time.perf_counter() - t0, 1), "evaluations": o.n_evaluations,
                           "load_1min": round(load, 2), "fuel_g": round(s["fuel_g"], 4),
                           "corrected_g": round(s["fuel_corrected_g"], 4),
-                          "T_cab_mean_degC": round(s["T_cab_mean_degC"], 5)}), flush=True)
+                          "T_cab_mean_degC": round(s["T_cab_mean_degC"], 5),
+                          "artefacts": {k: round(v, 2) for k, v in o.extra.get("grid_artefacts", {}).items()}}),
+              flush=True)
     return 0
 
 
