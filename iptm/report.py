@@ -226,7 +226,7 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
     if conv is not None:
         from optimize.convergence import CABIN_TOL_K, FUEL_TOL_PCT, format_case_study_convergence
 
-        checked = {r["formulation"] for r in conv}
+        checked = {"baseline" if r["formulation"] == "baseline_warm" else r["formulation"] for r in conv}
         opt.p(f"Grid convergence: each DP solved again with every grid step halved; converged when the corrected "
               f"fuel changes by less than {FUEL_TOL_PCT:g} % and the mean cabin by less than {CABIN_TOL_K:g} K.")
         opt.pre(format_case_study_convergence(conv, [k for k in cs.outcomes if k not in checked]))

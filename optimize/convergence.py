@@ -47,13 +47,16 @@ def halving_row(formulation: str, grids: DPGrids, sim, sim_half, o=None, o_half=
 
 def case_study_halving(cs, cs_half) -> list:
     """Convergence rows of a case study (:class:`optimize.casestudy.CaseStudy`) against the same case study
-    solved with every grid step halved, for each DP formulation both hold (Baseline-DP: its controls
-    re-simulated on the thermal model, the run the case study compares)."""
+    solved with every grid step halved, for each DP formulation both hold. Baseline-DP has two rows:
+    ``baseline``, its controls re-simulated on the thermal model (the run the case study compares, whose
+    corrected fuel values coolant heat that Baseline-DP does not optimise), and ``baseline_warm``, its own
+    optimum on its own model (f_cl = 1)."""
     rows = []
-    for f in ("baseline", "thermal", "thermal_cabin"):
-        if f in cs.sims and f in cs_half.sims and f in cs.outcomes:
-            rows.append(halving_row(f, cs.grids, cs.sims[f], cs_half.sims[f], cs.outcomes.get(f),
-                                    cs_half.outcomes.get(f)))
+    for f in ("baseline_warm", "baseline", "thermal", "thermal_cabin"):
+        dp = "baseline" if f == "baseline_warm" else f
+        if f in cs.sims and f in cs_half.sims and dp in cs.outcomes:
+            rows.append(halving_row(f, cs.grids, cs.sims[f], cs_half.sims[f], cs.outcomes.get(dp),
+                                    cs_half.outcomes.get(dp)))
     return rows
 
 

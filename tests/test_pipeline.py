@@ -69,11 +69,11 @@ def test_report_prints_the_grid_convergence_check(first_run):
     cfg, out = first_run
     d = out.report_dir
     conv = {r["formulation"]: r for r in json.loads((d / "report.json").read_text())["summary"]["convergence"]}
-    assert set(conv) == {"baseline", "thermal"}
+    assert set(conv) == {"baseline_warm", "baseline", "thermal"}
     ps = ParameterSet.load(d / "calibration.toml")
     half = run_case_study(ps, SCEN, ("baseline", "thermal"), progress=False, grids=GRIDS.halved())
     full = run_case_study(ps, SCEN, ("baseline", "thermal"), progress=False, grids=GRIDS)
-    for f in ("baseline", "thermal"):
+    for f in ("baseline_warm", "baseline", "thermal"):
         c0 = full.sims[f].summary()["fuel_corrected_g"]
         c1 = half.sims[f].summary()["fuel_corrected_g"]
         assert conv[f]["rel_change_corrected_pct"] == pytest.approx(100.0 * (c1 - c0) / c0, rel=1e-9, abs=1e-12)
