@@ -400,3 +400,29 @@ def test_hold_heat_puts_the_cabin_on_its_bound(params):
                 assert (r[2] > lb_next) == (q == qmin)  # too warm even unheated, or the heater's top short
                 n_clip += 1
     assert n_on >= 10 and n_clip >= 1
+
+
+def test_fused_kernel_equals_generic_engine_where_only_the_cubic_reads_an_infinite_cabin_node(params):
+    """Absolute cabin with the hold control and the cubic cost-to-go, V_N = +inf at the cabin node two
+    above the cell the hold control lands in: the cubic reads that node (its slope at the cell's upper
+    end), the linear level does not, so the kernel's value alone falls back to the exact interpolation.
+    Same value and level functions, bit for bit, as the generic engine."""
+    from optimize.formulations.fused import backward_pass_fused
+    from optimize.dp.engine import backward_pass
+
+    # a heater grid wide enough that the hold heat is not clipped from the node below the bound
+    scen = DPScenario(duration_s=6.0, T_cl0=28.0, cab_lb_offset=0.37, Q_heat_min=0.0, Q_heat_max=6000.0)
+    b = build_problem(params, scen, DPGrids(soc=0.02, tcl=4.0, tcab=0.1, pbat=2500.0, qheat=1000.0), 3,
+                      cabin="absolute", hold=True, interp="cubic_last")
+    g = b.prob.grids[2]
+    r = (b.prob.w[-1, 2] - g[0]) / (g[1] - g[0])  # the bound at N (where the hold control lands) in cells
+    c = int(np.floor(r))
+    assert 0.1 < r - c < 0.9 and c + 2 < g.size  # strictly inside cell c: the cubic reads node c + 2
+    p = _with_infinite_nodes(b.prob, 2, c + 2)
+    vg, vf = backward_pass(p, store_policy=True), backward_pass_fused(p, skip=False)
+    np.testing.assert_array_equal(vg.V, vf.V)
+    np.testing.assert_array_equal(vg.L, vf.L)
+    assert np.isinf(vg.V[-1][:, :, c + 2]).all() and np.isfinite(vg.V[-1][:, :, c:c + 2]).all()
+    # the hold control (heat NaN) is chosen at N-1 from cabin node c, so its value was used there
+    fin = np.isfinite(vg.V[-2][:, :, c])
+    assert np.isnan(p.controls[vg.policy[-1][:, :, c][fin], 2]).sum() >= 10
