@@ -161,7 +161,7 @@ def test_fused_kernel_equals_generic_engine_next_to_an_infinite_soc_node_two_sta
         vg, vf = backward_pass(p), backward_pass_fused(p, skip=False)
         np.testing.assert_array_equal(vg.V, vf.V)
         np.testing.assert_array_equal(vg.L, vf.L)
-        # a finite V_{N-1} at SOC node 0 can only come from a next charge exactly on node 0: the path taken
+        # a finite V_{N-1} at SOC node 0 needs a next charge exactly on a node beside node 1 (weight 0 on it): the path taken
         assert np.isinf(vg.V[-1][1]).all() and np.isfinite(vg.V[-2][0]).sum() >= 5
 
 
