@@ -192,3 +192,22 @@ def test_corrected_fuel_of_a_drive_ending_where_it_started_is_its_fuel_and_the_r
                             end[1] + c["residual_dT_cl"], end[2], end[2] + c["residual_dT_cab"])
     assert c["residual_g"] == pytest.approx(eq["electric_g"] + eq["coolant_g"] + eq["cabin_g"], abs=1e-9)
     assert abs(c["residual_g"]) > 1e-3
+
+
+def test_corrected_fuel_of_a_drive_ending_where_its_last_sample_lies_values_that_state(ps):
+    # three samples, the middle one far from both ends: the correction is C(x_0) - C(x_last), each value
+    # computed here by continuation_value (a middle sample in place of the last changes every state)
+    from types import SimpleNamespace
+
+    res = SimpleNamespace(mp=ps.model_params(), info={"T_amb_degC": -10.0}, fuel_g=42.0,
+                          soc=np.array([X0[0], 0.5, 0.65]), T_cl=np.array([X0[1], 40.0, 85.0]),
+                          T_cab=np.array([X0[2], 15.0, 22.0]))
+    c = continuation_corrected(res, Q_heat=1500.0, cycle="udds")
+    C0 = continuation_value(ps, *X0, ref=X0, cycle="udds", **KW)
+    CN = continuation_value(ps, 0.65, 85.0, 22.0, ref=X0, cycle="udds", **KW)
+    assert c["continuation_credit_g"] == pytest.approx(C0 - CN, abs=1e-9)
+    assert c["fuel_continuation_g"] == pytest.approx(42.0 + CN - C0, abs=1e-9)
+    for i in range(3):  # each state of the last sample matters: moving it alone changes the value
+        x = [0.65, 85.0, 22.0]
+        x[i] = (0.5, 40.0, 15.0)[i]
+        assert abs(continuation_value(ps, *x, ref=X0, cycle="udds", **KW) - CN) > 1e-3

@@ -728,3 +728,67 @@ def test_reach_first_interpolates_a_boundary_cell_from_the_boundary():
     L2 = np.array([[0.5, -0.5], [-0.5, -1.5]], dtype=np.float32).ravel()
     r = _interp_reach(V2, L2, 0.0, 2, np.array([2, 1], np.int64), np.array([0, 0], np.int64), np.array([0.75, 0.5]))
     assert r == pytest.approx(0.5 * 7.0 + 0.5 * (0.25 * 20.0 + 0.75 * 4.0))
+
+
+def test_cubic_last_interpolation_with_three_nodes_on_the_last_axis_is_exact_on_quadratics():
+    # three nodes are the fewest the cubic takes (one-sided second-order slopes at both ends, exact on a
+    # quadratic): it reproduces a quadratic along the axis in both cells; multilinear misses it by
+    # 2.1 * 0.5 * 0.5 = 0.525 times the bilinear factor at mid-cell
+    grids = [np.linspace(-1, 1, 3), np.linspace(0, 3, 4), np.linspace(-2, 0, 3)]
+    prob = DPProblem(grids=grids, controls=np.zeros((1, 1)), N=1, transition=twostatesys)
+    V = _bilinear_times_quadratic(prob.grid_points()).reshape(prob.grid_shape)
+    rng = np.random.default_rng(7)
+    Q = np.column_stack([rng.uniform(g[0], g[-1], 200) for g in grids])
+    exact = _bilinear_times_quadratic(Q)
+    np.testing.assert_allclose(interpolate(prob, V, Q, interp="cubic_last"), exact, rtol=0, atol=1e-11)
+    assert np.max(np.abs(interpolate(prob, V, Q) - exact)) > 1e-2
+
+
+def test_reach_first_with_three_states_interpolates_the_last_state_first_then_the_boundary_cell():
+    # 2 x 2 x 2 nodes; the last state is interpolated first (t2 = 0.5; its second node is the first plus
+    # 2, same level), then along the first state per node of the second: at the second state's node 0
+    # the boundary cuts the cell at its middle (levels 0.5, -0.5), at node 1 both nodes are reachable;
+    # then linearly along the second state (t1 = 0.25)
+    from optimize.dp.kernels import _interp_reach
+
+    V0 = np.array([[10.0, 20.0], [4.0, 4.0]])  # [first, second] at the last state's node 0
+    L0 = np.array([[0.5, -0.5], [-0.5, -1.5]])
+    V = np.stack([V0, V0 + 2.0], axis=-1).astype(np.float32).ravel()
+    L = np.stack([L0, L0], axis=-1).astype(np.float32).ravel()
+    r = _interp_reach(V, L, 0.0, 3, np.array([4, 2, 1], np.int64), np.zeros(3, np.int64),
+                      np.array([0.75, 0.25, 0.5]))
+    at_node0 = 11.0 + (0.75 - 0.5) / 0.5 * (5.0 - 11.0)  # from the boundary (value 11 there) to node 1
+    at_node1 = 0.25 * 21.0 + 0.75 * 5.0  # the plain chord
+    assert r == pytest.approx(0.75 * at_node0 + 0.25 * at_node1)
+
+
+def test_reach_first_with_the_boundary_on_a_node_gives_that_node_its_value():
+    # levels 0.5 and 0.0 with tol 0: the reach boundary is node 1 itself (the cell's crossing fraction is
+    # 1), so a query on node 1 is its value and one short of it, on the unreachable side, the plain chord;
+    # mirrored, a boundary on node 0 gives node 0's value at fraction 0
+    from optimize.dp.kernels import _lin_reach
+
+    assert _lin_reach(10.0, 4.0, 0.5, 0.0, 0.0, 1.0) == 4.0
+    assert _lin_reach(10.0, 4.0, 0.5, 0.0, 0.0, 0.25) == pytest.approx(0.75 * 10.0 + 0.25 * 4.0)
+    assert _lin_reach(4.0, 10.0, 0.0, 0.5, 0.0, 0.0) == 4.0
+    assert _lin_reach(4.0, 10.0, 0.0, 0.5, 0.0, 0.75) == pytest.approx(0.25 * 4.0 + 0.75 * 10.0)
+
+
+def test_reach_first_is_offered_for_one_to_three_states_only():
+    g = np.linspace(0.0, 1.0, 3)
+    for n in (1, 2, 3):
+        assert DPProblem(grids=[g] * n, controls=np.zeros((1, 1)), N=1, transition=twostatesys,
+                         interp="reach_first").n_x == n
+    with pytest.raises(ValueError, match="1 to 3 states"):
+        DPProblem(grids=[g] * 4, controls=np.zeros((1, 1)), N=1, transition=twostatesys, interp="reach_first")
+
+
+def test_dataframe_has_one_row_per_step_and_the_step_count():
+    # N = 20 steps of a 2-state, 2-control-dimension problem: rows k = 0..20 and n_steps = 20 (neither the
+    # number of control dimensions nor of states)
+    prob = _twostate_problem(21, boundary="levelset")
+    r = solve(prob, [0.05, 0.02])
+    df = r.to_pandas()
+    assert prob.N == 20 and df.attrs["n_steps"] == 20 and df["k"].tolist() == list(range(21))
+    assert np.isnan(df["stage_cost"].iloc[-1]) and np.isnan(df["u0"].iloc[-1])
+    assert df.attrs["cost"] == r.cost and df.attrs["feasible"] == r.feasible

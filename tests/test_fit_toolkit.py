@@ -264,3 +264,33 @@ def test_subsystem_is_fitted_when_a_parameter_is_estimated_or_weak_from_some_log
 
     est = {f"p{i}": ParamEstimate(f"p{i}", 1.0, 0.1, s) for i, s in enumerate(statuses)}
     assert SubsystemFit("t", (), estimates=est, logs=logs).fitted is fitted
+
+
+def test_map_fit_stops_rescaling_the_noise_once_it_moved_less_than_5_percent():
+    """A constant a with a strong prior N(2, 0.03^2) against data of mean 3: the MAP moves with the noise
+    scale s, a(s) = (sum y / s^2 + a0 / sd0^2) / (n / s^2 + 1 / sd0^2). From s0 = 0.95 the first fit gives
+    a(s0) and the rms of its residuals s1 = 1.0245 s0 (within 5 %): the fit stops there, with a(s0) and
+    noise_sd s1 (another pass at s1 would give a(s1), 0.1 % lower)."""
+    import lmfit
+
+    n = 50
+    y = 3.0 + 0.2 * np.where(np.arange(n) % 2 == 0, 1.0, -1.0)
+    a0, sd0, s0 = 2.0, 0.03, 0.95
+
+    def a_map(s):
+        return (y.sum() / s ** 2 + a0 / sd0 ** 2) / (n / s ** 2 + 1 / sd0 ** 2)
+
+    a1 = a_map(s0)
+    s1 = float(np.sqrt(np.mean((a1 - y) ** 2)))
+    assert 1.0 < s1 / s0 < 1.05 and abs(a_map(s1) / a1 - 1.0) > 5e-4
+
+    def make():
+        ps = lmfit.Parameters()
+        ps.add("a", value=0.5, min=-100, max=100)
+        return ps
+
+    # max_tau = 1: the scale is the plain rms (the residuals' common offset would count as correlation)
+    out = map_fit(make, lambda ps: [ps["a"].value - y], ["a"], prior={"a": a0}, prior_sd={"a": sd0},
+                  noise_sd=s0, floor=1e-6, max_tau=1.0)
+    assert out["values"]["a"] == pytest.approx(a1, rel=1e-7)
+    assert out["noise_sd"] == pytest.approx(s1, rel=1e-7)

@@ -112,6 +112,59 @@ def test_fused_kernel_equals_generic_engine(params, nx, scen, grids, hold, soc, 
     assert rg.cost == rf.cost
 
 
+def _with_infinite_nodes(prob, axis: int, node: int):
+    """The problem with a terminal cost of +inf at one node of state ``axis`` (every other state kept):
+    next states located exactly on the node below it read that +inf corner with weight 0."""
+    phi0, _ = prob.terminal_arrays()
+    hit = np.isclose(prob.grid_points()[:, axis], prob.grids[axis][node], rtol=0.0, atol=1e-12)
+    prob.terminal_cost = np.where(hit, np.inf, phi0)
+    return prob
+
+
+@pytest.mark.parametrize("interp", ["multilinear", "reach_first", "cubic_last"])
+def test_fused_kernel_equals_generic_engine_next_to_an_infinite_cabin_node(params, interp):
+    """Cabin relative to its bound, with the hold control, and V_N = +inf at cabin node 1: a next state on
+    cabin node 0 (the hold control's, and the grid controls' clipped below the bound) reads the +inf node
+    with weight 0, so the kernel's cabin slice is 0 * inf = NaN and its exact-interpolation fallback gives
+    the value. Same value and level functions, bit for bit, as the generic engine."""
+    from optimize.formulations.fused import backward_pass_fused
+    from optimize.dp.engine import backward_pass
+
+    b = build_problem(params, DPScenario(duration_s=6.0, T_cl0=28.0, cab_lb_offset=0.37),
+                      DPGrids(soc=0.02, tcl=4.0, pbat=2500.0, qheat=200.0), 3, cabin="bound", hold=True,
+                      interp=interp)
+    p = _with_infinite_nodes(b.prob, 2, 1)
+    vg, vf = backward_pass(p, store_policy=True), backward_pass_fused(p, skip=False)
+    np.testing.assert_array_equal(vg.V, vf.V)
+    np.testing.assert_array_equal(vg.L, vf.L)
+    # the fallback is reached: every cell along the cabin from node 0 has the +inf node 1 as its upper
+    # corner, so a finite V_{N-1} at cabin node 0 comes from a next state exactly on node 0 (weight 0 on
+    # node 1); the engine's choice there is the hold control at some states
+    assert np.isinf(vg.V[-1][:, :, 1]).all() and np.isfinite(vg.V[-1][:, :, 0]).any()
+    fin = np.isfinite(vg.V[-2][:, :, 0])
+    assert fin.sum() >= 10
+    chosen = vg.policy[-1][:, :, 0][fin]
+    assert np.isnan(p.controls[chosen, 2]).sum() >= 5  # hold-the-bound controls (heat NaN)
+
+
+def test_fused_kernel_equals_generic_engine_next_to_an_infinite_soc_node_two_states(params):
+    """Thermal-DP on the fixed SOC grid with V_N = +inf at SOC node 1: a next charge below the grid is
+    clipped to node 0 and reads node 1 with weight 0 (the kernel's bilinear value is NaN, its exact
+    interpolation gives the value). Same value and level functions as the generic engine."""
+    from optimize.formulations.fused import backward_pass_fused
+    from optimize.dp.engine import backward_pass
+
+    for interp in ("multilinear", "reach_first"):
+        b = build_problem(params, DPScenario(duration_s=20.0, T_cl0=25.0), DPGrids(pbat=1000.0), 2,
+                          soc="absolute", interp=interp)
+        p = _with_infinite_nodes(b.prob, 0, 1)
+        vg, vf = backward_pass(p), backward_pass_fused(p, skip=False)
+        np.testing.assert_array_equal(vg.V, vf.V)
+        np.testing.assert_array_equal(vg.L, vf.L)
+        # a finite V_{N-1} at SOC node 0 needs a next charge exactly on a node beside node 1 (weight 0 on it): the path taken
+        assert np.isinf(vg.V[-1][1]).all() and np.isfinite(vg.V[-2][0]).sum() >= 5
+
+
 @pytest.mark.parametrize("nx,scen,grids", [
     (2, DPScenario(duration_s=300.0), DPGrids()),
     (3, DPScenario(duration_s=120.0, T_cl0=40.0), DPGrids(tcl=4.0, pbat=2500.0, qheat=200.0)),
@@ -347,3 +400,29 @@ def test_hold_heat_puts_the_cabin_on_its_bound(params):
                 assert (r[2] > lb_next) == (q == qmin)  # too warm even unheated, or the heater's top short
                 n_clip += 1
     assert n_on >= 10 and n_clip >= 1
+
+
+def test_fused_kernel_equals_generic_engine_where_only_the_cubic_reads_an_infinite_cabin_node(params):
+    """Absolute cabin with the hold control and the cubic cost-to-go, V_N = +inf at the cabin node two
+    above the cell the hold control lands in: the cubic reads that node (its slope at the cell's upper
+    end), the linear level does not, so the kernel's value alone falls back to the exact interpolation.
+    Same value and level functions, bit for bit, as the generic engine."""
+    from optimize.formulations.fused import backward_pass_fused
+    from optimize.dp.engine import backward_pass
+
+    # a heater grid wide enough that the hold heat is not clipped from the node below the bound
+    scen = DPScenario(duration_s=6.0, T_cl0=28.0, cab_lb_offset=0.37, Q_heat_min=0.0, Q_heat_max=6000.0)
+    b = build_problem(params, scen, DPGrids(soc=0.02, tcl=4.0, tcab=0.1, pbat=2500.0, qheat=1000.0), 3,
+                      cabin="absolute", hold=True, interp="cubic_last")
+    g = b.prob.grids[2]
+    r = (b.prob.w[-1, 2] - g[0]) / (g[1] - g[0])  # the bound at N (where the hold control lands) in cells
+    c = int(np.floor(r))
+    assert 0.1 < r - c < 0.9 and c + 2 < g.size  # strictly inside cell c: the cubic reads node c + 2
+    p = _with_infinite_nodes(b.prob, 2, c + 2)
+    vg, vf = backward_pass(p, store_policy=True), backward_pass_fused(p, skip=False)
+    np.testing.assert_array_equal(vg.V, vf.V)
+    np.testing.assert_array_equal(vg.L, vf.L)
+    assert np.isinf(vg.V[-1][:, :, c + 2]).all() and np.isfinite(vg.V[-1][:, :, c:c + 2]).all()
+    # the hold control (heat NaN) is chosen at N-1 from cabin node c, so its value was used there
+    fin = np.isfinite(vg.V[-2][:, :, c])
+    assert np.isnan(p.controls[vg.policy[-1][:, :, c][fin], 2]).sum() >= 10
