@@ -664,17 +664,23 @@ def _bilinear_times_quadratic(X):
     return (1.0 + 2.0 * x0 - 3.0 * x1 + 0.7 * x0 * x1) * (0.5 - 1.3 * x2 + 2.1 * x2 ** 2)
 
 
-def test_cubic_last_interpolation_is_exact_on_quadratics_along_the_last_axis():
-    # multilinear in the first two states, quadratic in the last: the cubic along the last axis reproduces
-    # it exactly (cells at both ends of the axis included), multilinear interpolation does not
-    grids = [np.linspace(-1, 1, 5), np.linspace(0, 3, 7), np.linspace(-2, 0, 5)]
+def _cubic_exact_on_quadratics(grids, seed, n):
+    """The cubic along the last axis reproduces a function multilinear in the first two states and quadratic
+    in the last at ``n`` random points; multilinear interpolation misses it. Returns (prob, V)."""
     prob = DPProblem(grids=grids, controls=np.zeros((1, 1)), N=1, transition=twostatesys)
     V = _bilinear_times_quadratic(prob.grid_points()).reshape(prob.grid_shape)
-    rng = np.random.default_rng(5)
-    Q = np.column_stack([rng.uniform(g[0], g[-1], 300) for g in grids])
+    rng = np.random.default_rng(seed)
+    Q = np.column_stack([rng.uniform(g[0], g[-1], n) for g in grids])
     exact = _bilinear_times_quadratic(Q)
     np.testing.assert_allclose(interpolate(prob, V, Q, interp="cubic_last"), exact, rtol=0, atol=1e-11)
     assert np.max(np.abs(interpolate(prob, V, Q) - exact)) > 1e-2
+    return prob, V
+
+
+def test_cubic_last_interpolation_is_exact_on_quadratics_along_the_last_axis():
+    # cells at both ends of the axis included
+    grids = [np.linspace(-1, 1, 5), np.linspace(0, 3, 7), np.linspace(-2, 0, 5)]
+    prob, V = _cubic_exact_on_quadratics(grids, 5, 300)
     # node values are returned exactly, and the multilinear rule is kept where the cubic cannot apply
     P = prob.grid_points()
     np.testing.assert_array_equal(interpolate(prob, V, P, interp="cubic_last"), V.ravel())
@@ -683,7 +689,7 @@ def test_cubic_last_interpolation_is_exact_on_quadratics_along_the_last_axis():
     q = np.array([[0.1, 1.2, -2.0 + 0.5 * 1.5]])  # in cell 1 of the last axis
     np.testing.assert_allclose(interpolate(prob, V2, q, interp="cubic_last"), interpolate(prob, V2, q))
     with pytest.raises(ValueError, match="interp"):
-        interpolate(prob, V, Q, interp="cubic")
+        interpolate(prob, V, prob.grid_points(), interp="cubic")
 
 
 def test_cubic_last_interpolation_of_a_convex_function_has_no_kink_at_nodes():
@@ -734,14 +740,7 @@ def test_cubic_last_interpolation_with_three_nodes_on_the_last_axis_is_exact_on_
     # three nodes are the fewest the cubic takes (one-sided second-order slopes at both ends, exact on a
     # quadratic): it reproduces a quadratic along the axis in both cells; multilinear misses it by
     # 2.1 * 0.5 * 0.5 = 0.525 times the bilinear factor at mid-cell
-    grids = [np.linspace(-1, 1, 3), np.linspace(0, 3, 4), np.linspace(-2, 0, 3)]
-    prob = DPProblem(grids=grids, controls=np.zeros((1, 1)), N=1, transition=twostatesys)
-    V = _bilinear_times_quadratic(prob.grid_points()).reshape(prob.grid_shape)
-    rng = np.random.default_rng(7)
-    Q = np.column_stack([rng.uniform(g[0], g[-1], 200) for g in grids])
-    exact = _bilinear_times_quadratic(Q)
-    np.testing.assert_allclose(interpolate(prob, V, Q, interp="cubic_last"), exact, rtol=0, atol=1e-11)
-    assert np.max(np.abs(interpolate(prob, V, Q) - exact)) > 1e-2
+    _cubic_exact_on_quadratics([np.linspace(-1, 1, 3), np.linspace(0, 3, 4), np.linspace(-2, 0, 3)], 7, 200)
 
 
 def test_reach_first_with_three_states_interpolates_the_last_state_first_then_the_boundary_cell():
