@@ -222,14 +222,12 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
               + ordering + ".")
     if hasattr(cs, "format_value_check") and cs.outcomes:
         opt.pre(cs.format_value_check())
-    conv = getattr(cs, "convergence", None)
-    if conv is not None:
+    if getattr(cs, "convergence", None) is not None:
         from optimize.convergence import CABIN_TOL_K, FUEL_TOL_PCT, format_case_study_convergence
 
-        checked = {"baseline" if r["formulation"] == "baseline_warm" else r["formulation"] for r in conv}
         opt.p(f"Grid convergence: each DP solved again with every grid step halved; converged when the corrected "
               f"fuel changes by less than {FUEL_TOL_PCT:g} % and the mean cabin by less than {CABIN_TOL_K:g} K.")
-        opt.pre(format_case_study_convergence(conv, [k for k in cs.outcomes if k not in checked]))
+        opt.pre(format_case_study_convergence(cs))
     if cs.rule:
         opt.p("Tuned rule-based thresholds: " + ", ".join(f"{k} = {v:g}" for k, v in cs.rule["thresholds"].items()))
     for png in cs.plot(out / "figures"):

@@ -88,11 +88,13 @@ def format_convergence(rows) -> str:
     return "\n".join(lines)
 
 
-def format_case_study_convergence(rows, not_checked=()) -> str:
-    """:func:`format_convergence` of a case study's rows, and one line per DP formulation of the case study
-    whose halved grid was not solved (``not_checked``), saying how to run it."""
+def format_case_study_convergence(cs) -> str:
+    """A case study's convergence rows (:attr:`optimize.casestudy.CaseStudy.convergence`) as text, and one
+    line per DP formulation of the case study whose halved grid was not solved, saying how to run it."""
+    rows = cs.convergence or []
+    checked = {"baseline" if r["formulation"] == "baseline_warm" else r["formulation"] for r in rows}
     lines = [format_convergence(rows)] if rows else []
-    for f in not_checked:
+    for f in (k for k in cs.outcomes if k not in checked):
         lines.append(f"{f}: not checked with this run (every step halved is 32 times the work); "
                      f"`iptm optimize --formulation {f} --convergence` solves it")
     return "\n".join(lines)

@@ -78,14 +78,16 @@ def run(quick: bool = False, halve: bool = False) -> dict:
           f"target 20 s); corrected fuel {r['fuel_corrected_g']:.4f} g (paper grid {paper['fuel_corrected_g']:.4f} g)",
           flush=True)
     if halve:
+        from optimize.convergence import halving_row
+
         h = solve_formulation("thermal_cabin", ps, scen, cg.halved())
-        hs = h.sim.summary()
-        r.update(halved_grid=cg.halved().to_dict(), halved_n_states=h.n_states, halved_n_controls=h.n_controls,
-                 halved_t_total_s=h.t_total, fuel_corrected_halved_g=hs["fuel_corrected_g"],
-                 halving_change_pct=100.0 * (hs["fuel_corrected_g"] / r["fuel_corrected_g"] - 1.0),
-                 T_cab_mean_change_degC=hs["T_cab_mean_degC"] - r["T_cab_mean_degC"])
+        hr = halving_row("thermal_cabin", cg, o.sim, h.sim, o, h)
+        r.update(halved_grid=hr["grid_half"], halved_n_states=h.n_states, halved_n_controls=h.n_controls,
+                 halved_t_total_s=h.t_total, fuel_corrected_halved_g=hr["fuel_corrected_g_half"],
+                 halving_change_pct=hr["rel_change_corrected_pct"], T_cab_mean_change_degC=hr["T_cab_mean_change_K"],
+                 converged=hr["converged"])
         print(f"  every step halved ({h.n_states} states x {h.n_controls} controls, {h.t_total:.0f} s): corrected fuel "
-              f"{hs['fuel_corrected_g']:.4f} g ({r['halving_change_pct']:+.3f} %), mean cabin "
-              f"{r['T_cab_mean_change_degC']:+.4f} degC", flush=True)
+              f"{hr['fuel_corrected_g_half']:.4f} g ({hr['rel_change_corrected_pct']:+.3f} %), mean cabin "
+              f"{hr['T_cab_mean_change_K']:+.4f} degC: {'converged' if hr['converged'] else 'NOT converged'}", flush=True)
     out["thermal_cabin_converged"] = r
     return out
