@@ -35,7 +35,7 @@ class RunConfig:
 
     logs: list
     scenario: object = None  # optimize.formulations.DPScenario
-    grids: object = None  # optimize.formulations.DPGrids
+    grids: object = None  # optimize.formulations.FormulationGrids (or one DPGrids for all); None: the defaults
     strategies: tuple = STRATEGIES
     cycle_from_log: str | None = None  # path of a log whose speed trace is the cycle
     validate: list = field(default_factory=list)  # held-out logs (default: the last of several logs)
@@ -55,14 +55,17 @@ def load_scenario(path=None):
     ``[scenario] cycle`` is a bundled name, a speed-trace CSV, or ``"from log"`` with ``cycle_log = FILE``
     (default: the first log of the run).
 
+    ``[grids]`` steps replace those of every formulation's default grid
+    (:data:`optimize.formulations.DEFAULT_GRIDS`); without ``[grids]`` each formulation solves on its default.
+
     Returns
     -------
-    (DPScenario, DPGrids, strategies, cycle_log or None)
+    (DPScenario, FormulationGrids, strategies, cycle_log or None)
     """
-    from optimize.formulations.scenario import DPGrids, DPScenario
+    from optimize.formulations.scenario import DEFAULT_GRIDS, DPGrids, DPScenario
 
     if path is None:
-        return DPScenario(), DPGrids(), STRATEGIES, None
+        return DPScenario(), DEFAULT_GRIDS, STRATEGIES, None
     path = Path(path)
     try:
         d = tomllib.loads(path.read_text())
@@ -86,9 +89,12 @@ def load_scenario(path=None):
         raise ScenarioError(f"{path}: [scenario]: {exc}") from None
     g = d.get("grids", {})
     try:
-        grids = DPGrids(**g)
-    except TypeError as exc:
-        raise ScenarioError(f"{path}: [grids]: {exc} (known: soc, tcl, tcab, pbat, qheat)") from None
+        DPGrids(**g)  # names checked here, values below
+        grids = DEFAULT_GRIDS.with_steps(**{k: float(v) for k, v in g.items()})
+    except (TypeError, ValueError) as exc:
+        raise ScenarioError(f"{path}: [grids]: {exc} (known: soc, tcl, tcab, pbat, qheat; positive numbers)") from None
+    if any(not v > 0 for v in g.values()):
+        raise ScenarioError(f"{path}: [grids]: every step must be a positive number, got {g}")
     run = d.get("run", {})
     strategies = run.get("strategies", STRATEGIES) if isinstance(run, dict) else None
     if not isinstance(strategies, (list, tuple)) or not all(isinstance(s, str) for s in strategies):
@@ -247,8 +253,13 @@ def optimize_cached(params, scen, grids, strategies, store: Store | None, progre
                     hold: bool | None = None):
     """Run the case study strategy by strategy, reusing cached results keyed by parameter values,
     scenario (with the cycle file's hash), grids, strategy, solver options (``hold``: Thermal-Cabin-DP's
-    hold-the-bound heater control; None: its default) and software version."""
+    hold-the-bound heater control; None: its default) and software version. ``grids``: as
+    :func:`optimize.casestudy.run_case_study`; each strategy's key holds its own grid."""
     from dataclasses import replace
+
+    from optimize.formulations.scenario import FORMULATIONS, FormulationGrids
+
+    grids = FormulationGrids.coerce(grids)
 
     from tqdm import tqdm
 
@@ -272,7 +283,8 @@ def optimize_cached(params, scen, grids, strategies, store: Store | None, progre
     sims, outcomes, timings, rule = {}, {}, {}, None
     for i, strat in enumerate(strategies):
         opts = {} if hold is None or strat != "thermal_cabin" else {"hold": bool(hold)}
-        key = content_key(pvals, {**scen.to_dict(), "cycle": cyc_id}, grids.to_dict(), strat, code_version("calib", "optimize"),
+        key = content_key(pvals, {**scen.to_dict(), "cycle": cyc_id}, grids.of(strat).to_dict() if strat in FORMULATIONS else {},
+                          strat, code_version("calib", "optimize"),
                           *([opts] if opts else []))
         entry = store.get_json("dp", key) if store else None
         arrays = {name: store.get_npz("dp", f"{key}-{name}") for name in (entry or {}).get("sims", [])}
@@ -337,11 +349,11 @@ class RunOutcome:
 def run(cfg: RunConfig) -> RunOutcome:
     """The whole chain; returns where the report is and the headline figures."""
     from calib.model.params import ParameterSet, default_parameters
-    from optimize.formulations.scenario import DPGrids, DPScenario
+    from optimize.formulations.scenario import DPScenario, FormulationGrids
 
     t0 = time.perf_counter()
     scen = cfg.scenario or DPScenario()
-    grids = cfg.grids or DPGrids()
+    grids = FormulationGrids.coerce(cfg.grids)
     store = Store(cfg.cache_dir) if cfg.cache_dir else None
     paths = [Path(p) for p in cfg.logs]
     val_paths = [Path(p) for p in cfg.validate]

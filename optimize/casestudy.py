@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from optimize.formulations.scenario import DPGrids, DPScenario
+from optimize.formulations.scenario import DPScenario, FormulationGrids
 from optimize.formulations.solve import solve_baseline, solve_thermal, solve_thermal_cabin
 
 from optimize.labels import LABELS, PAPER_SAVINGS  # noqa: F401 - re-exported
@@ -27,12 +27,12 @@ CAUSAL = ("ecms", "sdp")
 @dataclass
 class CaseStudy:
     """Results of the case study: ``sims`` (label key -> SimResult), ``outcomes`` (DP outcomes),
-    ``rule`` (tuned thresholds), ``scenario``, ``grids``, ``timings``."""
+    ``rule`` (tuned thresholds), ``scenario``, ``grids`` (each formulation's), ``timings``."""
 
     sims: dict
     outcomes: dict
     scenario: DPScenario
-    grids: DPGrids
+    grids: FormulationGrids
     rule: dict | None = None
     timings: dict = field(default_factory=dict)
     #: grid-convergence rows (:func:`optimize.convergence.case_study_halving`), when the case study was also
@@ -168,15 +168,17 @@ class CaseStudy:
 
 
 def run_case_study(params, scenario: DPScenario | None = None, strategies=STRATEGIES, progress: bool = True,
-                   grids: DPGrids | None = None, hold: bool | None = None) -> CaseStudy:
+                   grids=None, hold: bool | None = None) -> CaseStudy:
     """Run the chosen strategies (``rule``, ``baseline``, ``thermal``, ``thermal_cabin``) on a scenario.
-    ``hold``: Thermal-Cabin-DP's "hold the bound" heater control on or off (None: the solver's default)."""
+    ``grids``: None (each formulation's converged default, :data:`optimize.formulations.DEFAULT_GRIDS`), a
+    :class:`FormulationGrids`, or one :class:`DPGrids` for all; ``hold``: Thermal-Cabin-DP's "hold the bound"
+    heater control on or off (None: the solver's default)."""
     from calib.errors import ScenarioError
 
     from optimize.tuning import tune_rule_based
 
     scen = scenario or DPScenario()
-    grids = grids or DPGrids()
+    grids = FormulationGrids.coerce(grids)
     bad = set(strategies) - set(STRATEGIES) - set(CAUSAL)
     if bad:
         raise ScenarioError(f"unknown strategy {sorted(bad)}; choose from {', '.join(STRATEGIES + CAUSAL)}")
@@ -200,7 +202,7 @@ def run_case_study(params, scenario: DPScenario | None = None, strategies=STRATE
     for key in ("baseline", "thermal", "thermal_cabin"):
         if key not in strategies:
             continue
-        o = solvers[key](params, scen, grids, **({"hold": hold} if key == "thermal_cabin" and hold is not None else {}))
+        o = solvers[key](params, scen, grids.of(key), **({"hold": hold} if key == "thermal_cabin" and hold is not None else {}))
         outs[key] = o
         timings[key] = o.t_total
         if key == "baseline":

@@ -14,7 +14,7 @@ off-grid forward pass that is drawn to the kink is a property of the grid, not o
 from __future__ import annotations
 
 from optimize.formulations.artefacts import ON_NODE_K, trajectory_checks  # noqa: F401 (re-exported)
-from optimize.formulations.scenario import DPGrids, DPScenario
+from optimize.formulations.scenario import DPGrids, DPScenario, FormulationGrids
 from optimize.formulations.solve import solve_formulation
 
 #: Convergence criteria: relative change of corrected fuel (%) and of the mean cabin temperature (degC).
@@ -55,17 +55,19 @@ def case_study_halving(cs, cs_half) -> list:
     for f in ("baseline_warm", "baseline", "thermal", "thermal_cabin"):
         dp = "baseline" if f == "baseline_warm" else f
         if f in cs.sims and f in cs_half.sims and dp in cs.outcomes:
-            rows.append(halving_row(f, cs.grids, cs.sims[f], cs_half.sims[f], cs.outcomes.get(dp),
+            rows.append(halving_row(f, FormulationGrids.coerce(cs.grids).of(dp), cs.sims[f], cs_half.sims[f], cs.outcomes.get(dp),
                                     cs_half.outcomes.get(dp)))
     return rows
 
 
 def convergence_study(params, scenario: DPScenario | None = None, formulations=("baseline", "thermal"),
-                      grids: DPGrids | None = None, progress: bool = False) -> list:
-    """One row per formulation: fuel on ``grids`` and on ``grids.halved()``, relative change (%)."""
-    scen, g = scenario or DPScenario(), grids or DPGrids()
+                      grids=None, progress: bool = False) -> list:
+    """One row per formulation: fuel on its grid (``grids``: as :func:`optimize.casestudy.run_case_study`)
+    and with every step halved, relative change (%)."""
+    scen, grids = scenario or DPScenario(), FormulationGrids.coerce(grids)
     rows = []
     for f in formulations:
+        g = grids.of(f)
         runs = []
         for tag, gg in (("", g), ("_half", g.halved())):
             o = solve_formulation(f, params, scen, gg)

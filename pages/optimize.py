@@ -27,7 +27,7 @@ def _solve(key, _params, _scenario, _grids, strategy):
 
 from calib.model.cycles import available_cycles  # noqa: E402
 from calib.model.params import ParameterSet, default_parameters  # noqa: E402
-from optimize.formulations.scenario import DPGrids, DPScenario  # noqa: E402
+from optimize.formulations.scenario import FORMULATIONS, DPGrids, DPScenario  # noqa: E402
 
 
 
@@ -157,8 +157,9 @@ def _page():
     Q_max = c7.number_input("Thermal-Cabin heater max [W]", 0.0, 6000.0, float(d.Q_heat_max), 100.0, key="opt_Qmax")
     dur = c8.number_input("Use the first ... s of the cycle (0 = whole)", 0.0, 100000.0, 0.0, 60.0, key="opt_duration")
 
-    st.markdown("**DP grid steps** (the paper's Table II: SOC 0.01, coolant 1 degC, cabin 1 degC, battery 500 W, "
-                "heater 50 W; coarser runs faster)")
+    st.markdown("**DP grid steps**, the same for every formulation (the paper's Table II: SOC 0.01, coolant 1 degC, "
+                "cabin 1 degC, battery 500 W, heater 50 W; coarser runs faster; `iptm optimize` without `--grid` "
+                "gives each formulation its converged grid)")
     g1, g2, g3, g4, g5 = st.columns(5)
     gs = g1.number_input("SOC [-]", 0.001, 0.1, 0.02, 0.005, format="%.3f", key="opt_g_soc")
     gt = g2.number_input("coolant [degC]", 0.1, 10.0, 2.0, 0.5, key="opt_g_tcl")
@@ -221,7 +222,7 @@ def _page():
     st.subheader("Comparison")
     cy = opt["cycle"]
     st.caption(f"cycle {cy['name']}: {cy['duration_s']:.0f} s, {cy['distance_km']:.2f} km; ambient "
-               f"{cs.scenario.T_amb:g} degC; grids {cs.grids.to_dict()}")
+               f"{cs.scenario.T_amb:g} degC; grid steps {cs.grids.describe([f for f in FORMULATIONS if f in cs.outcomes])}")
     tbl = cs.table()
     cols = st.columns(3)
     for col, key, ref in ((cols[0], "thermal", "vs_rule"), (cols[1], "thermal_cabin", "vs_rule"),

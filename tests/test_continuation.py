@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from calib.errors import IptmError, ScenarioError
-from calib.model import (continuation_corrected, continuation_credit_per_gram, continuation_value, credit_per_gram,
-                         default_parameters, simulate)
+from calib.model import (continuation_corrected, continuation_credit_per_gram, continuation_run, continuation_value,
+                         credit_per_gram, default_parameters, simulate)
 from optimize.formulations.scenario import DPGrids, DPScenario
 from optimize.formulations.solve import dp_objective, reference_run, solve_thermal
 
@@ -211,3 +211,26 @@ def test_corrected_fuel_of_a_drive_ending_where_its_last_sample_lies_values_that
         x = [0.65, 85.0, 22.0]
         x[i] = (0.5, 40.0, 15.0)[i]
         assert abs(continuation_value(ps, *x, ref=X0, cycle="udds", **KW) - CN) > 1e-3
+
+
+def test_continuation_run_reports_each_runs_fuel_and_last_sample(ps):
+    """The end states are the last samples of the rule-based run from each state, computed here by
+    calling the simulator directly."""
+    soc, tcl, tcab = np.array([0.55, 0.65]), np.array([40.0, 80.0]), np.array([12.0, 21.0])
+    out = continuation_run(ps, soc, tcl, tcab, cycle="nycc", **KW)
+    for i in range(2):
+        r = simulate(ps, "nycc", T_amb=-10.0, soc0=soc[i], T_cl0=tcl[i], T_cab0=tcab[i], Q_heat=1500.0)
+        assert out["fuel_g"][i] == r.fuel_g
+        assert (out["soc_end"][i], out["T_cl_end"][i], out["T_cab_end"][i]) == (r.soc[-1], r.T_cl[-1], r.T_cab[-1])
+        # the last sample, not the one before it: the states still move over the last step
+        assert r.T_cab[-1] != r.T_cab[-2] and r.T_cl[-1] != r.T_cl[-2]
+
+
+def test_credit_per_gram_defaults_to_a_warm_car_and_ignores_the_cabin_when_warm(ps):
+    """Without a state, the credit is that of the documented default (SOC 0.6, coolant 85 degC); with the
+    coolant warm the heater core delivers the full heater power whatever the cabin temperature, so the
+    cabin does not enter either continuation and the credit is the same for any cabin temperature."""
+    d = continuation_credit_per_gram(ps, 15e3, cycle="udds")
+    assert d == continuation_credit_per_gram(ps, 15e3, soc=0.6, T_cl=85.0, cycle="udds")
+    for T_cab in (0.0, 21.0):
+        assert d == continuation_credit_per_gram(ps, 15e3, T_cab=T_cab, cycle="udds")

@@ -15,13 +15,13 @@ COARSE3 = DPGrids(soc=0.02, tcl=4.0, tcab=1.0, pbat=2000.0, qheat=150.0)
 
 @pytest.fixture(scope="module")
 def base(params):
-    return solve_baseline(params, SHORT_FREE)
+    return solve_baseline(params, SHORT_FREE, DPGrids())
 
 
 def test_thermal_warm_no_heater_equals_baseline(params, base):
     """Thermal-DP with f_cl = 1, a 0-W heater and a free final coolant is Baseline-DP with a dummy
-    coolant state."""
-    th = solve_thermal(params, SHORT_FREE, heater=0.0, warm=True)
+    coolant state (both on the paper's grids)."""
+    th = solve_thermal(params, SHORT_FREE, DPGrids(), heater=0.0, warm=True)
     assert th.sim.fuel_g == pytest.approx(base.sim.fuel_g, rel=1e-6)
     assert th.sim.soc[-1] == pytest.approx(base.sim.soc[-1], abs=1e-9)
 
@@ -246,6 +246,29 @@ def test_grid_spec():
         parse_grid_spec("soc=-1")
 
 
+def test_each_formulation_has_its_own_default_grid():
+    """The defaults: Baseline-DP the paper's SOC and battery-power steps halved, Thermal-DP the paper's
+    Table II, Thermal-Cabin-DP CABIN_CONVERGED_GRIDS; a grid spec replaces the steps it names in each;
+    one DPGrids given to a solver or a case study is used for every formulation."""
+    from optimize.formulations import (BASELINE_CONVERGED_GRIDS, CABIN_CONVERGED_GRIDS, DEFAULT_GRIDS,
+                                       FormulationGrids)
+
+    assert BASELINE_CONVERGED_GRIDS == DPGrids(soc=0.005, pbat=250.0)
+    assert (DEFAULT_GRIDS.of("baseline"), DEFAULT_GRIDS.of("thermal"), DEFAULT_GRIDS.of("thermal_cabin")) == (
+        BASELINE_CONVERGED_GRIDS, DPGrids(), CABIN_CONVERGED_GRIDS)
+    g = parse_grid_spec("pbat=1000", DEFAULT_GRIDS)
+    assert [g.of(f).pbat for f in ("baseline", "thermal", "thermal_cabin")] == [1000.0] * 3
+    assert (g.of("baseline").soc, g.of("thermal_cabin").tcab) == (0.005, 1.5)
+    assert FormulationGrids.coerce(None) == DEFAULT_GRIDS
+    assert FormulationGrids.coerce(DPGrids(soc=0.02)).of("baseline") == DPGrids(soc=0.02)
+    assert DEFAULT_GRIDS.halved().of("baseline") == DPGrids(soc=0.0025, tcl=0.5, tcab=0.5, pbat=125.0, qheat=25.0)
+    assert DEFAULT_GRIDS.describe(["baseline"]) == "baseline soc 0.005, pbat 250"
+    from calib.errors import ScenarioError
+
+    with pytest.raises(ScenarioError, match="unknown formulation"):
+        DEFAULT_GRIDS.of("rule")
+
+
 def test_scenario_dict_roundtrip():
     s = DPScenario(cycle="nycc", T_amb=-5.0, duration_s=100.0)
     assert DPScenario.from_dict(s.to_dict()) == s
@@ -426,3 +449,37 @@ def test_fused_kernel_equals_generic_engine_where_only_the_cubic_reads_an_infini
     # the hold control (heat NaN) is chosen at N-1 from cabin node c, so its value was used there
     fin = np.isfinite(vg.V[-2][:, :, c])
     assert np.isnan(p.controls[vg.policy[-1][:, :, c][fin], 2]).sum() >= 10
+
+
+def test_match_terminal_of_thermal_cabin_dp_holds_the_chosen_final_temperatures(params):
+    """``match`` with no targets bounds the final coolant and cabin by the untuned rule-based run's last
+    samples (simulated here directly); with a cabin target above that run's, the DP's run ends at least at
+    the target and the outcome reports the target, not the rule-based run's."""
+    from dataclasses import replace
+
+    from calib.model.simulate import simulate
+
+    scen = replace(COLD, terminal="match")
+    r = simulate(params, scen.load_cycle(), T_amb=scen.T_amb, soc0=scen.soc0, T_cl0=scen.T_cl0,
+                 T_cab0=scen.T_cab0, Q_heat=scen.Q_heat)
+    m = solve_thermal_cabin(params, scen, COARSE3)
+    assert m.extra["T_cl_final_min"] == float(r.T_cl[-1])
+    assert m.extra["T_cab_final_min"] == float(r.T_cab[-1])
+    assert m.sim.T_cab[-1] >= r.T_cab[-1] - 1e-6 and m.sim.T_cl[-1] >= r.T_cl[-1] - 1e-6
+    target = float(r.T_cab[-1]) + 0.5
+    t = solve_thermal_cabin(params, replace(scen, T_cab_final_min=target), COARSE3)
+    assert t.extra["T_cab_final_min"] == target
+    assert t.sim.T_cab[-1] >= target - 1e-6
+
+
+def test_continued_terminal_without_the_dps_grids_is_refused_for_two_and_three_states(params):
+    """The ``continued`` terminal cost is tabulated on the DP's grids: without them it is a scenario
+    error naming what is missing, for Thermal-DP and for Thermal-Cabin-DP alike."""
+    from calib.errors import ScenarioError
+    from optimize.formulations.solve import _terminal_cost
+
+    scen = DPScenario(duration_s=150.0, terminal="continued")
+    mp = params.model_params()
+    for nx, cab_final in ((2, 20.0), (3, None)):
+        with pytest.raises(ScenarioError, match="needs the DP's grids"):
+            _terminal_cost(mp, scen, nx, cab_final=cab_final, grid_list=None)

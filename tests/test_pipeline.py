@@ -124,7 +124,16 @@ def test_scenario_file(tmp_path):
     f = tmp_path / "s.toml"
     f.write_text('[scenario]\ncycle = "nycc"\nT_amb = -5.0\n[grids]\nsoc = 0.02\n[run]\nstrategies = ["rule", "thermal"]\n')
     scen, grids, strategies, cyc_log = pipeline.load_scenario(f)
-    assert scen.cycle == "nycc" and scen.T_amb == -5.0 and grids.soc == 0.02 and strategies == ("rule", "thermal")
+    assert scen.cycle == "nycc" and scen.T_amb == -5.0 and strategies == ("rule", "thermal")
+    # the file's steps replace every formulation's own; the others stay each formulation's default
+    assert [grids.of(f).soc for f in ("baseline", "thermal", "thermal_cabin")] == [0.02] * 3
+    assert (grids.of("baseline").pbat, grids.of("thermal").pbat, grids.of("thermal_cabin").tcab) == (250.0, 500.0, 1.5)
+    f.write_text('[grids]\nsoc = -0.01\n')
+    with pytest.raises(IptmError, match="positive"):
+        pipeline.load_scenario(f)
+    f.write_text('[grids]\nsco = 0.01\n')
+    with pytest.raises(IptmError, match="known: soc"):
+        pipeline.load_scenario(f)
     f.write_text('[scenario]\ncycle = "from log"\ncycle_log = "x.csv"\n')
     assert pipeline.load_scenario(f)[3] == "x.csv"
     f.write_text('[scenario]\nambient = 3\n')

@@ -5,7 +5,8 @@ from __future__ import annotations
 def register(sub):
     p = sub.add_parser("optimize", help="DP-optimal power split, engine thermal management and cabin heating",
                        description="Tune the rule-based controller and solve Baseline-DP, Thermal-DP and "
-                                   "Thermal-Cabin-DP on a scenario (paper grids by default); print the comparison "
+                                   "Thermal-Cabin-DP on a scenario (each formulation on its converged default grid); print the "
+                                   "comparison "
                                    "table with the savings next to the paper's (Gong et al., CCTA 2019).")
     p.add_argument("--params", metavar="FILE", help="parameter set or calibration artifact (TOML/JSON)")
     p.add_argument("--scenario", metavar="FILE", help="DP scenario file (TOML/JSON, fields of DPScenario); "
@@ -26,7 +27,10 @@ def register(sub):
     p.add_argument("--formulation", default="all",
                    help="rule, baseline, thermal, thermal_cabin, a comma list, or all (default)")
     p.add_argument("--grid", default=None, metavar="SPEC",
-                   help="grid steps, e.g. soc=0.01,tcl=1,tcab=1,pbat=500,qheat=50 (paper's Table II = default)")
+                   help="grid steps, e.g. soc=0.01,tcl=1,tcab=1,pbat=500,qheat=50 (the paper's Table II); the steps "
+                        "given replace every formulation's own; default: each formulation's converged grid "
+                        "(Baseline soc 0.005, pbat 250; Thermal the paper's; Thermal-Cabin tcl 2, tcab 1.5, "
+                        "pbat 750, qheat 100)")
     p.add_argument("--convergence", action="store_true",
                    help="solve each chosen DP formulation on the grid and with every step halved; print the fuel "
                         "change (all = baseline and thermal)")
@@ -72,11 +76,11 @@ def run(args) -> int:
     from calib.errors import ScenarioError
     from calib.fileio import write_json
     from iptm.commands.simulate import load_params
-    from optimize.formulations.scenario import parse_grid_spec
+    from optimize.formulations.scenario import DEFAULT_GRIDS, FORMULATIONS, parse_grid_spec
 
     ps = load_params(args.params)
     scen = _scenario(args)
-    grids = parse_grid_spec(args.grid)
+    grids = parse_grid_spec(args.grid, DEFAULT_GRIDS)
     allf = ("rule", "baseline", "thermal", "thermal_cabin")
     chosen = allf if args.formulation == "all" else tuple(s.strip() for s in args.formulation.split(","))
     bad = [c for c in chosen if c not in allf]
@@ -104,8 +108,7 @@ def run(args) -> int:
     d = cyc.describe()
     print(f"\ncase study: {d['name']} ({d['duration_s']:.0f} s, {d['distance_km']:.2f} km), ambient "
           f"{scen.T_amb:g} degC, SOC0 {scen.soc0}, T_cl0 {scen.T_cl0} degC, T_cab0 {scen.T_cab0} degC; terminal "
-          f"{scen.terminal}; grids "
-          + ", ".join(f"{k}={v:g}" for k, v in grids.to_dict().items()))
+          f"{scen.terminal}; grid steps " + grids.describe([f for f in FORMULATIONS if f in chosen]))
     print(cs.format_table())
     tab = cs.table()
     print("fuel economy: " + "; ".join(f"{k} {r.L_per_100km:.2f} L/100 km ({r.mpg:.1f} mpg)"

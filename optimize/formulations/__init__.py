@@ -71,11 +71,12 @@ Common choices
       per event, until after ~40 braking events no SOC node is finite (the level-set method of the engine
       covers terminal sets only). Re-simulated results are checked to stay inside the boxes.
 """
-from optimize.formulations.scenario import CABIN_CONVERGED_GRIDS, FORMULATIONS, DPGrids, DPScenario, parse_grid_spec
-from optimize.formulations.scenario import TERMINALS
+from optimize.formulations.scenario import (BASELINE_CONVERGED_GRIDS, CABIN_CONVERGED_GRIDS, DEFAULT_GRIDS, FORMULATIONS,
+                                            TERMINALS, DPGrids, DPScenario, FormulationGrids, parse_grid_spec)
 from optimize.formulations.solve import (DPOutcome, dp_objective, peak_rss_mb, resimulate, solve_baseline, solve_formulation,
                     solve_thermal, solve_thermal_cabin)
 
-__all__ = ["DPScenario", "DPGrids", "CABIN_CONVERGED_GRIDS", "DPOutcome", "parse_grid_spec", "solve_baseline", "solve_thermal",
+__all__ = ["DPScenario", "DPGrids", "FormulationGrids", "DEFAULT_GRIDS", "BASELINE_CONVERGED_GRIDS", "CABIN_CONVERGED_GRIDS",
+           "DPOutcome", "parse_grid_spec", "solve_baseline", "solve_thermal",
            "solve_thermal_cabin", "solve_formulation", "FORMULATIONS", "TERMINALS", "resimulate", "peak_rss_mb",
            "dp_objective"]

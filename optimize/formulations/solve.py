@@ -22,7 +22,7 @@ from optimize.formulations.layout import (HOLD, LEVEL_TOL, PENALTY_G_PER_STEP, _
                                           _C_NX, _C_PEN, _C_QHI, _C_QLO, _C_SH, _C_SHI,
                      _C_SLO, _C_TAMB, _C_TBAT, _C_TH, _C_THI, _C_TLO, _C_TS, _C_WBL, _MS, _T_SOC0,
                      pack_params)
-from optimize.formulations.scenario import DPGrids, DPScenario, _grid
+from optimize.formulations.scenario import DPGrids, DPScenario, FormulationGrids, _grid
 from optimize.formulations.transition import build_tables, delivered_heat, drift_offsets, hev_precompute, hev_transition
 
 
@@ -272,7 +272,8 @@ def dp_objective(params, sim, scen: DPScenario, nx: int, T_cab_terminal_min: flo
     ``continued`` the terminal cost is the DP's own interpolated ``C(x_N) - C(x_0)`` (Thermal-DP: at the
     reference run's final cabin, as in the DP), on ``grids`` and the ``cabin`` coordinate of that DP."""
     if scen.terminal == "continued" and nx >= 2:
-        b = build_problem(params, scen, grids or DPGrids(), nx, cabin=cabin)
+        b = build_problem(params, scen, FormulationGrids.coerce(grids).of(("baseline", "thermal", "thermal_cabin")[nx - 1]), nx,
+                          cabin=cabin)
         off = float(b.extra["T_cab_grid_offset"][-1]) if nx == 3 else 0.0
         X = np.array([[sim.soc[-1], sim.T_cl[-1], sim.T_cab[-1] - off][:nx]])
         return float(sim.fuel_g + b.prob.terminal_cost(X)[0])
@@ -479,15 +480,17 @@ def _threads(n):
         numba.set_num_threads(old)
 
 
-def solve_baseline(params, scenario: DPScenario | None = None, grids: DPGrids | None = None, *,
+def solve_baseline(params, scenario: DPScenario | None = None, grids=None, *,
                    threads: int | None = 1, soc: str = SOC_STATE) -> DPOutcome:
-    """Baseline-DP (SOC only, f_cl = 1). ``.sim``: its own optimum (f_cl = 1); ``.on_thermal``: its
-    controls re-simulated on the full thermal model with the scenario's heater demand. ``soc``: the SOC
-    state's coordinate (:func:`build_problem`).
+    """Baseline-DP (SOC only, f_cl = 1). ``grids``: a :class:`DPGrids`, a :class:`FormulationGrids` (its
+    Baseline-DP grid) or None (the default, :data:`optimize.formulations.BASELINE_CONVERGED_GRIDS`); the
+    other solvers take the same. ``.sim``: its own optimum (f_cl = 1); ``.on_thermal``: its controls
+    re-simulated on the full thermal model with the scenario's heater demand. ``soc``: the SOC state's
+    coordinate (:func:`build_problem`).
 
-    Solved by the generic engine on one thread by default: 41 states per step are too few to pay for a
+    Solved by the generic engine on one thread by default: 150 states per step are too few to pay for a
     parallel region per step."""
-    scen, grids = scenario or DPScenario(), grids or DPGrids()
+    scen, grids = scenario or DPScenario(), FormulationGrids.coerce(grids).of("baseline")
     t0 = time.perf_counter()
     b = build_problem(params, scen, grids, 1, warm=True, soc=soc)
     with _threads(threads):
@@ -501,13 +504,13 @@ def solve_baseline(params, scenario: DPScenario | None = None, grids: DPGrids | 
     return _outcome("baseline", params, b, res, scen, grids, sim, t0, on_thermal=on)
 
 
-def solve_thermal(params, scenario: DPScenario | None = None, grids: DPGrids | None = None, *,
+def solve_thermal(params, scenario: DPScenario | None = None, grids=None, *,
                   heater: float | None = None, warm: bool = False, engine: str = "fused",
                   threads: int | None = None, soc: str = SOC_STATE) -> DPOutcome:
     """Thermal-DP (SOC, T_cl). ``heater`` overrides the scenario's demand (e.g. 0 W); ``warm=True``
     sets f_cl = 1 (with heater 0 W it must reproduce Baseline-DP); ``soc``: the SOC state's coordinate
     (:func:`build_problem`)."""
-    scen, grids = scenario or DPScenario(), grids or DPGrids()
+    scen, grids = scenario or DPScenario(), FormulationGrids.coerce(grids).of("thermal")
     t0 = time.perf_counter()
     b = build_problem(params, scen, grids, 2, heater=heater, warm=warm, soc=soc)
     with _threads(threads):
@@ -520,7 +523,7 @@ def solve_thermal(params, scenario: DPScenario | None = None, grids: DPGrids | N
     return out
 
 
-def solve_thermal_cabin(params, scenario: DPScenario | None = None, grids: DPGrids | None = None, *,
+def solve_thermal_cabin(params, scenario: DPScenario | None = None, grids=None, *,
                         engine: str = "fused", threads: int | None = None,
                         interp: str = CABIN_INTERP, cabin: str = CABIN_STATE,
                         soc: str = SOC_STATE, hold: bool | None = None) -> DPOutcome:
@@ -531,7 +534,7 @@ def solve_thermal_cabin(params, scenario: DPScenario | None = None, grids: DPGri
     (:func:`build_problem`; default :data:`SOC_STATE`); ``hold``: offer the "hold the bound" heater control
     besides the grid (:func:`build_problem`; default: with ``cabin="bound"``). ``.dp.u[:, 2]`` is the heat
     each step delivered where the hold control was chosen."""
-    scen, grids = scenario or DPScenario(), grids or DPGrids()
+    scen, grids = scenario or DPScenario(), FormulationGrids.coerce(grids).of("thermal_cabin")
     t0 = time.perf_counter()
     b = build_problem(params, scen, grids, 3, interp=interp, cabin=cabin, soc=soc, hold=hold)
     with _threads(threads):
