@@ -178,6 +178,19 @@ def _replace(tree, old, new):
     raise ValueError("node not found")
 
 
+def relocate(r: dict, src: str):
+    """(index, line) of an earlier report's mutant ``r`` in the module's current source ``src``: at its index
+    when that is still the same mutation at the same line, else the one site with the same mutation on a
+    line reading as ``r["source"]`` (moved by an edit elsewhere in the module); None when there is no such
+    site or more than one."""
+    ss = {i: (ln, d) for i, ln, d in sites(src)}
+    if ss.get(r["index"]) == (r["line"], r["mutation"]):
+        return r["index"], r["line"]
+    lines = src.splitlines()
+    cand = [(i, ln) for i, (ln, d) in ss.items() if d == r["mutation"] and ln and lines[ln - 1].strip() == r.get("source")]
+    return cand[0] if len(cand) == 1 else None
+
+
 def config() -> dict:
     data = tomllib.loads((ROOT / "pyproject.toml").read_text())
     return data["tool"]["iptm"]["mutation"]
@@ -259,10 +272,14 @@ def main(argv=None) -> int:
         earlier_report = json.loads(Path(a.rerun).read_text())
         earlier = earlier_report["mutants"]
         surv = [r for r in earlier if r["status"] in ("survived", "equivalent")]
-        for r in surv:  # the source must not have changed since: same mutation at the same line
-            ss = {i: (ln, d) for i, ln, d in sites((ROOT / r["module"]).read_text())}
-            if ss.get(r["index"]) != (r["line"], r["mutation"]):
-                raise SystemExit(f"{r['module']} changed since {a.rerun}; run the full sample again")
+        for r in surv:
+            at = relocate(r, (ROOT / r["module"]).read_text())
+            if at is None:
+                raise SystemExit(f"{r['module']}:{r['line']} {r['mutation']} changed since {a.rerun}; run the full "
+                                 "sample again")
+            if at != (r["index"], r["line"]):
+                print(f"{r['module']}:{r['line']} {r['mutation']} is now at line {at[1]}", flush=True)
+            r["index"], r["line"] = at
         if a.module:
             surv = [r for r in surv if r["module"] in a.module]
         plan = [(r["module"], r["index"], r["line"], r["mutation"]) for r in surv]
@@ -283,6 +300,8 @@ def main(argv=None) -> int:
             print(f"{m}:{ln}  #{i}  {d}")
         return 0
     t_start = time.perf_counter()
+    # the sources as they are now: a module edited in the checkout during the run (hours) changes no mutant
+    snap = {m: (ROOT / m).read_text() for m in mods}
     works = [_scratch() for _ in range(a.jobs)]
     results = []
     try:
@@ -291,9 +310,9 @@ def main(argv=None) -> int:
         for m in mods:
             mc = cfg["modules"][m]
             w = works[0]
-            (w / m).write_text(ast.unparse(ast.parse((ROOT / m).read_text())))
+            (w / m).write_text(ast.unparse(ast.parse(snap[m])))
             st, dt, tail = _run_tests(w, mc["tests"], mc.get("jit", False), 1800)
-            (w / m).write_text((ROOT / m).read_text())
+            (w / m).write_text(snap[m])
             print(f"baseline {m}: {st} in {dt:.0f} s", flush=True)
             if st != "survived":
                 print(tail)
@@ -312,7 +331,7 @@ def main(argv=None) -> int:
             w = lock_free.pop()
             try:
                 mc = cfg["modules"][m]
-                orig = (ROOT / m).read_text()
+                orig = snap[m]
                 try:
                     (w / m).write_text(mutate(orig, i))
                 except Exception as exc:  # an AST change that does not unparse: not a mutant

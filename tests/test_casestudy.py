@@ -26,6 +26,7 @@ def test_ordering(cs):
     st = cs.ordering_statement()
     assert ("holds" in st and "NOT" not in st) == holds
     assert f"{f['thermal']:.2f}" in st
+    assert "grid error" not in st  # no convergence check, no grid error
     # Thermal-Cabin-DP generalises Thermal-DP (1500 W is on its heater grid): on its own objective it is
     # at most Thermal-DP's run, up to a grid tie band
     from optimize.formulations.solve import dp_objective
@@ -127,3 +128,19 @@ def test_cli_optimize_no_hold_drops_the_hold_control(tmp_path, capsys):
         counts[bool(extra)] = int(m.group(2))
     n_heat = 4  # 1200:200:1800 W
     assert counts[False] * n_heat == counts[True] * (n_heat + 1)
+
+
+def test_ordering_names_steps_within_the_measured_grid_error(cs):
+    """With convergence rows, a step of the ordering closer than the sum of its two strategies' changes on
+    halving is named with that error; a step farther apart is not."""
+    from copy import copy
+
+    f = {k: s.summary()["fuel_corrected_g"] for k, s in cs.sims.items()}
+    gap = abs(f["rule"] - f["baseline"])
+    c = copy(cs)
+    c.convergence = [{"formulation": "baseline", "fuel_corrected_g": 100.0, "fuel_corrected_g_half": 100.0 - 2 * gap - 0.01},
+                     {"formulation": "thermal", "fuel_corrected_g": 100.0, "fuel_corrected_g_half": 100.0}]
+    st = c.ordering_statement()
+    assert f"rule - baseline = {f['rule'] - f['baseline']:+.2f} g is within the grid error {2 * gap + 0.01:.2f} g" in st
+    # thermal's change on halving is 0 and thermal_cabin has no row: that step has no grid error to name
+    assert f["thermal"] != f["thermal_cabin"] and "thermal - thermal_cabin" not in st

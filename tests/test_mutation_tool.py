@@ -84,3 +84,19 @@ def test_pooled_score_has_the_exact_binomial_interval():
     assert all_k["ci95"] == [pytest.approx(0.025 ** (1 / 20), abs=1e-4), 1.0]
     with pytest.raises(SystemExit, match="no mutant"):
         mutation.pooled([{"killed": 0, "survived": 0}])
+
+
+def test_rerun_finds_a_survivor_moved_by_an_edit_elsewhere_and_refuses_a_changed_one():
+    """A survivor of an earlier report is re-run where it now is: at its index when nothing moved; on the line
+    that reads as its source when lines were added above it (its index and line shift); refused when its
+    line changed or reads the same at two places."""
+    i, ln, d = next(s for s in mutation.sites(SRC) if s[2] == "0.5 -> 1.5")
+    r = dict(index=i, line=ln, mutation=d, source="x = 0.5")
+    assert mutation.relocate(r, SRC) == (i, ln)
+    moved = SRC.replace('    """Doc 2."""\n', '    """Doc 2."""\n    y = 3 * a\n    z = y - 1\n')
+    j, ln2 = mutation.relocate(r, moved)
+    assert ln2 == ln + 2 and j != i
+    out = mutation.mutate(moved, j)
+    assert "x = 1.5" in out and "x = 0.5" not in out and "y = 3 * a" in out
+    assert mutation.relocate(r, SRC.replace("x = 0.5", "x = 0.25")) is None
+    assert mutation.relocate(r, moved.replace("    x += a\n", "    x += a\n    x = 0.5\n")) is None
