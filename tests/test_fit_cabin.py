@@ -222,3 +222,20 @@ def test_eps_iteration_stops_only_below_3_binding_samples():
     out, msg = _eps([_vent_log(np.full(r.size, 50.0), r)], default_parameters(), fit)
     assert out is None and msg == "the heater-core limit bound in only 2 samples (need 60)"
     assert fit.metrics == {"eps_binding_samples": 2, "eps_candidate_samples": 60}
+
+
+def test_eps_candidates_need_a_blower_flow_above_5_g_per_s():
+    """Air through the heater core: samples with the blower at exactly 5 g/s (its off threshold) are no
+    candidates, those at 5.1 g/s are (70 at 5.1 g/s with ratio 0.7; 30 at 5.0 g/s with ratio 0.9, which would
+    bind and pull the estimate up)."""
+    import numpy as np
+
+    from calib.fit.cabin import _eps
+    from calib.fit.toolkit import SubsystemFit
+
+    lg = _vent_log(np.full(100, 40.0), np.r_[np.full(70, 0.7), np.full(30, 0.9)])
+    lg.data["blower_flow_kg_per_s"] = np.r_[np.full(70, 0.0051), np.full(30, 0.005)]
+    fit = SubsystemFit("t", ())
+    (eps, _, nb), _ = _eps([lg], default_parameters(), fit)
+    assert fit.metrics["eps_candidate_samples"] == 70 and nb == 70
+    assert eps == pytest.approx(0.7, rel=1e-12)

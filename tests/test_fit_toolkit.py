@@ -170,6 +170,18 @@ def _constant_fit(y, s, a0, sd0, **kw):
                    floor=s, **kw)
 
 
+def test_map_fit_noise_sd_counts_fewer_than_two_effective_samples():
+    """A constant through a 10-sample ramp: the residual is one slow drift, n_eff = 1.76 (AR(1) factor of
+    rho_1 = 0.7, :func:`neff`), and the noise sd is re-estimated as rms * sqrt(n / n_eff) with that value
+    (the floor of n_eff at 1 does not apply)."""
+    y = np.arange(10.0)
+    out = _constant_fit(y, 0.01, 0.0, 100.0)
+    r = out["values"]["a"] - y
+    n, ne = neff([r])
+    assert n == 10 and 1.0 < ne < 2.0
+    assert out["noise_sd"] == pytest.approx(np.sqrt(np.mean(r ** 2) * n / ne), rel=1e-9)
+
+
 def test_map_fit_robust_loss_discounts_an_outlier():
     """A constant through 40 zeros and one sample at 50 with a broad prior: squares put the estimate near
     the mean (50/41 = 1.22), a robust loss (soft_l1, f_scale 3 noise sd) keeps it below 0.75; loss='linear'

@@ -78,6 +78,10 @@ def test_power_split_engine_off_regen_limit(mp):
 def test_power_split_engine_power_limits(mp):
     assert not M.power_split(mp, M.ON, 10e3, 0.0)[4]  # engine would absorb power
     assert not M.power_split(mp, M.ON, 0.0, 80e3)[4]  # above P_e_max
+    # the bounds: 0 < P_e <= P_e_max (an engine at half a watt is on, one at zero power is not)
+    assert M.power_split(mp, M.ON, 0.0, 0.5 * mp.eta_mech)[4]
+    assert not M.power_split(mp, M.ON, 0.0, 0.0)[4]
+    assert M.power_split(mp, M.ON, 0.0, mp.P_e_max * mp.eta_mech)[4]
 
 
 def test_fuel_modes_and_cold_factor(mp):

@@ -144,3 +144,16 @@ def test_battery_power_limits_are_inclusive():
     assert (p.P_bat_min, p.P_bat_max) == (-25e3, 25e3)
     codes = [M.battery(p, 0.6, P, p.T_bat_ref)[4] for P in (-25e3, 25e3, -25001.0, 25001.0)]
     assert codes == [M.FEASIBLE, M.FEASIBLE, M.BATTERY_LIMIT, M.BATTERY_LIMIT]
+
+
+def test_cabin_heat_to_reach_lands_on_the_target_in_one_euler_step():
+    """The heat that takes the cabin to a target in one step, checked by stepping eq. 10 written out here
+    (C_cab dT/dt = Q_heat + UA_cab (T_amb - T_cab) + Q_sun) with sun and a cabin colder and warmer than the
+    target."""
+    UA, Q_sun, C, T_amb, Ts = 95.0, 240.0, 180e3, -10.0, 1.0
+    for T_cab, T_target in ((18.0, 19.5), (21.0, 20.0), (5.0, 5.0)):
+        q = M.cabin_heat_to_reach(UA, Q_sun, C, T_cab, T_amb, T_target, Ts)
+        T_next = T_cab + Ts * (q + UA * (T_amb - T_cab) + Q_sun) / C
+        assert T_next == pytest.approx(T_target, abs=1e-9)
+    # holding 19 degC against -10 degC with 240 W of sun: the load minus the sun
+    assert M.cabin_heat_to_reach(UA, Q_sun, C, 19.0, T_amb, 19.0, Ts) == pytest.approx(UA * 29.0 - Q_sun, rel=1e-12)
