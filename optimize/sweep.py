@@ -6,7 +6,7 @@ A *study* is a TOML file::
     name = "saving_vs_ambient"
     strategies = ["rule", "thermal"]        # any of rule, baseline, thermal, thermal_cabin
     reference = "rule"                       # savings are against this strategy (default: the first)
-    grids = {soc = 0.01, tcl = 1, pbat = 500}   # DPGrids steps (or a string "soc=0.01,tcl=1")
+    grids = {soc = 0.01, tcl = 1, pbat = 500}   # steps replacing each formulation's default (or "soc=0.01,tcl=1")
 
     [scenario]                               # base DPScenario fields
     duration_s = 600
@@ -122,14 +122,19 @@ class Study:
         if self.reference not in self.strategies:
             raise ScenarioError(f"study {self.name}: reference {self.reference!r} is not among the strategies")
         if isinstance(self.grids, str):
-            from optimize.formulations.scenario import parse_grid_spec
+            from optimize.formulations.scenario import parse_grid_steps
 
-            self.grids = parse_grid_spec(self.grids).to_dict()
+            self.grids = parse_grid_steps(self.grids)
         try:
-            self.grids = DPGrids(**{k: float(v) for k, v in dict(self.grids).items()}).to_dict()
+            # the steps given (each replaces that step of every formulation's default grid)
+            steps = {k: float(v) for k, v in dict(self.grids).items()}
+            DPGrids(**steps)
         except (TypeError, ValueError):
             raise ScenarioError(f"study {self.name}: bad grid {dict(self.grids)!r}; give numbers for soc, tcl, "
                                 "tcab, pbat, qheat") from None
+        if any(not v > 0 for v in steps.values()):
+            raise ScenarioError(f"study {self.name}: grid steps must be positive, got {steps!r}")
+        self.grids = steps
         for k, v in self.vary.items():
             if not isinstance(v, list) or not v:
                 raise ScenarioError(f"study {self.name}: [vary] {k} must be a non-empty list")
@@ -355,13 +360,13 @@ def run_case(case: dict) -> dict:
         if case.get("hold_s"):
             time.sleep(float(case["hold_s"]))
         from calib.model.params import ParameterSet
-        from optimize.formulations.scenario import DPGrids, DPScenario
+        from optimize.formulations.scenario import DEFAULT_GRIDS, DPScenario
         from optimize.formulations.solve import solve_formulation
         from optimize.tuning import tune_rule_based
 
         ps = ParameterSet.from_dict(case["params"])
         scen = DPScenario.from_dict({k: v for k, v in case["scenario"].items() if v is not None})
-        grids = DPGrids(**case["grids"])
+        grids = DEFAULT_GRIDS.with_steps(**case["grids"])
         cyc = scen.load_cycle()
     except Exception as exc:  # noqa: BLE001 - recorded, the study goes on
         rec["error"] = _error_text(exc)

@@ -191,14 +191,10 @@ class FormulationGrids:
 DEFAULT_GRIDS = FormulationGrids()
 
 
-def parse_grid_spec(spec: str | None, base=None):
-    """``"soc=0.01,tcl=1,tcab=1,pbat=500,qheat=50"`` (any subset): the given steps replace those of ``base``
-    (a :class:`DPGrids`, default the paper's; or a :class:`FormulationGrids`, each formulation's)."""
-    g = base or DPGrids()
-    if not spec:
-        return g
+def parse_grid_steps(spec: str | None) -> dict:
+    """``"soc=0.01,tcl=1,tcab=1,pbat=500,qheat=50"`` (any subset) -> ``{name: step}``, checked."""
     vals = {}
-    for part in spec.split(","):
+    for part in (spec or "").split(","):
         if not part.strip():
             continue
         if "=" not in part:
@@ -213,6 +209,14 @@ def parse_grid_spec(spec: str | None, base=None):
         if not x > 0:
             raise ScenarioError(f"grid spec: {k} step must be positive")
         vals[k] = x
+    return vals
+
+
+def parse_grid_spec(spec: str | None, base=None):
+    """A grid spec (:func:`parse_grid_steps`): the given steps replace those of ``base`` (a :class:`DPGrids`,
+    default the paper's; or a :class:`FormulationGrids`, each formulation's)."""
+    g = base or DPGrids()
+    vals = parse_grid_steps(spec)
     return g.with_steps(**vals) if isinstance(g, FormulationGrids) else replace(g, **vals)
 
 
