@@ -98,5 +98,6 @@ def format_case_study_convergence(cs) -> str:
     lines = [format_convergence(rows)] if rows else []
     for f in (k for k in cs.outcomes if k not in checked):
         lines.append(f"{f}: not checked with this run (every step halved is 32 times the work); "
-                     f"`iptm optimize --formulation {f} --convergence` solves it")
+                     f"`iptm optimize --params CALIBRATION --formulation {f} --convergence` solves it (CALIBRATION: "
+                     f"this run's calibration.toml)")
     return "\n".join(lines)

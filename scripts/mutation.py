@@ -16,7 +16,9 @@ Python). A module without compiled code of its own (a fitter, the DP engine's Py
 compiled code no compiled function of another file calls (the fused DP kernels), runs compiled with a cache
 shared by all its mutants (``jit = "shared"``): numba checks a cached function against its own source
 file's time stamp and size, so the mutated file is compiled again and only callers elsewhere could be stale.
-Set per module in ``[tool.iptm.mutation]`` of pyproject.toml.
+Set per module in ``[tool.iptm.mutation]`` of pyproject.toml, with ``boundscheck = true`` where a mutant could
+write past an array's end (numba does not check indices by default: such a write is undefined behaviour
+that a test may not notice; with the check it raises).
 
 Operators (as mutmut's numeric ones): ``+ <-> -``, ``* <-> /``, ``** -> *``, ``//, % -> /``; comparison
 boundaries ``< <-> <=``, ``> <-> >=``, ``== <-> !=``, ``in <-> not in``, ``is <-> is not``; ``and <-> or``;
@@ -207,11 +209,16 @@ def _scratch() -> Path:
     return d
 
 
-def _run_tests(work: Path, tests: list, jit, timeout: float):
+def _run_tests(work: Path, tests: list, jit, timeout: float, boundscheck: bool = False):
     """jit: False -> NUMBA_DISABLE_JIT=1; "fresh" -> compiled, empty numba cache; "shared" -> compiled with the
-    scratch copy's persistent cache (only for modules without compiled code of their own)."""
+    scratch copy's persistent cache (only for modules without compiled code of their own). ``boundscheck``:
+    compiled with numba's index checks (NUMBA_BOUNDSCHECK=1), so that a write past an array's end raises
+    instead of passing unseen."""
     env = dict(os.environ, PYTHONPATH=str(work), MPLBACKEND="Agg", PYTHONDONTWRITEBYTECODE="1")
     env.pop("NUMBA_DISABLE_JIT", None)
+    env.pop("NUMBA_BOUNDSCHECK", None)
+    if boundscheck:
+        env["NUMBA_BOUNDSCHECK"] = "1"
     cache = None
     if jit == "shared":
         env["NUMBA_CACHE_DIR"] = str(work / ".numba-cache")
@@ -311,7 +318,7 @@ def main(argv=None) -> int:
             mc = cfg["modules"][m]
             w = works[0]
             (w / m).write_text(ast.unparse(ast.parse(snap[m])))
-            st, dt, tail = _run_tests(w, mc["tests"], mc.get("jit", False), 1800)
+            st, dt, tail = _run_tests(w, mc["tests"], mc.get("jit", False), 1800, mc.get("boundscheck", False))
             (w / m).write_text(snap[m])
             print(f"baseline {m}: {st} in {dt:.0f} s", flush=True)
             if st != "survived":
@@ -336,7 +343,8 @@ def main(argv=None) -> int:
                     (w / m).write_text(mutate(orig, i))
                 except Exception as exc:  # an AST change that does not unparse: not a mutant
                     return dict(module=m, index=i, line=ln, mutation=d, status=f"invalid: {exc}")
-                st, dt, tail = _run_tests(w, mc["tests"], mc.get("jit", False), max(60.0, 4 * base_t[m]))
+                st, dt, tail = _run_tests(w, mc["tests"], mc.get("jit", False), max(60.0, 4 * base_t[m]),
+                                          mc.get("boundscheck", False))
                 (w / m).write_text(orig)
                 src_line = orig.splitlines()[ln - 1].strip() if ln else ""
                 r = dict(module=m, index=i, line=ln, mutation=d, status=st, seconds=round(dt, 1), source=src_line)
