@@ -227,10 +227,24 @@ def test_continuation_run_reports_each_runs_fuel_and_last_sample(ps):
 
 
 def test_credit_per_gram_defaults_to_a_warm_car_and_ignores_the_cabin_when_warm(ps):
-    """Without a state, the credit is that of the documented default (SOC 0.6, coolant 85 degC); with the
-    coolant warm the heater core delivers the full heater power whatever the cabin temperature, so the
-    cabin does not enter either continuation and the credit is the same for any cabin temperature."""
+    """Without a state, the credit is that of the documented defaults (SOC 0.6, coolant 85 degC, ambient
+    -10 degC, 1500 W of heater, 20 g); with the coolant warm the heater core delivers the full heater power
+    whatever the cabin temperature, so the cabin does not enter either continuation and the credit is the
+    same for any cabin temperature."""
     d = continuation_credit_per_gram(ps, 15e3, cycle="udds")
-    assert d == continuation_credit_per_gram(ps, 15e3, soc=0.6, T_cl=85.0, cycle="udds")
+    assert d == continuation_credit_per_gram(ps, 15e3, soc=0.6, T_cl=85.0, T_amb=-10.0, Q_heat=1500.0, grams=20.0,
+                                             cycle="udds")
+    # each of those defaults matters: another ambient or another finite amount gives another credit
+    assert d != continuation_credit_per_gram(ps, 15e3, T_amb=10.0, cycle="udds")
+    assert d != continuation_credit_per_gram(ps, 15e3, grams=21.0, cycle="udds")
     for T_cab in (0.0, 21.0):
         assert d == continuation_credit_per_gram(ps, 15e3, T_cab=T_cab, cycle="udds")
+
+
+def test_continued_terminal_cost_sub_grid_of_a_degenerate_range_is_one_node():
+    """The continuation's sub-grid along an axis: equal spacing at most ``step`` between the ends, and one
+    node (not two equal ones, a cell of zero width) when the range is a single value."""
+    from optimize.formulations.solve import _sub_nodes
+
+    assert np.array_equal(_sub_nodes(0.6, 0.6, 0.01), [0.6])
+    assert np.allclose(_sub_nodes(0.5, 0.6, 0.03), [0.5, 0.525, 0.55, 0.575, 0.6])

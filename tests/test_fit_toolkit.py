@@ -170,6 +170,17 @@ def _constant_fit(y, s, a0, sd0, **kw):
                    floor=s, **kw)
 
 
+def test_combine_with_prior_takes_a_zero_standard_error_as_no_estimate():
+    """A closed-form estimate whose standard error is 0 (a noise-free or degenerate regression) carries no
+    usable uncertainty: the posterior is the prior, with a note saying so, as for a missing or infinite
+    one; a positive one is precision-weighted."""
+    for se in (0.0, None, float("inf"), -1.0):
+        e = combine_with_prior("a", 2.0, se, 1.0, 0.5, "fit")
+        assert (e.value, e.stderr, e.informed) == (1.0, 0.5, 0.0) and "no usable estimate" in e.note, se
+    e = combine_with_prior("a", 2.0, 0.5, 1.0, 0.5, "fit")
+    assert e.value == pytest.approx(1.5, rel=1e-12) and e.stderr == pytest.approx(0.5 / np.sqrt(2.0), rel=1e-12)
+
+
 def test_map_fit_noise_sd_counts_fewer_than_two_effective_samples():
     """A constant through a 10-sample ramp: the residual is one slow drift, n_eff = 1.76 (AR(1) factor of
     rho_1 = 0.7, :func:`neff`), and the noise sd is re-estimated as rms * sqrt(n / n_eff) with that value

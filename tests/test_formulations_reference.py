@@ -276,3 +276,66 @@ def test_power_controls_are_off_idle_then_the_battery_grid_less_the_auxiliaries(
     n = int(round((mp.P_bat_max - mp.P_bat_min) / 5000.0)) + 1
     assert pc.shape == (2 + n, 2) and np.all(pc[2:, 0] == ON)
     np.testing.assert_allclose(pc[2:, 1] + mp.P_aux, mp.P_bat_min + 5000.0 * np.arange(n), rtol=0, atol=1e-9)
+
+
+def test_cabin_state_relative_to_its_bound_steps_like_the_absolute_one(params, tmp_path):
+    """With the cabin state the height above the step's comfort bound (``cabin="bound"``), a step from the
+    same cabin temperature costs the same and lands on the same temperature as with the absolute state:
+    the transition adds the bound back before the heater-core limit (which sees the recirculated cabin air)
+    and the cabin balance, and the next state is the height above the next step's bound."""
+    sunny = params.with_values(recirc_frac=0.35, Q_sun_W=300.0)
+    cyc = tmp_path / "c.csv"
+    cyc.write_text("time_s,speed_kph\n0,30\n1,36\n2,40\n")
+    scen = DPScenario(cycle=str(cyc), T_amb=-5.0, soc0=0.6, T_cl0=20.0, T_cab0=15.0, Q_heat=1500.0)
+    ab = build_problem(sunny, scen, GRIDS, 3, soc="absolute", cabin="absolute")
+    rel = build_problem(sunny, scen, GRIDS, 3, soc="absolute", cabin="bound")
+    off0, off1 = rel.prob.w[0, 3], rel.extra["T_cab_grid_offset"][0]
+    assert off0 > 10.0  # the bound is far from 0 degC: adding and subtracting it differ
+    iu = max((i for i in range(len(ab.prob.controls)) if ab.prob.controls[i, 0] == ON),
+             key=lambda i: (-ab.prob.controls[i, 1], ab.prob.controls[i, 2]))
+    for T_cab in (off0 + 0.5, off0 + 3.0):
+        cost_a, xa = _one_step(ab, (0.6, 20.0, T_cab), iu)
+        cost_r, xr = _one_step(rel, (0.6, 20.0, T_cab - off0), iu)
+        m = _model(ab, (0.6, 20.0, T_cab), iu)
+        assert m["Q_heat"] < ab.prob.controls[iu, 2]  # the heater-core limit binds: it sees the cabin air
+        assert xa[2] == pytest.approx(m["T_cab_next"], rel=1e-12)
+        assert xr[2] + off1 == pytest.approx(m["T_cab_next"], rel=1e-12)
+        assert xr[1] == pytest.approx(xa[1], rel=1e-12) and cost_r == pytest.approx(cost_a, rel=1e-12)
+
+
+def test_delivered_heat_is_each_steps_command_where_the_core_can_give_it(params, tmp_path):
+    """The heat the forward pass applied, replayed for every step of a trajectory: a command the warm core
+    can deliver comes back as it is, one value per step (the hold control's heat is checked in
+    tests/test_formulations.py)."""
+    from optimize.formulations.transition import delivered_heat
+
+    cyc = tmp_path / "c.csv"
+    cyc.write_text("time_s,speed_kph\n" + "".join(f"{i},{30 + i}\n" for i in range(7)))
+    b = build_problem(params, DPScenario(cycle=str(cyc), T_amb=-5.0, soc0=0.6, T_cl0=80.0, T_cab0=19.0,
+                                         Q_heat=1500.0), GRIDS, 3, soc="absolute", cabin="absolute")
+    N = b.prob.N
+    assert N == 6
+    x = np.column_stack([np.full(N + 1, 0.6), np.full(N + 1, 85.0), np.full(N + 1, 19.0)])
+    u = np.column_stack([np.full(N, ON), np.zeros(N), 1200.0 + 50.0 * np.arange(N)])
+    q = delivered_heat(b.prob.params, x, u, b.prob.w)
+    assert q.shape == (N,)
+    assert np.array_equal(q, u[:, 2])
+
+
+def test_soc_step_scales_with_the_step_length(params, tmp_path):
+    """On a cycle resampled to 2-s steps the off-grid SOC step is the model's over 2 s (current x Ts / C),
+    and the cost is the fuel rate times 2 s."""
+    from calib.model.cycles import load_cycle
+
+    cyc = tmp_path / "c.csv"
+    cyc.write_text("time_s,speed_kph\n0,30\n1,36\n2,40\n3,42\n4,44\n")
+    scen = DPScenario(cycle=str(cyc), T_amb=-5.0, soc0=0.6, T_cl0=20.0, T_cab0=15.0, Q_heat=1500.0)
+    b = build_problem(params, scen, GRIDS, 2, soc="absolute", cycle=load_cycle(str(cyc), Ts=2.0))
+    assert b.cyc.Ts == 2.0
+    for sign in (-1, 1):
+        iu = _on_control(b, sign)
+        cost, xn = _one_step(b, (0.6, 20.0), iu)
+        m = _model(b, (0.6, 20.0), iu)
+        assert abs(m["soc_next"] - 0.6) > 1e-4
+        assert xn[0] == pytest.approx(m["soc_next"], abs=1e-14)
+        assert cost == pytest.approx(m["W_f"] * 2.0, rel=1e-12)

@@ -13,6 +13,14 @@ def test_traction_power_road_load_at_constant_speed(mp):
     assert P == pytest.approx((mp.A + mp.B * v + mp.C * v * v) * v)
 
 
+def test_traction_power_road_load_applies_at_any_speed_above_zero(mp):
+    """Creeping at 0.5 m/s (mean of 0.4 and 0.6 over 1 s) the road load acts; at standstill it does not."""
+    vm, a = 0.5, 0.2
+    P = M.traction_power(mp, 0.4, 0.6, 0.0, 1.0)
+    assert P == pytest.approx((mp.m_eq * a + mp.A + mp.B * vm + mp.C * vm * vm) * vm, rel=1e-12)
+    assert M.traction_power(mp, 0.0, 0.0, 0.0, 1.0) == 0.0
+
+
 def test_traction_power_kinetic_energy_exact(mp):
     # with no road load the energy over a step is exactly the kinetic-energy change of m_eq
     mp0 = mp._replace(A=0.0, B=0.0, C=0.0)
