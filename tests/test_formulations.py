@@ -165,6 +165,24 @@ def test_fused_kernel_equals_generic_engine_next_to_an_infinite_soc_node_two_sta
         assert np.isinf(vg.V[-1][1]).all() and np.isfinite(vg.V[-2][0]).sum() >= 5
 
 
+def test_fused_kernel_equals_generic_engine_next_to_an_infinite_soc_node_below_the_top(params):
+    """The same with V_N = +inf at the SOC node below the top one: a charging step from the top is clipped
+    to the top node and reads that node with weight 0 (the exact interpolation then works in the top cell,
+    not the bottom one, and with the reach boundary's interpolation the level there is finite)."""
+    from optimize.formulations.fused import backward_pass_fused
+    from optimize.dp.engine import backward_pass
+
+    for interp in ("multilinear", "reach_first"):
+        b = build_problem(params, DPScenario(duration_s=20.0, T_cl0=25.0), DPGrids(pbat=1000.0), 2,
+                          soc="absolute", interp=interp)
+        ns = b.prob.grids[0].size
+        p = _with_infinite_nodes(b.prob, 0, ns - 2)
+        vg, vf = backward_pass(p), backward_pass_fused(p, skip=False)
+        np.testing.assert_array_equal(vg.V, vf.V)
+        np.testing.assert_array_equal(vg.L, vf.L)
+        assert np.isinf(vg.V[-1][ns - 2]).all() and np.isfinite(vg.V[-2][ns - 1]).sum() >= 5
+
+
 @pytest.mark.parametrize("nx,scen,grids", [
     (2, DPScenario(duration_s=300.0), DPGrids()),
     (3, DPScenario(duration_s=120.0, T_cl0=40.0), DPGrids(tcl=4.0, pbat=2500.0, qheat=200.0)),

@@ -138,6 +138,20 @@ def _on_control(b, pbm_sign):
     return max(idx, key=lambda i: pbm_sign * c[i, 1])
 
 
+def test_drifting_soc_grid_spans_the_charge_limits_at_every_step_with_the_fewest_nodes(params, tmp_path):
+    """The drifting grid is the fixed lattice (step h, through SOC_min) extended just enough that at every step
+    the charge it covers, node + offset, reaches from SOC_min down and SOC_max up: one node fewer at
+    either end would leave the charge limit uncovered at the step whose offset is largest (bottom) or
+    smallest (top)."""
+    b = _two_state(params, tmp_path, kmh=(0, 20, 40, 45, 30, 0), soc="drift")
+    socg, off, h = b.prob.grids[0], b.extra["soc_grid_offset"], GRIDS.soc
+    lo, hi = DPScenario().soc_min, DPScenario().soc_max
+    assert off.max() - off.min() > 1e-3
+    assert np.allclose((socg - lo) / h, np.round((socg - lo) / h), atol=1e-9)  # the fixed lattice
+    assert socg[0] + off.max() <= lo + 1e-12 and socg[-1] + off.min() >= hi - 1e-12
+    assert socg[1] + off.max() > lo and socg[-2] + off.min() < hi
+
+
 def test_transition_fuel_is_the_cold_fuel_rate_and_states_are_the_models(params, tmp_path):
     b = _two_state(params, tmp_path)
     x = (0.6, 3.5)  # cold coolant: f_cl well above 1
