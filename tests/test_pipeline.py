@@ -126,22 +126,16 @@ def test_scenario_file(tmp_path):
     scen, grids, strategies, cyc_log = pipeline.load_scenario(f)
     assert scen.cycle == "nycc" and scen.T_amb == -5.0 and strategies == ("rule", "thermal")
     # the file's steps replace every formulation's own; the others stay each formulation's default
-    assert [grids.of(f).soc for f in ("baseline", "thermal", "thermal_cabin")] == [0.02] * 3
+    assert [grids.of(fm).soc for fm in ("baseline", "thermal", "thermal_cabin")] == [0.02] * 3
     assert (grids.of("baseline").pbat, grids.of("thermal").pbat, grids.of("thermal_cabin").tcab) == (250.0, 500.0, 1.5)
-    f.write_text('[grids]\nsoc = -0.01\n')
-    with pytest.raises(IptmError, match="positive"):
-        pipeline.load_scenario(f)
-    f.write_text('[grids]\nsco = 0.01\n')
-    with pytest.raises(IptmError, match="known: soc"):
-        pipeline.load_scenario(f)
     f.write_text('[scenario]\ncycle = "from log"\ncycle_log = "x.csv"\n')
     assert pipeline.load_scenario(f)[3] == "x.csv"
-    f.write_text('[scenario]\nambient = 3\n')
-    with pytest.raises(IptmError, match="unknown scenario field"):
-        pipeline.load_scenario(f)
-    f.write_text('[scenario]\ncycle = "nycc"\n[run]\nstrategies =-7.0\n')
-    with pytest.raises(IptmError, match="strategies must be a list of names"):
-        pipeline.load_scenario(f)
+    for text, message in (('[grids]\nsoc = -0.01\n', "positive"), ('[grids]\nsco = 0.01\n', "known: soc"),
+                          ('[scenario]\nambient = 3\n', "unknown scenario field"),
+                          ('[scenario]\ncycle = "nycc"\n[run]\nstrategies =-7.0\n', "strategies must be a list of names")):
+        f.write_text(text)
+        with pytest.raises(IptmError, match=message):
+            pipeline.load_scenario(f)
 
 
 def test_source_edit_recomputes_what_depends_on_it(first_run, monkeypatch):
