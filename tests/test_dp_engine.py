@@ -771,6 +771,10 @@ def test_reach_first_with_the_boundary_on_a_node_gives_that_node_its_value():
     assert _lin_reach(10.0, 4.0, 0.5, 0.0, 0.0, 0.25) == pytest.approx(0.75 * 10.0 + 0.25 * 4.0)
     assert _lin_reach(4.0, 10.0, 0.0, 0.5, 0.0, 0.0) == 4.0
     assert _lin_reach(4.0, 10.0, 0.0, 0.5, 0.0, 0.75) == pytest.approx(0.25 * 4.0 + 0.75 * 10.0)
+    # the unreachable node's value +inf (no control reaches the set from it) leaves the boundary node's
+    # value alone: no 0 * inf on the node itself
+    assert _lin_reach(np.inf, 4.0, 0.5, 0.0, 0.0, 1.0) == 4.0
+    assert _lin_reach(4.0, np.inf, 0.0, 0.5, 0.0, 0.0) == 4.0
 
 
 def test_reach_first_is_offered_for_one_to_three_states_only():

@@ -170,6 +170,17 @@ def _constant_fit(y, s, a0, sd0, **kw):
                    floor=s, **kw)
 
 
+def test_posterior_note_says_how_far_the_data_moved_the_value_from_half_a_prior_sd():
+    """The note names a move of half a prior sd or more (here exactly 0.5: 1.0 -> 2.0 with a prior sd of
+    2), and says nothing of a smaller one."""
+    from calib.fit.toolkit import posterior_estimate
+
+    out = {"informed": {"a": 0.5}, "prior_sd": {"a": 2.0}, "post_sd": {"a": 1.0}, "values": {"a": 2.0}}
+    assert "moved +0.5 prior sd from the prior" in posterior_estimate("a", out, "", 1.0).note
+    out["values"]["a"] = 1.98
+    assert "moved" not in posterior_estimate("a", out, "", 1.0).note
+
+
 def test_combine_with_prior_takes_a_zero_standard_error_as_no_estimate():
     """A closed-form estimate whose standard error is 0 (a noise-free or degenerate regression) carries no
     usable uncertainty: the posterior is the prior, with a note saying so, as for a missing or infinite

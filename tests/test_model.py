@@ -52,6 +52,17 @@ def test_battery_limit_flagged(mp):
     assert M.battery(mp, 0.5, mp.P_bat_min - 1.0, 26.0)[4] == M.BATTERY_LIMIT
 
 
+def test_each_infeasibility_has_its_own_code_and_reason(mp):
+    """The power limit and the missing root are told apart: distinct codes, each with its own message."""
+    assert len({M.FEASIBLE, M.ENGINE_POWER, M.BATTERY_LIMIT, M.BATTERY_ROOT}) == 4
+    U, R = M.battery_ocv_r(mp, 0.5, 26.0)
+    limit = M.battery(mp, 0.5, mp.P_bat_max + 1.0, 26.0)[4]
+    root = M.battery(mp, 0.5, 1.01 * U * U / (4 * R), 26.0)[4]
+    assert "outside [P_bat_min, P_bat_max]" in M.INFEASIBLE_REASONS[limit]
+    assert "no real current" in M.INFEASIBLE_REASONS[root]
+    assert "engine power" in M.INFEASIBLE_REASONS[M.ENGINE_POWER]
+
+
 def test_battery_resistance_rises_in_cold(mp):
     _, R26 = M.battery_ocv_r(mp, 0.5, 26.0)
     _, R1 = M.battery_ocv_r(mp, 0.5, 1.0)
