@@ -795,3 +795,21 @@ def test_dataframe_has_one_row_per_step_and_the_step_count():
     assert prob.N == 20 and df.attrs["n_steps"] == 20 and df["k"].tolist() == list(range(21))
     assert np.isnan(df["stage_cost"].iloc[-1]) and np.isnan(df["u0"].iloc[-1])
     assert df.attrs["cost"] == r.cost and df.attrs["feasible"] == r.feasible
+
+
+def test_level_choice_rule_prefers_reaching_then_least_level_then_least_cost():
+    """The level-set choice rule worked by hand (tol 0): a control reaching the terminal set replaces one
+    that does not, and among reaching ones the cheaper wins; if none reaches, the least level wins, a tie in
+    level goes to the cheaper, and an exact tie keeps the earlier control. A control's cost is needed while
+    it could still be chosen."""
+    from optimize.dp.kernels import level_better, level_needs_cost
+
+    tol = 0.0
+    assert level_better(-1.0, 9.0, tol, False, 0.5, 1.0)
+    assert not level_better(-1.0, 9.0, tol, True, -2.0, 5.0) and level_better(-1.0, 4.0, tol, True, -2.0, 5.0)
+    assert not level_better(1.0, 1.0, tol, True, -1.0, 5.0)
+    assert level_better(0.5, 9.0, tol, False, 1.0, 1.0)
+    assert not level_better(1.0, 5.0, tol, False, 1.0, 3.0) and level_better(1.0, 2.0, tol, False, 1.0, 3.0)
+    assert not level_better(1.0, 3.0, tol, False, 1.0, 3.0)
+    assert level_needs_cost(-1.0, tol, True, -2.0) and level_needs_cost(1.0, tol, False, 1.0)
+    assert not level_needs_cost(1.0, tol, True, -1.0) and not level_needs_cost(1.5, tol, False, 1.0)
