@@ -248,3 +248,21 @@ def test_continued_terminal_cost_sub_grid_of_a_degenerate_range_is_one_node():
 
     assert np.array_equal(_sub_nodes(0.6, 0.6, 0.01), [0.6])
     assert np.allclose(_sub_nodes(0.5, 0.6, 0.03), [0.5, 0.525, 0.55, 0.575, 0.6])
+
+
+def test_credit_per_gram_is_the_continuation_value_of_the_grams_charge_and_heat(ps):
+    """The credit worked from its definition: 20 g burnt at P_e charge the battery by
+    P_e eta_mech eta_em / (C_bat U) per gram of fuel and heat the coolant by (1 - gamma) (LHV W_f - P_e) /
+    (C_eng W_f) per gram (no heater, no losses in the gram's own balance); the credit is the drop of the
+    continuation value from x to x + made, per gram."""
+    from calib.model.equations import ON, battery_ocv_r, fuel_rate
+
+    mp, P_e, x = ps.model_params(), 15e3, (0.6, 60.0, 20.0)
+    W_f = fuel_rate(mp, ON, P_e, x[1])
+    U, _ = battery_ocv_r(mp, x[0], mp.T_bat_ref)
+    dsoc = 20.0 * P_e * mp.eta_mech * mp.eta_em / (mp.C_bat_As * U) / W_f
+    dT = 20.0 * (1.0 - mp.gamma_exh) * (mp.LHV * W_f - P_e) / mp.C_eng / W_f
+    C0, C1 = continuation_value(ps, np.array([x[0], x[0] + dsoc]), np.array([x[1], x[1] + dT]), x[2], ref=x,
+                                cycle="udds", **KW)
+    assert continuation_credit_per_gram(ps, P_e, soc=x[0], T_cl=x[1], T_cab=x[2], cycle="udds", **KW) == \
+        pytest.approx((C0 - C1) / 20.0, rel=1e-9)

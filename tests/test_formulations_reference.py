@@ -353,3 +353,51 @@ def test_soc_step_scales_with_the_step_length(params, tmp_path):
         assert abs(m["soc_next"] - 0.6) > 1e-4
         assert xn[0] == pytest.approx(m["soc_next"], abs=1e-14)
         assert cost == pytest.approx(m["W_f"] * 2.0, rel=1e-12)
+
+
+def test_transition_on_grid_nodes_reads_the_same_tables_as_off_the_grid(params, tmp_path):
+    """On a grid node the transition reads the node's precomputed next charge, cold-start factor and heat
+    loss; off the grid it computes them. At nodes below and above the thermostat (radiator on) both give the
+    same cost and next state."""
+    from optimize.formulations.transition import hev_precompute, hev_transition
+
+    b = _two_state(params, tmp_path)
+    prob = b.prob
+    tab = np.zeros(prob.table_shape)
+    hev_precompute(0, prob.w[0], prob.params, tab)
+    socg, tclg = prob.grids
+    iu = _on_control(b, -1)
+    for i, T_cl in ((5, 35.0), (20, 95.0)):
+        j = int(np.argmin(np.abs(tclg - T_cl)))
+        x = np.array([socg[i], tclg[j]])
+        out = []
+        for ix in ((i, j), (-1, -1)):
+            xn = np.empty(2)
+            out.append((hev_transition(0, x, prob.controls[iu], prob.w[0], prob.params, tab, iu,
+                                       np.array(ix, np.int64), xn), xn))
+        assert np.isfinite(out[0][0])
+        assert out[0][0] == pytest.approx(out[1][0], rel=1e-12)
+        np.testing.assert_allclose(out[0][1], out[1][1], rtol=0.0, atol=1e-12)
+
+
+def test_cabin_bound_is_the_reference_less_the_offset_and_never_starts_above_the_cabin(params, tmp_path):
+    """The comfort bound of each step is the reference cabin trajectory less ``cab_lb_offset``; a bound
+    above the reference (a negative offset) would start above the initial cabin, so the bound of step 0 is
+    the initial temperature (the start is not penalised), and with the cabin state relative to its bound
+    the initial state is 0."""
+    from dataclasses import replace
+
+    from optimize.formulations.solve import reference_run
+
+    cyc = tmp_path / "c.csv"
+    cyc.write_text("time_s,speed_kph\n0,30\n1,36\n2,40\n3,40\n")
+    base = DPScenario(cycle=str(cyc), T_amb=-5.0, soc0=0.6, T_cl0=20.0, T_cab0=12.0, Q_heat=1500.0)
+    ref = reference_run(params, base.load_cycle(), base).T_cab
+    assert ref[0] == 12.0 and np.all(np.abs(np.diff(ref)) > 1e-6)
+    for off in (1.0, -0.5):
+        scen = replace(base, cab_lb_offset=off)
+        b = build_problem(params, scen, GRIDS, 3, soc="absolute", cabin="bound")
+        np.testing.assert_allclose(b.prob.w[:, 2], ref[1:] - off, rtol=0.0, atol=1e-12)
+        np.testing.assert_allclose(b.prob.w[1:, 3], ref[1:-1] - off, rtol=0.0, atol=1e-12)
+        assert b.prob.w[0, 3] == min(12.0 - off, 12.0)
+    assert b.x0[2] == 0.0
