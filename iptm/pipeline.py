@@ -62,7 +62,7 @@ def load_scenario(path=None):
     -------
     (DPScenario, FormulationGrids, strategies, cycle_log or None)
     """
-    from optimize.formulations.scenario import DEFAULT_GRIDS, DPGrids, DPScenario
+    from optimize.formulations.scenario import DEFAULT_GRIDS, DPScenario, parse_grid_steps
 
     if path is None:
         return DPScenario(), DEFAULT_GRIDS, STRATEGIES, None
@@ -87,14 +87,10 @@ def load_scenario(path=None):
         raise ScenarioError(f"{path}: {exc}") from None
     except TypeError as exc:
         raise ScenarioError(f"{path}: [scenario]: {exc}") from None
-    g = d.get("grids", {})
     try:
-        DPGrids(**g)  # names checked here, values below
-        grids = DEFAULT_GRIDS.with_steps(**{k: float(v) for k, v in g.items()})
-    except (TypeError, ValueError) as exc:
-        raise ScenarioError(f"{path}: [grids]: {exc} (known: soc, tcl, tcab, pbat, qheat; positive numbers)") from None
-    if any(not v > 0 for v in g.values()):
-        raise ScenarioError(f"{path}: [grids]: every step must be a positive number, got {g}")
+        grids = DEFAULT_GRIDS.with_steps(**parse_grid_steps(d.get("grids", {})))
+    except ScenarioError as exc:
+        raise ScenarioError(f"{path}: [grids]: {exc}") from None
     run = d.get("run", {})
     strategies = run.get("strategies", STRATEGIES) if isinstance(run, dict) else None
     if not isinstance(strategies, (list, tuple)) or not all(isinstance(s, str) for s in strategies):
@@ -257,16 +253,14 @@ def optimize_cached(params, scen, grids, strategies, store: Store | None, progre
     :func:`optimize.casestudy.run_case_study`; each strategy's key holds its own grid."""
     from dataclasses import replace
 
-    from optimize.formulations.scenario import FORMULATIONS, FormulationGrids
-
-    grids = FormulationGrids.coerce(grids)
-
     from tqdm import tqdm
 
     from calib.drivelog import file_sha256
     from calib.model.simulate import sim_from_arrays, sim_to_arrays
     from optimize.casestudy import LABELS, CaseStudy, run_case_study
+    from optimize.formulations.scenario import FORMULATIONS, FormulationGrids
 
+    grids = FormulationGrids.coerce(grids)
     if cycle_log is not None:
         from calib.model.cycles import load_cycle
         from calib.fileio import write_text

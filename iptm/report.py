@@ -20,7 +20,7 @@ from calib.fileio import write_json, write_text
 from html import escape as html_escape
 
 from iptm.html import Section, render
-from optimize.formulations.scenario import FORMULATIONS, FormulationGrids
+from optimize.formulations.scenario import FORMULATIONS
 
 FIG_SERIES = {  # what the paper-style figures plot, per strategy
     "soc": "soc", "T_cl_degC": "T_cl", "T_cab_degC": "T_cab",
@@ -205,7 +205,7 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
     opt.p(f"Scenario: cycle {scenario.cycle}, ambient {scenario.T_amb:g} degC, SOC0 {scenario.soc0:g}, "
           f"coolant {scenario.T_cl0:g} degC, cabin {scenario.T_cab0:g} degC, heater {scenario.Q_heat:g} W "
           f"(Thermal-Cabin: {scenario.Q_heat_min:g}-{scenario.Q_heat_max:g} W). Grid steps: "
-          + FormulationGrids.coerce(grids).describe([f for f in FORMULATIONS if f in cs.outcomes]) + ".")
+          + grids.describe([f for f in FORMULATIONS if f in cs.outcomes]) + ".")
     opt.table(comparison_table(tab), "one row per strategy: fuel (with L/100 km and mpg), fuel corrected for "
                                      "differences in final stored electric and thermal energy, final states, and "
                                      "savings next to the paper's (Gong et al., CCTA 2019).")
@@ -237,7 +237,7 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
     # --- provenance
     prov = {"run_id": run_id, "date_utc": now, "software": f"iptm {__version__}", "python": platform.python_version(),
             "command_line": command_line, "base_parameters": base_params or "default 2017 Prius",
-            "logs": logs_info, "scenario": scenario.to_dict(), "grids": FormulationGrids.coerce(grids).to_dict(), "wall_s": wall_s}
+            "logs": logs_info, "scenario": scenario.to_dict(), "grids": grids.to_dict(), "wall_s": wall_s}
     pr = Section("provenance", "Provenance")
     pr.table(pd.DataFrame([{"item": k, "value": json.dumps(v) if isinstance(v, (dict, list)) else str(v)}
                            for k, v in prov.items() if k != "logs"]))

@@ -55,7 +55,7 @@ def case_study_halving(cs, cs_half) -> list:
     for f in ("baseline_warm", "baseline", "thermal", "thermal_cabin"):
         dp = "baseline" if f == "baseline_warm" else f
         if f in cs.sims and f in cs_half.sims and dp in cs.outcomes:
-            rows.append(halving_row(f, FormulationGrids.coerce(cs.grids).of(dp), cs.sims[f], cs_half.sims[f], cs.outcomes.get(dp),
+            rows.append(halving_row(f, cs.grids.of(dp), cs.sims[f], cs_half.sims[f], cs.outcomes.get(dp),
                                     cs_half.outcomes.get(dp)))
     return rows
 

@@ -102,7 +102,7 @@ class Study:
 
     def __post_init__(self):
         from calib.errors import ScenarioError
-        from optimize.formulations.scenario import DPGrids, DPScenario
+        from optimize.formulations.scenario import DPScenario
 
         for what, val, kinds in (("strategies", self.strategies, (list, tuple)), ("grids", self.grids, (dict, str)),
                                  ("vary", self.vary, (dict,)), ("link", self.link, (dict,))):
@@ -121,20 +121,12 @@ class Study:
             self.reference = self.strategies[0]
         if self.reference not in self.strategies:
             raise ScenarioError(f"study {self.name}: reference {self.reference!r} is not among the strategies")
-        if isinstance(self.grids, str):
-            from optimize.formulations.scenario import parse_grid_steps
+        from optimize.formulations.scenario import parse_grid_steps
 
+        try:  # the steps given (each replaces that step of every formulation's default grid)
             self.grids = parse_grid_steps(self.grids)
-        try:
-            # the steps given (each replaces that step of every formulation's default grid)
-            steps = {k: float(v) for k, v in dict(self.grids).items()}
-            DPGrids(**steps)
-        except (TypeError, ValueError):
-            raise ScenarioError(f"study {self.name}: bad grid {dict(self.grids)!r}; give numbers for soc, tcl, "
-                                "tcab, pbat, qheat") from None
-        if any(not v > 0 for v in steps.values()):
-            raise ScenarioError(f"study {self.name}: grid steps must be positive, got {steps!r}")
-        self.grids = steps
+        except ScenarioError as exc:
+            raise ScenarioError(f"study {self.name}: bad grid {self.grids!r}: {exc}") from None
         for k, v in self.vary.items():
             if not isinstance(v, list) or not v:
                 raise ScenarioError(f"study {self.name}: [vary] {k} must be a non-empty list")

@@ -133,7 +133,7 @@ CABIN_CONVERGED_GRIDS = DPGrids(tcl=2.0, tcab=1.5, pbat=750.0, qheat=100.0)
 
 #: Baseline-DP's default: the paper's SOC and battery-power steps halved. On the paper's steps halving every
 #: step moves its corrected fuel by -0.115 % (default car) and -0.116 % (bundled calibrated car); from these,
-#: by -0.055 % and -0.062 %. One state and about 200 controls: 3 s instead of 0.7 s.
+#: by -0.055 % and -0.062 %. 147 states x 203 controls: about 2 s per solve instead of 0.6 s.
 BASELINE_CONVERGED_GRIDS = DPGrids(soc=0.005, pbat=250.0)
 
 #: The grid steps each formulation solves on (its state and control axes; the other steps are unused).
@@ -191,20 +191,26 @@ class FormulationGrids:
 DEFAULT_GRIDS = FormulationGrids()
 
 
-def parse_grid_steps(spec: str | None) -> dict:
-    """``"soc=0.01,tcl=1,tcab=1,pbat=500,qheat=50"`` (any subset) -> ``{name: step}``, checked."""
+def parse_grid_steps(spec) -> dict:
+    """Grid steps given as ``"soc=0.01,tcl=1,tcab=1,pbat=500,qheat=50"`` or as a mapping (any subset) ->
+    ``{name: step}``, checked: known names, positive numbers."""
+    if isinstance(spec, str) or spec is None:
+        items = []
+        for part in (spec or "").split(","):
+            if not part.strip():
+                continue
+            if "=" not in part:
+                raise ScenarioError(f"grid spec {part!r}: expected name=step")
+            items.append(tuple(s.strip() for s in part.split("=", 1)))
+    else:
+        items = list(dict(spec).items())
     vals = {}
-    for part in (spec or "").split(","):
-        if not part.strip():
-            continue
-        if "=" not in part:
-            raise ScenarioError(f"grid spec {part!r}: expected name=step")
-        k, v = (s.strip() for s in part.split("=", 1))
+    for k, v in items:
         if k not in DPGrids.__dataclass_fields__:
             raise ScenarioError(f"grid spec: unknown grid {k!r}; known: soc, tcl, tcab, pbat, qheat")
         try:
             x = float(v)
-        except ValueError:
+        except (TypeError, ValueError):
             raise ScenarioError(f"grid spec: {k}={v!r} is not a number") from None
         if not x > 0:
             raise ScenarioError(f"grid spec: {k} step must be positive")

@@ -22,7 +22,7 @@ from optimize.formulations.layout import (HOLD, LEVEL_TOL, PENALTY_G_PER_STEP, _
                                           _C_NX, _C_PEN, _C_QHI, _C_QLO, _C_SH, _C_SHI,
                      _C_SLO, _C_TAMB, _C_TBAT, _C_TH, _C_THI, _C_TLO, _C_TS, _C_WBL, _MS, _T_SOC0,
                      pack_params)
-from optimize.formulations.scenario import DPGrids, DPScenario, FormulationGrids, _grid
+from optimize.formulations.scenario import FORMULATIONS, DPGrids, DPScenario, FormulationGrids, _grid
 from optimize.formulations.transition import build_tables, delivered_heat, drift_offsets, hev_precompute, hev_transition
 
 
@@ -272,8 +272,7 @@ def dp_objective(params, sim, scen: DPScenario, nx: int, T_cab_terminal_min: flo
     ``continued`` the terminal cost is the DP's own interpolated ``C(x_N) - C(x_0)`` (Thermal-DP: at the
     reference run's final cabin, as in the DP), on ``grids`` and the ``cabin`` coordinate of that DP."""
     if scen.terminal == "continued" and nx >= 2:
-        b = build_problem(params, scen, FormulationGrids.coerce(grids).of(("baseline", "thermal", "thermal_cabin")[nx - 1]), nx,
-                          cabin=cabin)
+        b = build_problem(params, scen, FormulationGrids.coerce(grids).of(FORMULATIONS[nx - 1]), nx, cabin=cabin)
         off = float(b.extra["T_cab_grid_offset"][-1]) if nx == 3 else 0.0
         X = np.array([[sim.soc[-1], sim.T_cl[-1], sim.T_cab[-1] - off][:nx]])
         return float(sim.fuel_g + b.prob.terminal_cost(X)[0])
