@@ -1,5 +1,6 @@
-"""Benchmark: the three DP formulations on the paper's grids, 993-s ARTEMIS Urban, -10 degC, and
-Thermal-Cabin-DP on its converged grid (:data:`optimize.formulations.CABIN_CONVERGED_GRIDS`; with
+"""Benchmark: the three DP formulations on the paper's grids, 993-s ARTEMIS Urban, -10 degC, Baseline-DP on
+its default grid (:data:`optimize.formulations.BASELINE_CONVERGED_GRIDS`) and Thermal-Cabin-DP on its
+converged grid (:data:`optimize.formulations.CABIN_CONVERGED_GRIDS`; with
 ``--halve`` also on that grid with every step halved, the convergence check, printed beside its time).
 
 Each formulation is solved once to compile (or load numba's disk cache), then timed on a second solve.
@@ -17,7 +18,7 @@ def run(quick: bool = False, halve: bool = False) -> dict:
     import numba
 
     from calib.model.params import default_parameters
-    from optimize.formulations.scenario import CABIN_CONVERGED_GRIDS, DPGrids, DPScenario
+    from optimize.formulations.scenario import BASELINE_CONVERGED_GRIDS, CABIN_CONVERGED_GRIDS, DPGrids, DPScenario
     from optimize.formulations.solve import peak_rss_mb, solve_formulation
 
     ps = default_parameters()
@@ -65,6 +66,16 @@ def run(quick: bool = False, halve: bool = False) -> dict:
               f"{r['evals_per_s_if_flop_bound'] / 1e6:.0f} M evals/s at ~30 flops each, "
               f"{r['evals_per_s_if_memory_bound'] / 1e6:.0f} M evals/s if each read its 64 bytes from memory",
               flush=True)
+    # Baseline-DP's default grid (BASELINE_CONVERGED_GRIDS: the paper's steps are not converged for it)
+    bg = BASELINE_CONVERGED_GRIDS
+    o = solve_formulation("baseline", ps, scen, bg)
+    out["baseline_default"] = {"grid": bg.to_dict(), "n_states": o.n_states, "n_controls": o.n_controls,
+                               "t_total_s": o.t_total, "t_backward_s": o.t_backward,
+                               "n_evaluations": o.n_evaluations, "evals_per_second": o.evals_per_second,
+                               "fuel_corrected_g": o.sim.summary()["fuel_corrected_g"], "threads": 1}
+    print(f"baseline on its default grid {bg.to_dict()}: {o.n_states} states x {o.n_controls} controls: total "
+          f"{o.t_total:.3f} s (backward {o.t_backward:.3f} s, {o.evals_per_second / 1e6:.0f} M evals/s, generic "
+          f"kernel, 1 thread); corrected fuel {out['baseline_default']['fuel_corrected_g']:.4f} g", flush=True)
     # the converged Thermal-Cabin-DP grid (its kernels are compiled by the solve above)
     cg = CABIN_CONVERGED_GRIDS
     o = solve_formulation("thermal_cabin", ps, scen, cg)
