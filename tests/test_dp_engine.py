@@ -813,3 +813,69 @@ def test_level_choice_rule_prefers_reaching_then_least_level_then_least_cost():
     assert not level_better(1.0, 3.0, tol, False, 1.0, 3.0)
     assert level_needs_cost(-1.0, tol, True, -2.0) and level_needs_cost(1.0, tol, False, 1.0)
     assert not level_needs_cost(1.0, tol, True, -1.0) and not level_needs_cost(1.5, tol, False, 1.0)
+
+
+def test_interpolation_rules_snap_a_query_within_1e_9_of_a_cell_onto_the_node():
+    """A query closer than 1e-9 of its cell's width to a node is read on the node (rounding of a state
+    computed to land there); farther outside the grid it is off-grid (+inf without clipping). The width is
+    that of the cell the query is in or next to: on a non-uniform grid below its first node, the first
+    cell's (0.5 here, where the second cell is 1.5 wide)."""
+    g0 = np.array([0.0, 0.5, 2.0, 3.0])
+    g1 = np.linspace(-1, 1, 5)
+    prob = DPProblem(grids=[g0, g1], controls=np.zeros((1, 1)), N=1, transition=twostatesys)
+    X = prob.grid_points()
+    lin = (2 * X[:, 0] - 3 * X[:, 1] + 1).reshape(prob.grid_shape)
+    w = 0.5
+    out = interpolate(prob, lin, [[-0.5e-9 * w, 0.0], [-1.5e-9 * w, 0.0], [3.0 + 0.5e-9, 0.0], [3.0 + 1.5e-9, 0.0]])
+    assert out[0] == pytest.approx(1.0, abs=1e-12) and out[2] == pytest.approx(7.0, abs=1e-12)
+    assert np.isinf(out[1]) and np.isinf(out[3])
+
+
+def _lin_reach_reference(v0, v1, l0, l1, tol, t):
+    """The reach-boundary rule as the engine documents it, written independently of optimize.dp.kernels:
+    in a cell whose linear level crosses tol between an unreachable node (level > tol) and a reachable one,
+    a query on the reachable side of the crossing interpolates from the unreachable node's value placed at
+    the crossing; elsewhere the plain chord."""
+    if (l0 > tol) != (l1 > tol):
+        cross = (l0 - tol) / (l0 - l1)  # where (1 - s) l0 + s l1 = tol
+        if l1 <= tol and t >= cross:
+            return v1 if cross >= 1.0 else v0 + (t - cross) / (1.0 - cross) * (v1 - v0)
+        if l0 <= tol and t <= cross:
+            return v0 if cross <= 0.0 else v0 + t / cross * (v1 - v0)
+    return (1.0 - t) * v0 + t * v1
+
+
+def test_reach_first_matches_an_independent_implementation_on_random_cells_of_two_and_three_states():
+    """Random values and levels (varying along every state, so each node's level matters), random cells and
+    fractions: the 2-state rule (reach rule along the first state per node of the second, then linear along
+    the second) and the 3-state rule (linear along the last state first, then the reach rule along the
+    first, then linear along the second) against :func:`_lin_reach_reference`."""
+    from optimize.dp.kernels import _interp_reach
+
+    rng = np.random.default_rng(5)
+    for shape in ((4, 5), (4, 3, 5)):
+        nx = len(shape)
+        strides = np.array([int(np.prod(shape[d + 1:])) for d in range(nx)], np.int64)
+        n_cut = 0
+        for _ in range(200):
+            V = rng.uniform(0.0, 10.0, shape)
+            L = rng.uniform(-1.0, 1.0, shape)
+            ib = np.array([rng.integers(0, s - 1) for s in shape], np.int64)
+            tb = rng.uniform(0.0, 1.0, nx)
+            got = _interp_reach(V.astype(np.float32).ravel(), L.astype(np.float32).ravel(), 0.0, nx, strides,
+                                ib, tb)
+            V32, L32 = V.astype(np.float32).astype(np.float64), L.astype(np.float32).astype(np.float64)
+            rows = []
+            for j in (0, 1):  # the second state's two nodes
+                if nx == 2:
+                    idx = lambda c: (c, ib[1] + j)  # noqa: E731
+                    val = lambda A, c: A[idx(c)]  # noqa: E731
+                else:
+                    val = lambda A, c: (1.0 - tb[2]) * A[c, ib[1] + j, ib[2]] + tb[2] * A[c, ib[1] + j, ib[2] + 1]  # noqa: E731
+                c = ib[0]
+                la, lb = val(L32, c), val(L32, c + 1)
+                n_cut += (la > 0.0) != (lb > 0.0)
+                rows.append(_lin_reach_reference(val(V32, c), val(V32, c + 1), la, lb, 0.0, tb[0]))
+            want = (1.0 - tb[1]) * rows[0] + tb[1] * rows[1]
+            assert got == pytest.approx(want, rel=1e-9, abs=1e-9), (shape, ib, tb)
+        assert n_cut > 100  # the boundary cuts many of the cells tried

@@ -507,3 +507,82 @@ def test_continued_terminal_without_the_dps_grids_is_refused_for_two_and_three_s
     for nx, cab_final in ((2, 20.0), (3, None)):
         with pytest.raises(ScenarioError, match="needs the DP's grids"):
             _terminal_cost(mp, scen, nx, cab_final=cab_final, grid_list=None)
+
+
+def test_free_terminal_of_thermal_cabin_dp_charges_the_cabin_shortfall_and_match_charges_nothing(params):
+    """``free`` (the paper's): the terminal cost is ``cab_terminal_g_per_K`` per kelvin of final cabin below
+    the rule-based run's last sample (simulated here directly), zero above it, on the absolute cabin
+    temperature the grid offset restores; ``match`` bounds the final temperatures instead and adds no
+    terminal cost."""
+    from dataclasses import replace
+
+    from calib.model.simulate import simulate
+    from optimize.formulations.solve import build_problem
+
+    scen = replace(COLD, duration_s=60.0, terminal="free")
+    r = simulate(params, scen.load_cycle(), T_amb=scen.T_amb, soc0=scen.soc0, T_cl0=scen.T_cl0,
+                 T_cab0=scen.T_cab0, Q_heat=scen.Q_heat)
+    b = build_problem(params, scen, COARSE3, 3, cabin="bound")
+    off = float(b.extra["T_cab_grid_offset"][-1])
+    T_ref = float(r.T_cab[-1])
+    cab = np.array([T_ref - 2.0, T_ref - 0.5, T_ref, T_ref + 1.0])
+    X = np.column_stack([np.full(4, scen.soc0), np.full(4, 60.0), cab - off])
+    np.testing.assert_allclose(b.prob.terminal_cost(X), [20.0, 5.0, 0.0, 0.0], atol=1e-9)
+    assert scen.cab_terminal_g_per_K == 10.0
+    m = build_problem(params, replace(scen, terminal="match"), COARSE3, 3, cabin="bound")
+    assert m.prob.terminal_cost is None
+
+
+def test_initial_state_on_a_grid_end_is_accepted_and_beyond_it_refused(params):
+    """SOC_0 and T_cl0 may lie on the ends of their grids (inclusive bounds); a value beyond an end is a
+    scenario error naming the state. Thermal-DP's reference cabin is the untuned rule-based run's last
+    sample (simulated here directly), the cabin the ``continued`` terminal values at the end."""
+    from dataclasses import replace
+
+    from calib.errors import ScenarioError
+    from calib.model.simulate import simulate
+    from optimize.formulations.solve import build_problem
+
+    scen = DPScenario(duration_s=30.0, T_cab0=5.0)  # a cold cabin: it warms over every step
+    g = DPGrids(soc=0.02, tcl=4.0, pbat=2000.0)
+    for kw in ({"soc0": scen.soc_min}, {"soc0": scen.soc_max}, {"T_cl0": scen.T_cl_min},
+               {"T_cl0": scen.T_cl_max}):
+        s = replace(scen, **kw)
+        b = build_problem(params, s, g, 2)
+        assert b.x0[1] == s.T_cl0
+        r = simulate(params, s.load_cycle(), T_amb=s.T_amb, soc0=s.soc0, T_cl0=s.T_cl0, T_cab0=s.T_cab0,
+                     Q_heat=s.Q_heat)
+        assert b.extra["T_cab_ref_final"] == float(r.T_cab[-1]) != float(r.T_cab[1])
+    for kw, name in (({"soc0": scen.soc_max + 1e-6}, "soc0"), ({"T_cl0": scen.T_cl_min - 1e-6}, "T_cl0"),
+                     ({"T_cl0": scen.T_cl_max + 1e-6}, "T_cl0")):
+        with pytest.raises(ScenarioError, match=name):
+            build_problem(params, replace(scen, **kw), g, 2)
+
+
+def test_cabin_grid_of_thermal_cabin_dp_spans_its_bounds_with_the_fewest_nodes(params):
+    """The cabin grid runs from the floor of the lowest comfort bound (the untuned rule-based run's cabin
+    minus ``cab_lb_offset``, simulated here directly) in steps of ``tcab`` to the first node at or above
+    the upper limit ``max(T_cab_ub, final reference cabin, T_cab0)``: one node more would raise the
+    cabin's ceiling by a step. Checked for steps that do and do not divide the range, and on a cabin
+    warming from 5 degC with ``T_cab_ub`` 5 degC, where the reference's last sample is the limit (a 0.01-K
+    step puts a node between it and the sample before)."""
+    from dataclasses import replace
+
+    from calib.model.simulate import simulate
+    from optimize.formulations.solve import build_problem
+
+    cold = replace(COLD, duration_s=60.0)
+    warming = DPScenario(duration_s=60.0, T_cab0=5.0, T_cab_ub=5.0)
+    for scen, steps in ((cold, (1.0, 0.7, 1.5)), (warming, (0.01,))):
+        r = simulate(params, scen.load_cycle(), T_amb=scen.T_amb, soc0=scen.soc0, T_cl0=scen.T_cl0,
+                     T_cab0=scen.T_cab0, Q_heat=scen.Q_heat)
+        lb = r.T_cab - scen.cab_lb_offset
+        lb[0] = min(lb[0], scen.T_cab0)
+        lo = np.floor(lb.min())
+        hi = max(scen.T_cab_ub, float(r.T_cab[-1]), scen.T_cab0)
+        for step in steps:
+            g = build_problem(params, scen, replace(COARSE3, tcab=step), 3, cabin="absolute").prob.grids[2]
+            assert g[0] == lo
+            np.testing.assert_allclose(np.diff(g), step, rtol=1e-6)
+            assert g[-1] >= hi - 1e-9 and g[-2] < hi - 1e-9, (step, g[-2:], hi)
+    assert float(r.T_cab[-2]) < g[-2] < hi  # the case that tells the last sample from the one before
