@@ -867,15 +867,15 @@ def test_reach_first_matches_an_independent_implementation_on_random_cells_of_tw
             V32, L32 = V.astype(np.float32).astype(np.float64), L.astype(np.float32).astype(np.float64)
             rows = []
             for j in (0, 1):  # the second state's two nodes
+                # the two nodes along the first state: values (3 states: linear along the last one first)
                 if nx == 2:
-                    idx = lambda c: (c, ib[1] + j)  # noqa: E731
-                    val = lambda A, c: A[idx(c)]  # noqa: E731
+                    Vc, Lc = V32[ib[0]:ib[0] + 2, ib[1] + j], L32[ib[0]:ib[0] + 2, ib[1] + j]
                 else:
-                    val = lambda A, c: (1.0 - tb[2]) * A[c, ib[1] + j, ib[2]] + tb[2] * A[c, ib[1] + j, ib[2] + 1]  # noqa: E731
-                c = ib[0]
-                la, lb = val(L32, c), val(L32, c + 1)
-                n_cut += (la > 0.0) != (lb > 0.0)
-                rows.append(_lin_reach_reference(val(V32, c), val(V32, c + 1), la, lb, 0.0, tb[0]))
+                    a = ib[2]
+                    Vc = (1.0 - tb[2]) * V32[ib[0]:ib[0] + 2, ib[1] + j, a] + tb[2] * V32[ib[0]:ib[0] + 2, ib[1] + j, a + 1]
+                    Lc = (1.0 - tb[2]) * L32[ib[0]:ib[0] + 2, ib[1] + j, a] + tb[2] * L32[ib[0]:ib[0] + 2, ib[1] + j, a + 1]
+                n_cut += (Lc[0] > 0.0) != (Lc[1] > 0.0)
+                rows.append(_lin_reach_reference(Vc[0], Vc[1], Lc[0], Lc[1], 0.0, tb[0]))
             want = (1.0 - tb[1]) * rows[0] + tb[1] * rows[1]
             assert got == pytest.approx(want, rel=1e-9, abs=1e-9), (shape, ib, tb)
         assert n_cut > 100  # the boundary cuts many of the cells tried
