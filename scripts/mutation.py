@@ -259,7 +259,9 @@ def main(argv=None) -> int:
                                                                 "different seeds) with its 95 %% interval; no test is run")
     a = ap.parse_args(argv)
     if a.pool:
-        print(json.dumps(pooled([json.loads(Path(f).read_text()) for f in a.pool]), indent=1))
+        cfg = config()
+        sizes = {m: len(sites((ROOT / m).read_text())) for m in cfg["modules"]}
+        print(json.dumps(pooled([json.loads(Path(f).read_text()) for f in a.pool], sizes), indent=1))
         return 0
     cfg = config()
     if a.resummarise:
@@ -376,7 +378,7 @@ def main(argv=None) -> int:
     return 0
 
 
-def pooled(reports) -> dict:
+def pooled(reports, sizes: dict | None = None) -> dict:
     """Killed / scored mutants over several reports as they were recorded, with the exact (Clopper-Pearson)
     95 % interval of a binomial proportion: the mutants of a seeded sample are a random draw from all."""
     from scipy.stats import beta
@@ -387,8 +389,38 @@ def pooled(reports) -> dict:
         raise SystemExit("--pool: the reports score no mutant")
     lo = float(beta.ppf(0.025, k, n - k + 1)) if k > 0 else 0.0
     hi = float(beta.ppf(0.975, k + 1, n - k)) if k < n else 1.0
-    return {"killed": k, "scored": n, "score": round(k / n, 4), "ci95": [round(lo, 4), round(hi, 4)],
-            "seeds": [r.get("seed") for r in reports]}
+    out = {"killed": k, "scored": n, "score": round(k / n, 4), "ci95": [round(lo, 4), round(hi, 4)],
+           "seeds": [r.get("seed") for r in reports]}
+    if sizes:
+        out["weighted"] = stratified(reports, sizes)
+    return out
+
+
+def stratified(reports, sizes: dict) -> dict:
+    """Score of all mutants estimated from per-module samples: each module's pooled score weighted by its
+    number of mutants (``sizes``), with a normal-approximation 95 % interval of the stratified mean. Every
+    sample draws the same number per module, so the plain pooled score weights a small module as much as a
+    large one; this is the estimate of the score a full run would give."""
+    per = {}
+    for r in reports:
+        for m, d in r.get("per_module", {}).items():
+            a = per.setdefault(m, [0, 0])
+            a[0] += d["killed"]
+            a[1] += d["killed"] + d["survived"]
+    missing = sorted(set(sizes) - {m for m, (_, n) in per.items() if n})
+    tot = sum(sizes[m] for m in per if m in sizes and per[m][1])
+    est = var = 0.0
+    mods = {}
+    for m, (k, n) in sorted(per.items()):
+        if m not in sizes or n == 0:
+            continue
+        p, w = k / n, sizes[m] / tot
+        est += w * p
+        var += w * w * p * (1.0 - p) / n
+        mods[m] = {"killed": k, "scored": n, "score": round(p, 3), "mutants": sizes[m]}
+    half = 1.96 * var ** 0.5
+    return {"score": round(est, 4), "ci95": [round(max(est - half, 0.0), 4), round(min(est + half, 1.0), 4)],
+            "mutants": tot, "modules_not_sampled": missing, "per_module": mods}
 
 
 def summarise(results, plan, cfg) -> dict:

@@ -86,6 +86,22 @@ def test_pooled_score_has_the_exact_binomial_interval():
         mutation.pooled([{"killed": 0, "survived": 0}])
 
 
+def test_weighted_score_weights_each_modules_pooled_score_by_its_mutants():
+    # worked by hand: module a (300 mutants) 3+4 killed of 5+5 -> 0.7; module b (100) 5 of 5 -> 1.0;
+    # 0.75 * 0.7 + 0.25 * 1.0 = 0.775; variance 0.75^2 * 0.21 / 10 + 0 = 0.0118125
+    reps = [{"killed": 8, "survived": 2, "per_module": {"a": {"killed": 3, "survived": 2}, "b": {"killed": 5, "survived": 0}}},
+            {"killed": 4, "survived": 1, "per_module": {"a": {"killed": 4, "survived": 1}}}]
+    out = mutation.pooled(reps, {"a": 300, "b": 100, "c": 50})
+    assert out["score"] == pytest.approx(12 / 15, abs=1e-4)
+    w = out["weighted"]
+    assert w["score"] == pytest.approx(0.775, abs=1e-4)
+    half = 1.96 * 0.0118125 ** 0.5
+    assert w["ci95"] == [pytest.approx(0.775 - half, abs=1e-4), pytest.approx(min(0.775 + half, 1.0), abs=1e-4)]
+    # a module no sample reached is named, and weighs nothing in the estimate
+    assert w["modules_not_sampled"] == ["c"] and w["mutants"] == 400
+    assert w["per_module"]["a"] == {"killed": 7, "scored": 10, "score": 0.7, "mutants": 300}
+
+
 def test_rerun_finds_a_survivor_moved_by_an_edit_elsewhere_and_refuses_a_changed_one():
     """A survivor of an earlier report is re-run where it now is: at its index when nothing moved; on the line
     that reads as its source when lines were added above it (its index and line shift); refused when its
