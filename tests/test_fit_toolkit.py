@@ -328,3 +328,34 @@ def test_map_fit_stops_rescaling_the_noise_once_it_moved_less_than_5_percent():
                   noise_sd=s0, floor=1e-6, max_tau=1.0)
     assert out["values"]["a"] == pytest.approx(a1, rel=1e-7)
     assert out["noise_sd"] == pytest.approx(s1, rel=1e-7)
+
+
+def test_map_fit_tries_the_further_starts_in_its_first_minimisation():
+    """m(a) = a^3 - 3a against data y = 3: a local minimum of the misfit at a = -1 (m = 2, residual 1 per
+    sample) and the global one where a^3 - 3a = 3 (a = 2.1038). From a = -1.2 the first minimisation ends
+    at -1; the start a = 2.5 reaches the global one. With the noise sd set to what a fit at -1 ends with,
+    a fit there moves its noise sd by less than 5 % and stops: only starts tried in the *first*
+    minimisation can leave the local mode."""
+    import lmfit
+
+    rng = np.random.default_rng(3)
+    y = 3.0 + 0.01 * rng.standard_normal(200)
+
+    def make():
+        ps = lmfit.Parameters()
+        ps.add("a", value=-1.2, min=-3.0, max=3.0)
+        return ps
+
+    def segs(ps):
+        a = ps["a"].value
+        return [(a ** 3 - 3.0 * a) - y]
+
+    kw = dict(prior={"a": 0.0}, prior_sd={"a": 100.0})
+    local = map_fit(make, segs, ["a"], noise_sd=0.01, **kw)
+    assert local["values"]["a"] == pytest.approx(-1.0, abs=1e-3)
+    out = map_fit(make, segs, ["a"], noise_sd=local["noise_sd"], starts=[{"a": 2.5}], **kw)
+    root = float(np.real([r for r in np.roots([1.0, 0.0, -3.0, -3.0]) if abs(r.imag) < 1e-12 and r.real > 0][0]))
+    assert root == pytest.approx(2.1038, abs=1e-4)
+    assert out["values"]["a"] == pytest.approx(root, abs=1e-3)
+    # and the noise sd is re-estimated at the global mode: about the data's 0.01, not the local mode's ~1
+    assert out["noise_sd"] < 0.1 < local["noise_sd"]
