@@ -380,6 +380,30 @@ def test_transition_on_grid_nodes_reads_the_same_tables_as_off_the_grid(params, 
         np.testing.assert_allclose(out[0][1], out[1][1], rtol=0.0, atol=1e-12)
 
 
+def test_transition_on_every_soc_node_takes_the_next_charge_from_the_nodes_table_entry(params, tmp_path):
+    """On a grid node the next charge is the table's entry for that node and control, not a recomputation:
+    an entry marked by hand comes back at every SOC node, the first and the last included (the drifting
+    grid, so the next state is the entry less the next step's offset)."""
+    from optimize.formulations.layout import _T_SOC0
+    from optimize.formulations.transition import hev_precompute, hev_transition
+
+    b = _two_state(params, tmp_path, soc="drift")
+    prob = b.prob
+    tab = np.zeros(prob.table_shape)
+    hev_precompute(0, prob.w[0], prob.params, tab)
+    socg, tclg = prob.grids
+    iu = _on_control(b, -1)
+    ip = iu // int(round(prob.controls.shape[0] / tab.shape[0]))
+    j = int(np.argmin(np.abs(tclg - 40.0)))
+    for i in (0, 1, socg.size // 2, socg.size - 1):
+        mark = 0.55 + 1e-3 * i
+        tab[ip, _T_SOC0 + i] = mark
+        xn = np.empty(2)
+        hev_transition(0, np.array([socg[i], tclg[j]]), prob.controls[iu], prob.w[0], prob.params, tab, iu,
+                       np.array((i, j), np.int64), xn)
+        assert xn[0] == pytest.approx(mark - prob.w[0, 5], abs=1e-15)
+
+
 def test_cabin_bound_is_the_reference_less_the_offset_and_never_starts_above_the_cabin(params, tmp_path):
     """The comfort bound of each step is the reference cabin trajectory less ``cab_lb_offset``; a bound
     above the reference (a negative offset) would start above the initial cabin, so the bound of step 0 is
