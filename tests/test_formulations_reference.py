@@ -152,6 +152,29 @@ def test_drifting_soc_grid_spans_the_charge_limits_at_every_step_with_the_fewest
     assert socg[1] + off.max() > lo and socg[-2] + off.min() < hi
 
 
+def test_drifting_soc_grid_adds_no_node_when_the_offsets_span_a_whole_number_of_steps(params, tmp_path):
+    """The edge case of the rule above: a step that divides both the largest offset and the charge range
+    (h = |min offset| / 4, SOC_max = SOC_min + 200 h) puts a node exactly on each limit at the extreme
+    steps, and the lattice ends there: no further node above or below (a tolerance of 1e-9 steps absorbs
+    the rounding)."""
+    from dataclasses import replace
+
+    b0 = _two_state(params, tmp_path, kmh=(0, 20, 40, 45, 30, 0), soc="drift")
+    off = b0.extra["soc_grid_offset"]
+    assert off.max() == 0.0 and off.min() < -1e-3
+    h = -off.min() / 4.0
+    lo = DPScenario().soc_min
+    hi = lo + 200 * h
+    scen = DPScenario(cycle=str(tmp_path / "c.csv"), T_amb=-5.0, soc0=0.6, T_cl0=20.0, T_cab0=15.0, Q_heat=1500.0,
+                      soc_max=hi)
+    b = build_problem(params, scen, replace(GRIDS, soc=h), 2, soc="drift")
+    socg = b.prob.grids[0]
+    np.testing.assert_array_equal(b.extra["soc_grid_offset"], off)
+    assert socg.size == 201 + 4
+    assert socg[0] == pytest.approx(lo, abs=1e-12) and socg[-1] + off.min() == pytest.approx(hi, abs=1e-12)
+    assert socg[1] + off.max() > lo + 0.5 * h and socg[-2] + off.min() < hi - 0.5 * h
+
+
 def test_transition_fuel_is_the_cold_fuel_rate_and_states_are_the_models(params, tmp_path):
     b = _two_state(params, tmp_path)
     x = (0.6, 3.5)  # cold coolant: f_cl well above 1
