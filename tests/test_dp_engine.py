@@ -473,15 +473,35 @@ def test_result_plot(tmp_path):
     assert line.get_ydata()[-1] == pytest.approx(r.cost - r.terminal_cost)
 
 
-def test_input_validation():
-    with pytest.raises(ValueError):
-        DPProblem(grids=[np.array([0.0, 0.0, 1.0])], controls=np.zeros((1, 1)), N=1, transition=twostatesys)
-    with pytest.raises(ValueError):
-        DPProblem(grids=[np.linspace(0, 1, 3)], controls=np.zeros((1, 1)), N=2, w=np.zeros((3, 1)),
-                  transition=twostatesys)
-    with pytest.raises(ValueError):
-        DPProblem(grids=[np.linspace(0, 1, 3)], controls=np.zeros((1, 1)), N=2, transition=twostatesys,
-                  boundary="bogus")
+def test_malformed_problem_inputs_are_refused_each_with_its_message():
+    g = [np.linspace(0, 1, 3)]
+    one = dict(controls=np.zeros((1, 1)), transition=twostatesys)
+    cases = [
+        (dict(grids=[np.array([0.0, 0.0, 1.0])], N=1, **one), "grid 0 must be strictly increasing"),
+        (dict(grids=[np.array([0.0])], N=1, **one), "grid 0 must be strictly increasing with at least 2"),
+        (dict(grids=g, N=2, w=np.zeros((3, 1)), **one), "w must have N=2 rows, got 3"),
+        (dict(grids=g, N=2, boundary="bogus", **one), "boundary must be"),
+        (dict(grids=g, N=0, **one), "N must be >= 1"),
+        (dict(grids=g, N=1, controls=np.zeros((0, 1)), transition=twostatesys), "non-empty"),
+        (dict(grids=g, N=1, controls=np.zeros((2, 1, 1)), transition=twostatesys), "non-empty"),
+        (dict(grids=g, N=1, table_shape=(3,), **one), "table_shape must be 2-D"),
+    ]
+    for kw, msg in cases:
+        with pytest.raises(ValueError, match=msg):
+            DPProblem(**kw)
+    # 1-D controls and inputs are one column each; N = 1 and the default table shape are accepted
+    p = DPProblem(grids=g, controls=np.array([-1.0, 0.0, 1.0]), N=1, w=np.array([2.0]), transition=twostatesys)
+    assert p.controls.shape == (3, 1) and p.w.shape == (1, 1) and p.w[0, 0] == 2.0 and p.N == 1
+    assert DPProblem(grids=g, N=1, **one).w.shape == (1, 0)
+    # the terminal data and the initial state must fit the grid
+    for n in (2, 4):
+        with pytest.raises(ValueError, match="one value per grid state"):
+            DPProblem(grids=g, N=1, terminal_cost=np.zeros(n), **one).terminal_arrays()
+    box = DPProblem(grids=g, N=1, terminal_bounds=[(0.0, 1.0), (0.0, 1.0)], boundary="levelset", **one)
+    with pytest.raises(ValueError, match="one \\(lo, hi\\) per state"):
+        box.terminal_arrays()
+    with pytest.raises(ValueError, match="x0 must have 2 entries"):
+        solve(_twostate_problem(5), [0.05])
 
 
 # ----------------------------------------------------------------------------------------------------
