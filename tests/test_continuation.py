@@ -67,6 +67,17 @@ def test_bad_input(ps):
 
     with pytest.raises(IptmError, match="valuation"):
         compare_causal(ps, valuation="prices")
+    for g in (0.0, -1.0, float("nan")):
+        with pytest.raises(ScenarioError, match="grams must be positive"):
+            continuation_credit_per_gram(ps, 15e3, grams=g, cycle="udds")
+    # a result that records no ambient needs it given, and then uses the one given
+    res = simulate(ps, "nycc", T_amb=-10.0, soc0=X0[0], T_cl0=X0[1], T_cab0=X0[2], Q_heat=1500.0)
+    bare = replace(res, info={k: v for k, v in res.info.items() if k != "T_amb_degC"})
+    with pytest.raises(ScenarioError, match="records no ambient; pass T_amb"):
+        continuation_corrected(bare, Q_heat=1500.0, cycle="udds")
+    given = continuation_corrected(bare, Q_heat=1500.0, T_amb=-10.0, cycle="udds")
+    assert given == continuation_corrected(res, Q_heat=1500.0, cycle="udds")
+    assert given != continuation_corrected(res, Q_heat=1500.0, T_amb=0.0, cycle="udds")
 
 
 SHORT = DPScenario(duration_s=300.0, terminal="continued", cont_cycle="udds+udds")
