@@ -151,9 +151,10 @@ def test_cabin_heat_to_reach_lands_on_the_target_in_one_euler_step():
     (C_cab dT/dt = Q_heat + UA_cab (T_amb - T_cab) + Q_sun) with sun and a cabin colder and warmer than the
     target."""
     UA, Q_sun, C, T_amb, Ts = 95.0, 240.0, 180e3, -10.0, 1.0
-    for T_cab, T_target in ((18.0, 19.5), (21.0, 20.0), (5.0, 5.0)):
-        q = M.cabin_heat_to_reach(UA, Q_sun, C, T_cab, T_amb, T_target, Ts)
-        T_next = T_cab + Ts * (q + UA * (T_amb - T_cab) + Q_sun) / C
-        assert T_next == pytest.approx(T_target, abs=1e-9)
+    for dt in (1.0, 2.0, 0.5):  # steps other than 1 s: the heat scales with 1 / Ts
+        for T_cab, T_target in ((18.0, 19.5), (21.0, 20.0), (5.0, 5.0)):
+            q = M.cabin_heat_to_reach(UA, Q_sun, C, T_cab, T_amb, T_target, dt)
+            T_next = T_cab + dt * (q + UA * (T_amb - T_cab) + Q_sun) / C
+            assert T_next == pytest.approx(T_target, abs=1e-9)
     # holding 19 degC against -10 degC with 240 W of sun: the load minus the sun
     assert M.cabin_heat_to_reach(UA, Q_sun, C, 19.0, T_amb, 19.0, Ts) == pytest.approx(UA * 29.0 - Q_sun, rel=1e-12)
