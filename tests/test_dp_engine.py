@@ -899,3 +899,14 @@ def test_reach_first_matches_an_independent_implementation_on_random_cells_of_tw
             want = (1.0 - tb[1]) * rows[0] + tb[1] * rows[1]
             assert got == pytest.approx(want, rel=1e-9, abs=1e-9), (shape, ib, tb)
         assert n_cut > 100  # the boundary cuts many of the cells tried
+
+
+def test_forward_pass_reports_the_first_control_when_it_is_optimal():
+    """x+ = x + u, cost u^2, controls (0, 1, 2), no terminal cost: u = 0 at every step is optimal, and the
+    trajectory reports that control (index 0), not a missing one."""
+    one = np.array([[1.0]])
+    prob = DPProblem(grids=[np.linspace(-1.0, 5.0, 7)], controls=np.array([[0.0], [1.0], [2.0]]), N=3,
+                     transition=linear_quadratic, params=(one, one, np.array([[0.0]]), one))
+    r = solve(prob, [0.0])
+    np.testing.assert_array_equal(r.u, np.zeros((3, 1)))
+    assert r.cost == 0.0 and r.feasible
