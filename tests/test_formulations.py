@@ -112,6 +112,27 @@ def test_fused_kernel_equals_generic_engine(params, nx, scen, grids, hold, soc, 
     assert rg.cost == rf.cost
 
 
+@pytest.mark.parametrize("soc,interp", [("drift", "reach_first"), ("absolute", "multilinear")])
+def test_fused_kernel_equals_generic_engine_where_the_chosen_coolant_leaves_its_grid_below(params, soc, interp):
+    """The coolant penalty below the grid, in grid steps, is the same in both kernels. At the usual weight no
+    optimal control leaves the grid, so the weight is made cheap (1e-3 g a step) and the terminal free: the
+    optimum then lets the coolant drop below its 24-degC bottom node on a 4-K grid (a penalty divided by the
+    step differs from one multiplied by it)."""
+    from optimize.formulations.fused import backward_pass_fused
+    from optimize.formulations.layout import _C_PEN
+    from optimize.dp.engine import backward_pass
+
+    scen = DPScenario(duration_s=25.0, T_cl0=28.0, T_cl_min=24.0, terminal="free")
+    b = build_problem(params, scen, DPGrids(soc=0.02, tcl=4.0, pbat=2500.0, qheat=200.0), 3, soc=soc,
+                      interp=interp)
+    v_dear = backward_pass(b.prob).V
+    b.prob.params[_C_PEN] = 1e-3
+    vg, vf = backward_pass(b.prob), backward_pass_fused(b.prob, skip=False)
+    assert not np.array_equal(vg.V, v_dear)  # the cheap penalty is chosen somewhere
+    np.testing.assert_array_equal(vg.V, vf.V)
+    np.testing.assert_array_equal(vg.L, vf.L)
+
+
 def _with_infinite_nodes(prob, axis: int, node: int):
     """The problem with a terminal cost of +inf at one node of state ``axis`` (every other state kept):
     next states located exactly on the node below it read that +inf corner with weight 0."""

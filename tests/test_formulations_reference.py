@@ -427,6 +427,52 @@ def test_transition_on_every_soc_node_takes_the_next_charge_from_the_nodes_table
         assert xn[0] == pytest.approx(mark - prob.w[0, 5], abs=1e-15)
 
 
+def test_tables_next_charge_on_a_moved_grid_starts_from_the_nodes_moved_charge(params):
+    """On a grid moved by ``off[k]`` the node i of step k holds the charge ``socg[i] + off[k]``: the table's
+    next charge is that charge less the step's current times Ts over the capacity (the model's battery
+    equations at the moved charge), for offsets of either sign."""
+    from calib.model.equations import battery_current, battery_ocv_r
+    from optimize.formulations.layout import _T_OK, _T_PBAT, _T_SOC0
+    from optimize.formulations.transition import build_tables
+
+    mp = params.model_params()
+    pc = _power_controls(mp, DPGrids(pbat=1000.0))
+    socg = np.linspace(0.45, 0.75, 7)
+    P_trac = np.array([5000.0, -3000.0, 12000.0])
+    off = np.array([0.013, -0.021, 0.007, 0.0])
+    Ts, T_bat = 1.0, float(mp.T_bat_ref)
+    tab = build_tables(mp, pc, socg, P_trac, Ts, T_bat, off)
+    n = 0
+    for k in range(P_trac.size):
+        for ip in range(pc.shape[0]):
+            if tab[k, ip, _T_OK] == 0.0:
+                continue
+            for i in range(socg.size):
+                s = socg[i] + off[k]
+                U, R = battery_ocv_r(mp, s, T_bat)
+                I = battery_current(U, R, tab[k, ip, _T_PBAT])
+                if I == I:
+                    assert tab[k, ip, _T_SOC0 + i] == pytest.approx(s - I * Ts / mp.C_bat_As, abs=1e-12)
+                    n += 1
+    assert n > 50
+
+
+def test_outcomes_predicted_cost_is_the_cost_to_go_at_the_initial_state(params, tmp_path):
+    """``DPOutcome.predicted_cost`` is the minimised cost-to-go at the initial state: with the initial charge
+    on a node of a fixed grid, the backward pass's value at that node of step 0 (on this short drive the
+    cost-to-go from step 1 is a different number)."""
+    cyc = tmp_path / "c.csv"
+    cyc.write_text("time_s,speed_kph\n0,30\n1,36\n2,40\n3,40\n4,38\n")
+    scen = DPScenario(cycle=str(cyc), T_amb=-5.0, soc0=0.6, T_cl0=20.0, T_cab0=12.0, Q_heat=1500.0)
+    grids = DPGrids(pbat=1000.0, soc=0.01)
+    o = solve_baseline(params, scen, grids, soc="absolute")
+    socg = build_problem(params, scen, grids, 1, warm=True, soc="absolute").prob.grids[0]
+    node = int(np.argmin(np.abs(socg - 0.6)))
+    assert socg[node] == pytest.approx(0.6, abs=1e-12)
+    assert o.predicted_cost == pytest.approx(o.dp.V[0, node], rel=1e-12)
+    assert o.dp.predicted_cost[1] != pytest.approx(o.dp.predicted_cost[0], rel=1e-12)
+
+
 def test_cabin_bound_is_the_reference_less_the_offset_and_never_starts_above_the_cabin(params, tmp_path):
     """The comfort bound of each step is the reference cabin trajectory less ``cab_lb_offset``; a bound
     above the reference (a negative offset) would start above the initial cabin, so the bound of step 0 is
