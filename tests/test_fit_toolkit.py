@@ -4,6 +4,8 @@
 integrated autocorrelation time, the batch-means value (only with at least 4 blocks of
 ``max(20, sqrt(n))`` samples) and the AR(1) value ``(1 + rho_1) / (1 - rho_1)`` with ``rho_1`` clipped
 to [0, 0.995]."""
+import math
+
 import numpy as np
 import pytest
 
@@ -359,3 +361,41 @@ def test_map_fit_tries_the_further_starts_in_its_first_minimisation():
     assert out["values"]["a"] == pytest.approx(root, abs=1e-3)
     # and the noise sd is re-estimated at the global mode: about the data's 0.01, not the local mode's ~1
     assert out["noise_sd"] < 0.1 < local["noise_sd"]
+
+
+def _level_fit(nuisance_start=1.0):
+    """Data y = 3 + noise fitted by a level ``a`` (prior 0 +- 100); ``c`` is in the parameters but in no
+    residual: neither the data nor a prior constrain it."""
+    import lmfit
+
+    y = 3.0 + 0.01 * np.random.default_rng(3).standard_normal(200)
+
+    def make():
+        ps = lmfit.Parameters()
+        ps.add("a", value=1.0, min=-5.0, max=5.0)
+        ps.add("c", value=nuisance_start, min=-10.0, max=10.0)
+        return ps
+
+    return make, (lambda ps: [ps["a"].value - y]), dict(noise_sd=0.01, prior={"a": 0.0}, prior_sd={"a": 100.0})
+
+
+def test_map_fit_keeps_the_first_minimisation_on_a_tie():
+    """A start that moves only ``c`` (which no residual reads) ends at the same objective to the last bit:
+    the tie keeps ``make_params``'s own start, so the result does not depend on the order of the starts."""
+    make, segs, kw = _level_fit()
+    out = map_fit(make, segs, ["a"], starts=[{"c": 5.0}], **kw)
+    assert out["params"]["c"].value == 1.0
+    assert out["values"]["a"] == pytest.approx(3.0, abs=0.01)
+
+
+def test_map_fit_reports_a_parameter_nothing_constrains_as_unknown_not_exact():
+    """Posterior sd by the Gauss-Newton normal matrix: ``c`` spans its null space, where a pseudo-inverse
+    gives variance 0; the fit reports sd inf, informed 0 and no correlation for it, while ``a`` keeps its
+    sd, 0.01 / sqrt(200) against the prior's 100 (scaled by the noise sd the fit re-estimates)."""
+    make, segs, kw = _level_fit()
+    out = map_fit(make, segs, ["a", "c"], **kw)
+    assert out["post_sd"]["c"] == math.inf
+    assert out["informed"]["c"] == 0.0
+    assert out["correl"] == {}
+    assert out["post_sd"]["a"] == pytest.approx(out["noise_sd"] / math.sqrt(200), rel=0.05)
+    assert 0.99 < out["informed"]["a"] < 1.0

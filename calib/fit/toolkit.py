@@ -216,7 +216,8 @@ def map_fit(make_params, data_segments, cand, *, prior, prior_sd, noise_sd, extr
     starts : sequence of dict name -> float
         Further starting points (values of some parameters; the others as ``make_params`` gives them): the
         first minimisation runs from each, and the one with the lowest objective is carried on (a
-        posterior with more than one mode, e.g. a level traded against a table's far end).
+        posterior with more than one mode, e.g. a level traded against a table's far end); on a tie the
+        earliest, ``make_params``'s own start first.
     loss : str
         ``linear`` (least squares) or a robust loss of scipy's ``least_squares`` (``soft_l1``, residuals
         beyond 3 sd weigh less): for a first look that finds outliers; the posterior sd assume squares.
@@ -226,7 +227,8 @@ def map_fit(make_params, data_segments, cand, *, prior, prior_sd, noise_sd, extr
     dict: ``values``, ``post_sd``, ``prior_sd``, ``informed`` (``1 - post_sd / sd under the prior alone``,
     the latter including the couplings of ``extra``), ``correl``
     ("a|b" -> r over ``cand``), ``params`` (lmfit Parameters at the MAP, nuisance included), ``noise_sd``,
-    ``rmse``, ``n``, ``n_eff``, ``at_bound`` {name: text}.
+    ``rmse``, ``n``, ``n_eff``, ``at_bound`` {name: text}. A parameter that neither the data nor a prior
+    constrains has ``post_sd`` inf, ``informed`` 0 and no correlation.
     """
     import lmfit
 
@@ -291,7 +293,13 @@ def map_fit(make_params, data_segments, cand, *, prior, prior_sd, noise_sd, extr
         p1 = params.copy()
         p1[k].set(value=x0[j] + h, min=-np.inf, max=np.inf)
         J[:, j] = (total(p1, s) - r0) / h
-    cov0 = D[:, None] * np.linalg.pinv((J * D).T @ (J * D)) * D[None, :]
+    M = (J * D).T @ (J * D)
+    cov0 = D[:, None] * np.linalg.pinv(M) * D[None, :]
+    # pinv gives a direction that no residual constrains (no data, no prior) a variance of 0; such a
+    # parameter is not known exactly but not at all: its posterior sd is infinite (pinv's own cutoff)
+    ev, evec = np.linalg.eigh(M)
+    null = evec[:, ev <= 1e-15 * max(float(ev.max(initial=0.0)), 1e-300)]
+    unconstrained = np.any(np.abs(null) > 1e-6, axis=1)
     cov = cov0.copy()
     idx = {k: j for j, k in enumerate(names)}
     # calibration uncertainty of the inputs: linearised shift of the estimate, added (as a rank-one
@@ -303,7 +311,7 @@ def map_fit(make_params, data_segments, cand, *, prior, prior_sd, noise_sd, extr
             continue
         dx = -cov0 @ (J.T @ d)
         cov += np.outer(dx, dx)
-    var = {k: max(float(cov[idx[k], idx[k]]), 0.0) for k in cand}
+    var = {k: math.inf if unconstrained[idx[k]] else max(float(cov[idx[k], idx[k]]), 0.0) for k in cand}
     values = {k: float(params[k].value) for k in cand}
     post = {k: math.sqrt(var[k]) for k in cand}
     # what the prior alone (its own sd plus the couplings of `extra`, e.g. smoothness) gives: the data
@@ -317,8 +325,8 @@ def map_fit(make_params, data_segments, cand, *, prior, prior_sd, noise_sd, extr
     correl = {}
     for i, a in enumerate(cand):
         for b in cand[i + 1:]:
-            den = math.sqrt(cov[idx[a], idx[a]] * cov[idx[b], idx[b]])
-            if den > 0:
+            den = math.sqrt(var[a] * var[b])
+            if 0.0 < den < math.inf:
                 correl[f"{a}|{b}"] = float(cov[idx[a], idx[b]] / den)
     at_bound = {}
     for k in cand:
