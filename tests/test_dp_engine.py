@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from numba import njit
 
-from optimize.dp.engine import DPProblem, backward_pass, cartesian, interpolate, solve
+from optimize.dp.engine import DPProblem, backward_pass, cartesian, forward_pass, interpolate, solve
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -831,8 +831,55 @@ def test_level_choice_rule_prefers_reaching_then_least_level_then_least_cost():
     assert level_better(0.5, 9.0, tol, False, 1.0, 1.0)
     assert not level_better(1.0, 5.0, tol, False, 1.0, 3.0) and level_better(1.0, 2.0, tol, False, 1.0, 3.0)
     assert not level_better(1.0, 3.0, tol, False, 1.0, 3.0)
+    assert not level_better(-1.0, 5.0, tol, True, -2.0, 5.0)  # an exact tie among reaching controls too
     assert level_needs_cost(-1.0, tol, True, -2.0) and level_needs_cost(1.0, tol, False, 1.0)
     assert not level_needs_cost(1.0, tol, True, -1.0) and not level_needs_cost(1.5, tol, False, 1.0)
+
+
+def test_level_choice_rule_never_chooses_a_control_of_infinite_cost():
+    """Terminal set x0 >= 2 with V_N = +inf on every node of the set (5 below it), stage cost 1, and a
+    disturbance of +0.5 on x0, so next states fall inside cells: from x0 = 1 the step up (to 2.5, inside
+    the set) and the hold (to 1.5, level 0.5, half on an infinite node) cost +inf, and neither is chosen (backward and forward pass),
+    though both have a lower level than the step down (to 0.5, level 1.5, between two finite nodes). Worked
+    by hand: V_0 = 1 + 5 = 6 there; from x0 = 2 every next state reads an infinite node: +inf."""
+    controls = cartesian([-1.0, 0.0, 1.0], [-1.0, 0.0, 1.0])
+    n0, n1 = 5, 4
+    C = np.ones((1, controls.shape[0], n0, n1))
+    term = np.where(np.arange(n0)[:, None] >= 2, np.inf, 5.0) * np.ones((1, n1))
+    prob = DPProblem(grids=[np.arange(n0, dtype=float), np.arange(n1, dtype=float)], controls=controls, N=1,
+                     w=np.array([[0.5, 0.0]]), params=C, transition=integer_table, terminal_cost=term,
+                     terminal_bounds=[(2.0, None), (None, None)], boundary="levelset",
+                     table_shape=(controls.shape[0], 1))
+    vf = backward_pass(prob)
+    assert vf.V[0][1, 1] == 6.0 and vf.V[0][0, 1] == 6.0
+    assert np.isinf(vf.V[0][2, 1])
+    # the forward pass makes the same choice: the step down, at cost 6, outside the set
+    res = forward_pass(prob, vf, np.array([1.0, 1.0]))
+    assert res.u[0, 0] == -1.0 and res.cost == 6.0 and not res.feasible
+
+
+def test_reach_first_rule_reads_a_node_at_level_tol_as_reachable():
+    """A node whose level equals the tolerance reaches the terminal set (level <= tol), so a cell between it
+    and a reachable node is not cut by the reach boundary: the plain chord (1 - t) v0 + t v1, bit for bit
+    (0.34 here, where v0 + t (v1 - v0) rounds to 0.33999999999999997), and +inf from an infinite node."""
+    from optimize.dp.kernels import _lin_reach
+
+    tol = 1e-3
+    assert _lin_reach(0.1, 0.9, tol, -0.5, tol, 0.3) == (1.0 - 0.3) * 0.1 + 0.3 * 0.9 == 0.34
+    assert _lin_reach(np.inf, 0.9, tol, -0.5, tol, 0.3) == np.inf
+    assert _lin_reach(0.1, 0.9, tol, tol, tol, 0.3) == 0.34
+
+
+def test_backward_pass_reports_its_own_duration():
+    """``t_backward`` is the backward pass's wall time: positive and within the time measured around the
+    call."""
+    import time
+
+    prob, _ = _integer_problem(np.random.default_rng(0), 4)
+    t0 = time.perf_counter()
+    vf = backward_pass(prob)
+    elapsed = time.perf_counter() - t0
+    assert 0.0 < vf.t_backward <= elapsed
 
 
 def test_interpolation_rules_snap_a_query_within_1e_9_of_a_cell_onto_the_node():

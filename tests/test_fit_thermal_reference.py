@@ -179,12 +179,13 @@ def test_a_parameter_the_data_never_reach_keeps_its_prior_sd():
 def test_heater_off_warm_time_counts_coolant_more_than_20_K_above_ambient():
     """Heater-off seconds with a warm engine (coolant more than 20 K above ambient, the condition under
     which heater-off stretches separate C_eng from gamma_exh): on a 1-s log with the heater off (200 W,
-    the threshold, counts as off), 100 samples 20.5 K above ambient count, 100 at 19.5 K and 100 at 5 K do
-    not; the same 100 warm samples at 200.5 W (on) do not either."""
-    log = _log(n=300, T_amb=-8.0)
+    the threshold, counts as off), 100 samples 20.5 K above ambient count, 100 at exactly 20 K, 100 at
+    19.5 K and 100 at 5 K do not; the same 100 warm samples at 200.5 W (on) do not either."""
+    log = _log(n=400, T_amb=-8.0)
     d = log.data
     d["heater_power_W"] = 200.0
-    d["coolant_temp_degC"] = np.r_[np.full(100, -8.0 + 20.5), np.full(100, -8.0 + 19.5), np.full(100, -8.0 + 5.0)]
+    d["coolant_temp_degC"] = np.r_[np.full(100, -8.0 + 20.5), np.full(100, -8.0 + 20.0), np.full(100, -8.0 + 19.5),
+                                   np.full(100, -8.0 + 5.0)]
     fit = fit_thermal([log], default_parameters(), allowed={"C_eng_J_per_K"})
     assert fit.metrics["heater_off_warm_s"] == 100.0
     d["heater_power_W"] = 200.5

@@ -133,6 +133,24 @@ def test_fused_kernel_equals_generic_engine_where_the_chosen_coolant_leaves_its_
     np.testing.assert_array_equal(vg.L, vf.L)
 
 
+def test_fused_active_soc_band_is_the_cells_holding_the_range_and_two_nodes_more():
+    """The SOC nodes the fused kernels compute on a moved grid (0.3 + 0.01 i + off, 61 nodes, range
+    [0.4, 0.8]): the nodes of the cells that hold the range and two more on each side. Unmoved, nodes 10-50
+    lie on the range's ends: nodes 8-52. Moved by +0.003, nodes 9 (0.393) and 50 (0.803) bracket it: nodes
+    7-52. Moved by -0.004, 11 (0.406) is the first above 0.4 and 50 (0.796) the last below 0.8, so 10 and 51
+    bracket it: 8-53. Without skipping, every node."""
+    from optimize.formulations.fused import _active
+    from optimize.formulations.layout import _C_SHI, _C_SLO
+
+    P = np.zeros(64)
+    P[_C_SLO], P[_C_SHI] = 0.4, 0.8
+    assert _active(P, 0.0, 0.3, 100.0, 61, True) == (8, 53)
+    assert _active(P, 0.003, 0.3, 100.0, 61, True) == (7, 53)
+    assert _active(P, -0.004, 0.3, 100.0, 61, True) == (8, 54)
+    assert _active(P, 0.0, 0.3, 100.0, 52, True) == (8, 52)  # clipped to the grid
+    assert _active(P, 0.003, 0.3, 100.0, 61, False) == (0, 61)
+
+
 def _with_infinite_nodes(prob, axis: int, node: int):
     """The problem with a terminal cost of +inf at one node of state ``axis`` (every other state kept):
     next states located exactly on the node below it read that +inf corner with weight 0."""

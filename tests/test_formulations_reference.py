@@ -473,6 +473,24 @@ def test_outcomes_predicted_cost_is_the_cost_to_go_at_the_initial_state(params, 
     assert o.dp.predicted_cost[1] != pytest.approx(o.dp.predicted_cost[0], rel=1e-12)
 
 
+def test_delivered_heat_is_the_command_below_the_core_limit_however_small(params, tmp_path):
+    """The DP's delivered heat (the hold heat for a NaN command, then the heater-core limit, then no
+    negative heat): a 0.5-W command from a hot coolant is delivered as it is, a 1e6-W one is cut to the core
+    limit of the model's equations, a negative one delivers 0."""
+    from calib.model.equations import heater_limit
+    from optimize.formulations.transition import _delivered_heat
+
+    b = _two_state(params, tmp_path, nx=3)
+    p = b.prob.params
+    mp = params.model_params()
+    T_amb = -5.0
+    lim = heater_limit(mp, 70.0, 15.0, T_amb, mp.W_bl)
+    assert 1000.0 < lim < 1e6
+    assert _delivered_heat(p, 70.0, 15.0, 0.5, 20.0) == 0.5
+    assert _delivered_heat(p, 70.0, 15.0, 1e6, 20.0) == pytest.approx(lim, rel=1e-12)
+    assert _delivered_heat(p, 70.0, 15.0, -200.0, 20.0) == 0.0
+
+
 def test_cabin_bound_is_the_reference_less_the_offset_and_never_starts_above_the_cabin(params, tmp_path):
     """The comfort bound of each step is the reference cabin trajectory less ``cab_lb_offset``; a bound
     above the reference (a negative offset) would start above the initial cabin, so the bound of step 0 is

@@ -142,6 +142,10 @@ def test_heater_core_limit(mp):
     r = M.step(mp, 0.6, 0.0, 15.0, M.OFF, 0.0, 5000.0, 0.0, 0.0, 0.0, -10.0, 26.0, 0.06, 1.0)
     q = dict(zip(M.OUTPUTS, r))
     assert q["Q_heat"] == pytest.approx(q["Q_heat_max"]) and q["Q_heat"] < 5000.0
+    # below the limit the command is delivered as it is, however small; a negative one delivers nothing
+    for cmd, want in ((0.5, 0.5), (-200.0, 0.0)):
+        q = dict(zip(M.OUTPUTS, M.step(mp, 0.6, 70.0, 15.0, M.OFF, 0.0, cmd, 0.0, 0.0, 0.0, -10.0, 26.0, 0.06, 1.0)))
+        assert q["Q_heat"] == want
 
 
 def test_radiator_caps(mp):

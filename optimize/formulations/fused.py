@@ -64,7 +64,7 @@ def _bilin(S, o, s0, t0, t1):
 
 @njit(inline="always", cache=True)
 def _active(P, off, s_lo, s_inv, ns, skip):
-    """SOC nodes [i_lo, i_hi) computed at a step whose grid offset is ``off``: those whose charge lies in
+    """SOC nodes [i_lo, i_hi) computed at a step of grid offset ``off``: the nodes of the cells holding
     [soc_min, soc_max] and two more on each side; all nodes unless ``skip``.
 
     The others (the drifting grid spans the range at every step, so about 40 % of its nodes lie outside
