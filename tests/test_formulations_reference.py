@@ -491,6 +491,22 @@ def test_delivered_heat_is_the_command_below_the_core_limit_however_small(params
     assert _delivered_heat(p, 70.0, 15.0, -200.0, 20.0) == 0.0
 
 
+def test_thermal_cabin_valued_terminal_credits_the_coolant_and_the_cabin_heat_gained(params):
+    """Thermal-Cabin-DP with the ``valued`` terminal: its optimal cost is the fuel burnt less the fuel
+    equivalent of the heat gained in the coolant and in the cabin (both, each with its sign), computed by
+    the model's :func:`fuel_equivalents_g` from the re-simulated final states."""
+    from calib.model.simulate import fuel_equivalents_g
+    from optimize.formulations import solve_thermal_cabin
+
+    scen = DPScenario(duration_s=30.0, T_cl0=28.0, T_cab0=12.0)
+    assert scen.terminal == "valued"
+    o = solve_thermal_cabin(params, scen, DPGrids(soc=0.02, tcl=4.0, pbat=2500.0, qheat=200.0))
+    eq = fuel_equivalents_g(params.model_params(), scen.soc0, scen.soc0, scen.T_cl0, o.sim.T_cl[-1], scen.T_cab0,
+                            o.sim.T_cab[-1])
+    assert abs(eq["cabin_g"]) > 0.05 and abs(eq["coolant_g"]) > 0.05
+    assert o.dp.cost == pytest.approx(o.sim.fuel_g - eq["coolant_g"] - eq["cabin_g"], rel=1e-9)
+
+
 def test_cabin_bound_is_the_reference_less_the_offset_and_never_starts_above_the_cabin(params, tmp_path):
     """The comfort bound of each step is the reference cabin trajectory less ``cab_lb_offset``; a bound
     above the reference (a negative offset) would start above the initial cabin, so the bound of step 0 is
