@@ -193,6 +193,28 @@ def relocate(r: dict, src: str):
     return cand[0] if len(cand) == 1 else None
 
 
+def reclassify(mutants, cfg, read_source) -> list:
+    """An earlier report's mutants judged by today's list of equivalents: each survivor (or earlier
+    equivalent) is found in its module's current source (:func:`relocate`, ``read_source(module)``) and is
+    equivalent if pyproject lists it at that line, a survivor otherwise; one no longer found keeps its
+    recorded status. Killed mutants stay killed: the tests are not re-run."""
+    equiv = {(e["module"], e["line"], e["mutation"]) for e in cfg.get("equivalent", [])}
+    srcs, out = {}, []
+    for r in mutants:
+        if r["status"] not in ("survived", "equivalent"):
+            out.append(r)
+            continue
+        if r["module"] not in srcs:
+            srcs[r["module"]] = read_source(r["module"])
+        at = relocate(r, srcs[r["module"]])
+        if at is None:
+            out.append(r)
+            continue
+        eq = (r["module"], at[1], r["mutation"]) in equiv
+        out.append(dict(r, index=at[0], line=at[1], status="equivalent" if eq else "survived"))
+    return out
+
+
 def config() -> dict:
     data = tomllib.loads((ROOT / "pyproject.toml").read_text())
     return data["tool"]["iptm"]["mutation"]
@@ -257,17 +279,27 @@ def main(argv=None) -> int:
                                                            "equivalent mutants (no test is run)")
     ap.add_argument("--pool", nargs="+", metavar="JSON", help="pooled score of several reports (first passes of "
                                                                 "different seeds) with its 95 %% interval; no test is run")
+    ap.add_argument("--current-equivalents", action="store_true",
+                    help="with --pool: judge each report's survivors by today's list of equivalent mutants "
+                         "(found in the current source; killed ones stay killed, no test is run)")
     a = ap.parse_args(argv)
+    def read(m):
+        return (ROOT / m).read_text()
+
     if a.pool:
         cfg = config()
-        sizes = {m: len(sites((ROOT / m).read_text())) for m in cfg["modules"]}
-        print(json.dumps(pooled([json.loads(Path(f).read_text()) for f in a.pool], sizes), indent=1))
+        sizes = {m: len(sites(read(m))) for m in cfg["modules"]}
+        reports = [json.loads(Path(f).read_text()) for f in a.pool]
+        if a.current_equivalents:
+            reports = [dict(summarise(m, m, {}), seed=r.get("seed"))
+                       for r, m in ((r, reclassify(r["mutants"], cfg, read)) for r in reports)]
+        print(json.dumps(pooled(reports, sizes), indent=1))
         return 0
     cfg = config()
     if a.resummarise:
         old = json.loads(Path(a.resummarise).read_text())
-        muts = [dict(r, status="survived") if r["status"] == "equivalent" else r for r in old["mutants"]]
-        report = summarise(muts, muts, cfg)
+        muts = reclassify(old["mutants"], cfg, read)
+        report = summarise(muts, muts, {})
         report.update({k: old[k] for k in ("seed", "sample", "wall_s") if k in old})
         report["planned"] = old.get("planned", len(muts))
         Path(a.out).write_text(json.dumps(report, indent=1))

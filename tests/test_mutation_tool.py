@@ -116,3 +116,21 @@ def test_rerun_finds_a_survivor_moved_by_an_edit_elsewhere_and_refuses_a_changed
     assert "x = 1.5" in out and "x = 0.5" not in out and "y = 3 * a" in out
     assert mutation.relocate(r, SRC.replace("x = 0.5", "x = 0.25")) is None
     assert mutation.relocate(r, moved.replace("    x += a\n", "    x += a\n    x = 0.5\n")) is None
+
+
+def test_reclassify_judges_an_earlier_report_by_todays_equivalents_where_the_code_now_is():
+    """A survivor recorded at line 7 of SRC, after an edit that moved that line to 8, is equivalent when
+    pyproject lists it at line 8, and a survivor otherwise; a killed mutant stays killed; one whose line no
+    longer reads as recorded keeps its recorded status."""
+    sites = mutation.sites(SRC)
+    i, ln, d = next((i, ln, d) for i, ln, d in sites if ln == 7)
+    src_line = SRC.splitlines()[ln - 1].strip()
+    surv = {"module": "m.py", "index": i, "line": ln, "mutation": d, "status": "survived", "source": src_line}
+    killed = dict(surv, status="killed")
+    moved = "# one line more\n" + SRC
+    listed = {"equivalent": [{"module": "m.py", "line": ln + 1, "mutation": d, "reason": "r"}]}
+    out = mutation.reclassify([surv, killed], listed, lambda m: moved)
+    assert [r["status"] for r in out] == ["equivalent", "killed"] and out[0]["line"] == ln + 1
+    assert mutation.reclassify([surv], {"equivalent": []}, lambda m: moved)[0]["status"] == "survived"
+    gone = moved.replace(src_line, src_line + "  # edited")  # moved and edited: not found, though listed
+    assert mutation.reclassify([surv], listed, lambda m: gone)[0] == surv
