@@ -507,6 +507,40 @@ def test_thermal_cabin_valued_terminal_credits_the_coolant_and_the_cabin_heat_ga
     assert o.dp.cost == pytest.approx(o.sim.fuel_g - eq["coolant_g"] - eq["cabin_g"], rel=1e-9)
 
 
+def test_heater_hold_share_is_the_share_of_steps_whose_control_holds_the_bound(params):
+    """``extra["heater_hold_pct"]``: 100 x the share of steps whose chosen control is the hold-the-bound one
+    (its heat NaN in the problem's control table), counted here from the forward pass's control rows."""
+    from optimize.formulations import solve_thermal_cabin
+    from optimize.formulations.solve import CABIN_STATE
+
+    scen = DPScenario(duration_s=80.0, cab_lb_offset=0.3)  # the cabin reaches its bound after ~60 s
+    grids = DPGrids(soc=0.02, tcl=4.0, pbat=2500.0)
+    o = solve_thermal_cabin(params, scen, grids)
+    b = build_problem(params, scen, grids, 3, cabin=CABIN_STATE)
+    held = np.isnan(b.prob.controls[o.dp.u_index, 2])
+    assert 0 < held.sum() < held.size
+    assert o.extra["heater_hold_pct"] == pytest.approx(100.0 * held.mean(), rel=1e-12)
+
+
+def test_off_grid_charge_step_follows_the_models_battery_at_the_packed_battery_temperature(params, tmp_path):
+    """The forward pass's off-grid SOC step reads the battery temperature packed in the parameter vector:
+    at the reference temperature and 20 K below it, the next charge is the model's (OCV and resistance of
+    :func:`battery_ocv_r` at that temperature, the current of :func:`battery_current`), for a discharge
+    and a charge."""
+    from calib.model.equations import battery_current, battery_ocv_r
+    from optimize.formulations.layout import _C_TBAT
+    from optimize.formulations.transition import _soc_next
+
+    mp = params.model_params()
+    p = _two_state(params, tmp_path).prob.params.copy()
+    for T_bat in (float(mp.T_bat_ref), float(mp.T_bat_ref) - 20.0):
+        p[_C_TBAT] = T_bat
+        for P_bat in (15e3, -12e3):
+            U, R = battery_ocv_r(mp, 0.55, T_bat)
+            want = 0.55 - battery_current(U, R, P_bat) * 1.0 / mp.C_bat_As
+            assert _soc_next(p, 0.55, P_bat, 1.0) == pytest.approx(want, rel=0.0, abs=1e-12)
+
+
 def test_cabin_bound_is_the_reference_less_the_offset_and_never_starts_above_the_cabin(params, tmp_path):
     """The comfort bound of each step is the reference cabin trajectory less ``cab_lb_offset``; a bound
     above the reference (a negative offset) would start above the initial cabin, so the bound of step 0 is
