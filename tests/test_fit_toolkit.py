@@ -399,3 +399,46 @@ def test_map_fit_reports_a_parameter_nothing_constrains_as_unknown_not_exact():
     assert out["correl"] == {}
     assert out["post_sd"]["a"] == pytest.approx(out["noise_sd"] / math.sqrt(200), rel=0.05)
     assert 0.99 < out["informed"]["a"] < 1.0
+
+
+def test_integrated_autocorrelation_time_sums_at_most_n_over_5_lags():
+    """A slow cosine (period 160 samples) under white noise, 100 samples: the autocorrelation stays above
+    0.05 past lag 20 = n/5, so the integrated time sums lags 1-19 (15.1; 12.9 had it stopped at n/6),
+    more than the batch-means (9.9) and AR(1) (2.7) values: n_eff = 100 / 15.1, worked out here with
+    direct sums."""
+    rng = np.random.default_rng(2)
+    m = 100
+    r = np.cos(2 * np.pi * np.arange(m) / 160) + 0.8 * rng.standard_normal(m)
+    r0 = r - r.mean()
+    c0 = float(np.sum(r0 * r0))
+    rho = np.array([np.sum(r0[:m - k] * r0[k:]) / c0 for k in range(m)])
+    assert np.all(rho[1:21] >= 0.05)
+    tau = 1.0 + 2.0 * float(np.sum(rho[1:20]))
+    assert 1.0 + 2.0 * float(np.sum(rho[1:16])) < 13.0 < 15.0 < tau
+    r1 = float(rho[1])
+    bm = r0.reshape(5, 20).mean(axis=1)
+    assert max((1.0 + r1) / (1.0 - r1), 20 * float(np.var(bm)) / (c0 / m)) < 10.0
+    n, ne = neff([r])
+    assert n == m and ne == pytest.approx(m / tau, rel=1e-9)
+
+
+def test_map_fit_adds_an_inputs_calibration_uncertainty_as_the_shift_it_causes():
+    """A level fitted to data whose calibration is uncertain by 0.05 (one sd, an offset): with the data
+    moved by it the estimate moves by 0.05 (the prior, sd 100, barely pulls), and the posterior sd is the
+    data's alone and that shift in quadrature, also where the level is held at a bound."""
+    make, segs, kw = _level_fit()
+    out = map_fit(make, segs, ["a"], **kw)
+    moved = map_fit(make, segs, ["a"], perturbed=[lambda ps: [r - 0.05 for r in segs(ps)]], **kw)
+    assert moved["values"]["a"] == out["values"]["a"]
+    assert moved["post_sd"]["a"] == pytest.approx(math.hypot(out["post_sd"]["a"], 0.05), rel=1e-6)
+    # the same with the level held at a bound (2.95, below the data's 3), where the misfit's gradient is
+    # not zero: the shift is still the one the moved data cause, not a step towards the unbounded optimum
+    def bounded():
+        ps = make()
+        ps["a"].set(max=2.95)
+        return ps
+
+    out = map_fit(bounded, segs, ["a"], **kw)
+    moved = map_fit(bounded, segs, ["a"], perturbed=[lambda ps: [r - 0.05 for r in segs(ps)]], **kw)
+    assert out["values"]["a"] == pytest.approx(2.95) and "a" in out["at_bound"]
+    assert moved["post_sd"]["a"] == pytest.approx(math.hypot(out["post_sd"]["a"], 0.05), rel=1e-6)

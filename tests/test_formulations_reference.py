@@ -541,6 +541,25 @@ def test_off_grid_charge_step_follows_the_models_battery_at_the_packed_battery_t
             assert _soc_next(p, 0.55, P_bat, 1.0) == pytest.approx(want, rel=0.0, abs=1e-12)
 
 
+def test_continued_terminal_frees_the_charge_or_holds_it_to_its_band_for_two_and_three_states(params, tmp_path):
+    """With the continued terminal the continuation values the final charge, so Thermal- and
+    Thermal-Cabin-DP leave SOC_N free (no band) or within the band around SOC_0; Baseline-DP, which has
+    no continuation, keeps SOC_N >= SOC_0. On a fixed grid the terminal SOC is SOC_0 itself."""
+    cyc = tmp_path / "c.csv"
+    cyc.write_text("time_s,speed_kph\n0,30\n1,36\n2,40\n")
+    grids = DPGrids(soc=0.02, tcl=4.0, pbat=2500.0, qheat=500.0)
+    for band, want in ((None, (None, None)), (0.01, (0.59, 0.61))):
+        scen = DPScenario(cycle=str(cyc), T_amb=-5.0, soc0=0.6, T_cl0=20.0, T_cab0=12.0, Q_heat=1500.0,
+                          terminal="continued", cont_soc_band=band, cont_cycle=str(cyc), cont_soc_every=20,
+                          cont_tcl_step=50.0, cont_tcab_step=20.0)  # a coarse, short continuation: fast
+        for nx in (2, 3):
+            lo, hi = build_problem(params, scen, grids, nx, soc="absolute").prob.terminal_bounds[0]
+            got = tuple(None if v is None or not np.isfinite(v) else round(float(v), 12) for v in (lo, hi))
+            assert got == want, (band, nx, lo, hi)
+        lo, hi = build_problem(params, scen, grids, 1, warm=True, soc="absolute").prob.terminal_bounds[0]
+        assert lo == pytest.approx(0.6) and (hi is None or hi == np.inf)
+
+
 def test_cabin_bound_is_the_reference_less_the_offset_and_never_starts_above_the_cabin(params, tmp_path):
     """The comfort bound of each step is the reference cabin trajectory less ``cab_lb_offset``; a bound
     above the reference (a negative offset) would start above the initial cabin, so the bound of step 0 is
