@@ -260,6 +260,14 @@ def test_skipping_soc_nodes_outside_the_range_keeps_the_decisions(params, nx, sc
     core = np.broadcast_to(((charge >= scen.soc_min + 0.02) & (charge <= scen.soc_max - 0.02))[:, :, None], V1.shape)
     fin = core & np.isfinite(V1)
     np.testing.assert_allclose(V2[fin], V1[fin], rtol=0.0, atol=1e-3)
+    # a skipped node holds the nearest computed node's values, the band being that of the step's own offset
+    from optimize.formulations.fused import _active
+
+    s_inv = (socg.size - 1) / (socg[-1] - socg[0])
+    for k in range(p.N):
+        lo, hi = _active(p.params, p.w[k, 4], socg[0], s_inv, socg.size, True)
+        np.testing.assert_array_equal(V2[k, :lo], np.broadcast_to(V2[k, lo], V2[k, :lo].shape))
+        np.testing.assert_array_equal(V2[k, hi:], np.broadcast_to(V2[k, hi - 1], V2[k, hi:].shape))
     fin = sel & np.isfinite(V1)
     np.testing.assert_allclose(V2[fin], V1[fin], rtol=1e-4, atol=1e-3)
 
