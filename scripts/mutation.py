@@ -215,6 +215,15 @@ def reclassify(mutants, cfg, read_source) -> list:
     return out
 
 
+def rejudge(report: dict, cfg, read_source) -> dict:
+    """``report`` summarised again with today's equivalents (:func:`reclassify`); no test is run."""
+    muts = reclassify(report["mutants"], cfg, read_source)
+    out = summarise(muts, muts, {})
+    out.update({k: report[k] for k in ("seed", "sample", "wall_s") if k in report})
+    out["planned"] = report.get("planned", len(muts))
+    return out
+
+
 def config() -> dict:
     data = tomllib.loads((ROOT / "pyproject.toml").read_text())
     return data["tool"]["iptm"]["mutation"]
@@ -291,17 +300,12 @@ def main(argv=None) -> int:
         sizes = {m: len(sites(read(m))) for m in cfg["modules"]}
         reports = [json.loads(Path(f).read_text()) for f in a.pool]
         if a.current_equivalents:
-            reports = [dict(summarise(m, m, {}), seed=r.get("seed"))
-                       for r, m in ((r, reclassify(r["mutants"], cfg, read)) for r in reports)]
+            reports = [rejudge(r, cfg, read) for r in reports]
         print(json.dumps(pooled(reports, sizes), indent=1))
         return 0
     cfg = config()
     if a.resummarise:
-        old = json.loads(Path(a.resummarise).read_text())
-        muts = reclassify(old["mutants"], cfg, read)
-        report = summarise(muts, muts, {})
-        report.update({k: old[k] for k in ("seed", "sample", "wall_s") if k in old})
-        report["planned"] = old.get("planned", len(muts))
+        report = rejudge(json.loads(Path(a.resummarise).read_text()), cfg, read)
         Path(a.out).write_text(json.dumps(report, indent=1))
         print(json.dumps({k: v for k, v in report.items() if k not in ("mutants", "survivors")}, indent=1))
         return 0

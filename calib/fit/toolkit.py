@@ -293,13 +293,13 @@ def map_fit(make_params, data_segments, cand, *, prior, prior_sd, noise_sd, extr
         p1 = params.copy()
         p1[k].set(value=x0[j] + h, min=-np.inf, max=np.inf)
         J[:, j] = (total(p1, s) - r0) / h
-    M = (J * D).T @ (J * D)
-    cov0 = D[:, None] * np.linalg.pinv(M) * D[None, :]
-    # pinv gives a direction that no residual constrains (no data, no prior) a variance of 0; such a
-    # parameter is not known exactly but not at all: its posterior sd is infinite (pinv's own cutoff)
-    ev, evec = np.linalg.eigh(M)
-    null = evec[:, ev <= 1e-15 * max(float(ev.max(initial=0.0)), 1e-300)]
-    unconstrained = np.any(np.abs(null) > 1e-6, axis=1)
+    # pseudo-inverse of the normal matrix from its eigenvectors (pinv's cutoff, 1e-15 of the largest); a
+    # direction below the cutoff is one no residual constrains (no data, no prior), where the inverse
+    # would read variance 0: a parameter with a share in it is not known at all, its sd is infinite
+    ev, evec = np.linalg.eigh((J * D).T @ (J * D))
+    ok = ev > 1e-15 * max(float(ev.max(initial=0.0)), 1e-300)
+    cov0 = D[:, None] * ((evec[:, ok] / ev[ok]) @ evec[:, ok].T) * D[None, :]
+    unconstrained = np.any(np.abs(evec[:, ~ok]) > 1e-6, axis=1)
     cov = cov0.copy()
     idx = {k: j for j, k in enumerate(names)}
     # calibration uncertainty of the inputs: linearised shift of the estimate, added (as a rank-one
