@@ -239,3 +239,18 @@ def test_eps_candidates_need_a_blower_flow_above_5_g_per_s():
     (eps, _, nb), _ = _eps([lg], default_parameters(), fit)
     assert fit.metrics["eps_candidate_samples"] == 70 and nb == 70
     assert eps == pytest.approx(0.7, rel=1e-12)
+
+
+def test_initial_cabin_temperature_is_held_within_5_K_of_the_mean_of_the_first_five_samples():
+    """The cooldown from 20 degC with its first five samples reading 30 degC (a sensor settling at key-on):
+    the fitted initial temperature wants 20 degC but is held within 5 K of the mean of the first five valid
+    samples, 30 degC, so it ends at the window's lower edge, 25 degC (six samples would put it at 23.3)."""
+    import numpy as np
+
+    log = _cooldown_log(heater_power_W=0.0)
+    T = log.data["cabin_temp_degC"].to_numpy().copy()
+    T[0] = np.nan  # the first *valid* samples count
+    T[1:6] = 30.0
+    log.data["cabin_temp_degC"] = T
+    fit = fit_cabin([log], default_parameters(), allowed={"C_cab_J_per_K", "UA_cab_W_per_K"})
+    assert fit.nuisance["Tc0_0"] == pytest.approx(25.0, abs=1e-6)

@@ -190,3 +190,47 @@ def test_heater_off_warm_time_counts_coolant_more_than_20_K_above_ambient():
     assert fit.metrics["heater_off_warm_s"] == 100.0
     d["heater_power_W"] = 200.5
     assert fit_thermal([log], default_parameters(), allowed={"C_eng_J_per_K"}).metrics["heater_off_warm_s"] == 0.0
+
+
+@pytest.mark.filterwarnings("ignore:rel_change")
+def test_input_uncertainty_adds_the_shift_of_refits_with_each_input_moved_both_ways(monkeypatch):
+    """Each logged input (fuel rate, engine power through the torque, heater power) carries a 1 %
+    calibration uncertainty. Its share of the posterior variance must be the square of the estimate's
+    shift, measured here by refitting the log with that input scaled by 1.01 and by 0.99 (half the
+    difference of the two refits, summed in quadrature over the three inputs); a fit without input
+    uncertainty gives the variance the three shares are added to."""
+    import calib.fit.thermal as thermal
+
+    log, base, names = _log(), default_parameters(), list(TRUE)
+    rel = thermal.INPUT_REL_SD
+    assert rel == 0.01
+    full = fit_thermal([log], base)
+    share = dict.fromkeys(names, 0.0)
+    for channel in ("fuel_rate_g_per_s", "engine_torque_Nm", "heater_power_W"):
+        moved = []
+        for sign in (1.0, -1.0):
+            data = log.data.copy()
+            data[channel] = data[channel] * (1.0 + sign * rel)
+            moved.append(fit_thermal([DriveLog(data=data, meta=log.meta)], base).estimates)
+        for n in names:
+            share[n] += (0.5 * (moved[0][n].value - moved[1][n].value)) ** 2
+    monkeypatch.setattr(thermal, "INPUT_REL_SD", 0.0)
+    bare = fit_thermal([log], base)
+    for n in names:
+        assert share[n] > 0.05 * bare.estimates[n].stderr ** 2, n  # a share the comparison can see
+        added = full.estimates[n].stderr ** 2 - bare.estimates[n].stderr ** 2
+        assert added == pytest.approx(share[n], rel=0.02), n
+
+
+@pytest.mark.filterwarnings("ignore:rel_change")
+def test_initial_coolant_temperature_is_held_within_5_K_of_the_mean_of_the_first_five_samples():
+    """The reference drive (coolant from -5 degC) with its first five samples reading 10 K warm (a sensor
+    settling at key-on): the fitted initial temperature wants -5 degC but is held within 5 K of the mean of
+    the first five valid samples, so it ends at that mean minus 5 K (six samples would move it 1.7 K)."""
+    log = _log()
+    T = log.data["coolant_temp_degC"].to_numpy().copy()
+    T[0] = np.nan  # the first *valid* samples count
+    T[1:6] += 10.0
+    log.data["coolant_temp_degC"] = T
+    fit = fit_thermal([log], default_parameters())
+    assert fit.nuisance["T0_0"] == pytest.approx(float(np.mean(T[1:6])) - 5.0, abs=1e-6)

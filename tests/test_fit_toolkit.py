@@ -442,3 +442,16 @@ def test_map_fit_adds_an_inputs_calibration_uncertainty_as_the_shift_it_causes()
     moved = map_fit(bounded, segs, ["a"], perturbed=[lambda ps: [r - 0.05 for r in segs(ps)]], **kw)
     assert out["values"]["a"] == pytest.approx(2.95) and "a" in out["at_bound"]
     assert moved["post_sd"]["a"] == pytest.approx(math.hypot(out["post_sd"]["a"], 0.05), rel=1e-6)
+
+
+def test_map_fit_takes_half_the_difference_of_an_input_moved_both_ways():
+    """A pair ``(up, down)`` is a central difference: data moved by -0.05 - 0.02 one way and by +0.05 - 0.02
+    the other (a response with a second-order part, 0.02 both ways) shift the level by half the
+    difference, 0.05, not by either side's 0.07 or 0.03; a pair whose side gives no residuals adds none."""
+    make, segs, kw = _level_fit()
+    out = map_fit(make, segs, ["a"], **kw)
+    pair = (lambda ps: [r - 0.07 for r in segs(ps)], lambda ps: [r + 0.03 for r in segs(ps)])
+    moved = map_fit(make, segs, ["a"], perturbed=[pair], **kw)
+    assert moved["post_sd"]["a"] == pytest.approx(math.hypot(out["post_sd"]["a"], 0.05), rel=1e-6)
+    empty = map_fit(make, segs, ["a"], perturbed=[(pair[0], lambda ps: [])], **kw)
+    assert empty["post_sd"]["a"] == out["post_sd"]["a"]

@@ -61,10 +61,11 @@ def _eps(use, base, fit, dT_cl=0.0, dT_vent=0.0, _propagate=True):
             break
         w = 1.0 / s_r[bind] ** 2
         new = float(np.sum(w * r[bind]) / np.sum(w))
-        if abs(new - eps) < 1e-6:
-            eps = new
-            break
+        # the same binding set gives the same mean to the last bit: stop at the exact fixed point
+        fixed = new == eps
         eps = new
+        if fixed:
+            break
     nb = int(bind.sum())
     fit.metrics.update(eps_binding_samples=nb, eps_candidate_samples=int(r.size))
     if nb < MIN_SAMPLES:

@@ -306,7 +306,9 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
     def segments(ps, sW=1.0, **kw):
         return np.split(model_of(ps, **kw) - sW * W, bounds_idx)
 
-    perturbed = [lambda ps: segments(ps, sP=1.0 + INPUT_REL_SD), lambda ps: segments(ps, dT=T_SD),
+    # the fuel rate is not proportional to the engine power: the power's shift by a central difference
+    perturbed = [(lambda ps: segments(ps, sP=1.0 + INPUT_REL_SD), lambda ps: segments(ps, sP=1.0 - INPUT_REL_SD)),
+                 lambda ps: segments(ps, dT=T_SD),
                  lambda ps: segments(ps, sW=1.0 + FUEL_METER_REL_SD), lambda ps: segments(ps, lag=True)]
     out = map_fit(make_params, segments, cand, prior=prior, prior_sd=psd, noise_sd=NOISE_G_PER_S, extra=extra,
                   perturbed=perturbed, floor=0.002, max_tau=MAX_TAU,

@@ -165,8 +165,9 @@ def fit_thermal(logs, base, *, allowed=None) -> SubsystemFit:
     def segments(ps, dT=0.0, **scale):
         return [(s - d["T"] - dT)[d["ok"]] for s, d in zip(sims(ps, **scale), data)]
 
-    u = 1.0 + INPUT_REL_SD
-    perturbed = [lambda ps, k=k: segments(ps, **{k: u}) for k in ("sW", "sP", "sQ")]
+    # the replay is not affine in its inputs (thermostat, heater-core limit): central differences
+    perturbed = [(lambda ps, k=k: segments(ps, **{k: 1.0 + INPUT_REL_SD}),
+                  lambda ps, k=k: segments(ps, **{k: 1.0 - INPUT_REL_SD})) for k in ("sW", "sP", "sQ")]
     perturbed.append(lambda ps: segments(ps, dT=T_SENSOR_SD))
     out = map_fit(lambda: make(set(cand)), segments, cand, prior=prior, prior_sd=psd, noise_sd=T_SENSOR_SD,
                   perturbed=perturbed, floor=0.05)

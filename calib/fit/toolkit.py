@@ -205,9 +205,12 @@ def map_fit(make_params, data_segments, cand, *, prior, prior_sd, noise_sd, extr
         get theirs through ``extra``).
     extra : callable(params) -> ndarray, optional
         Further prior residuals (e.g. smoothness of a table), already in sd units.
-    perturbed : sequence of callable(params) -> list of ndarray
+    perturbed : sequence of callable(params) -> list of ndarray, or of pairs of them
         Data residuals with one logged input moved by one sd of its calibration uncertainty; the
-        linearised shift of the MAP estimate is added in quadrature to the posterior sd (none if it gives no residuals).
+        linearised shift of the MAP estimate is added in quadrature to the posterior sd (none if it gives no
+        residuals). A pair ``(up, down)`` moves the input both ways and takes half the difference (a central
+        difference: for a replay that is not affine in the input, the shift without its second-order
+        part).
     floor : float, optional
         Smallest ``s`` (the resolution of the measurement).
     max_tau : float, optional
@@ -304,9 +307,18 @@ def map_fit(make_params, data_segments, cand, *, prior, prior_sd, noise_sd, extr
     idx = {k: j for j, k in enumerate(names)}
     # calibration uncertainty of the inputs: linearised shift of the estimate, added (as a rank-one
     # covariance term, so that functions of several parameters get it too)
-    for rfun in perturbed:
+    nd = sum(x.size for x in segs)
+
+    def moved(rfun):
         segs1 = rfun(params)
-        d = np.concatenate([np.concatenate(segs1) / s, r0[sum(x.size for x in segs):]]) - r0 if segs1 else None
+        return np.concatenate([np.concatenate(segs1) / s, r0[nd:]]) - r0 if segs1 else None
+
+    for rfun in perturbed:
+        if isinstance(rfun, tuple):
+            up, down = moved(rfun[0]), moved(rfun[1])
+            d = 0.5 * (up - down) if up is not None and down is not None and up.size == down.size else None
+        else:
+            d = moved(rfun)
         if d is None or d.size != r0.size:
             continue
         dx = -cov0 @ (J.T @ d)
@@ -316,7 +328,6 @@ def map_fit(make_params, data_segments, cand, *, prior, prior_sd, noise_sd, extr
     post = {k: math.sqrt(var[k]) for k in cand}
     # what the prior alone (its own sd plus the couplings of `extra`, e.g. smoothness) gives: the data
     # informed a parameter only as far as its posterior sd is below *that*
-    nd = sum(x.size for x in segs)
     ci = [idx[k] for k in cand]
     Jp = J[nd:][:, ci] * D[ci]
     prior_cov = D[ci][:, None] * np.linalg.pinv(Jp.T @ Jp) * D[ci][None, :]
