@@ -836,6 +836,27 @@ def test_level_choice_rule_prefers_reaching_then_least_level_then_least_cost():
     assert not level_needs_cost(1.0, tol, True, -1.0) and not level_needs_cost(1.5, tol, False, 1.0)
 
 
+def test_level_choice_rule_applied_to_a_slot_reads_a_level_equal_to_tol_as_reaching():
+    """The rule applied in place to one slot of the choice arrays (the fused kernels' form): a control at a
+    level exactly tol reaches the set, so a later reaching control must be cheaper to replace it (6 is not,
+    3 is); a control that does not reach replaces a non-reaching choice of higher level, and the other slot
+    is left alone."""
+    from optimize.dp.kernels import level_choose
+
+    tol = 1e-3
+    best, Lsel, feas = np.array([np.inf, 7.0]), np.array([np.inf, 5.0]), np.zeros(2, np.bool_)
+    level_choose(tol, 4.0, tol, 0, best, Lsel, feas)
+    assert feas[0] and best[0] == 4.0 and Lsel[0] == tol
+    level_choose(-1.0, 6.0, tol, 0, best, Lsel, feas)
+    assert best[0] == 4.0 and Lsel[0] == tol
+    level_choose(-1.0, 3.0, tol, 0, best, Lsel, feas)
+    assert feas[0] and best[0] == 3.0 and Lsel[0] == -1.0
+    assert best[1] == 7.0 and Lsel[1] == 5.0 and not feas[1]
+    level_choose(2.0, 9.0, tol, 1, best, Lsel, feas)
+    assert best[1] == 9.0 and Lsel[1] == 2.0 and not feas[1]
+    assert best[0] == 3.0 and Lsel[0] == -1.0 and feas[0]
+
+
 def test_level_choice_rule_never_chooses_a_control_of_infinite_cost():
     """Terminal set x0 >= 2 with V_N = +inf on every node of the set (5 below it), stage cost 1, and a
     disturbance of +0.5 on x0, so next states fall inside cells: from x0 = 1 the step up (to 2.5, inside

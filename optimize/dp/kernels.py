@@ -316,6 +316,16 @@ def level_better(lv, v, tol, feas, Lsel, best):
     return lv < Lsel or (lv == Lsel and v < best)
 
 
+@njit(inline="always", cache=True)
+def level_choose(lv, v, tol, j, best, Lsel, feas):
+    """:func:`level_better` applied to slot ``j`` of the arrays ``best``, ``Lsel``, ``feas``: a control the
+    rule prefers becomes the choice there, reaching the set when its level is at most ``tol``."""
+    if level_better(lv, v, tol, feas[j], Lsel[j], best[j]):
+        best[j] = v
+        Lsel[j] = lv
+        feas[j] = lv <= tol
+
+
 @njit(parallel=True, cache=False)  # no disk cache: kernels specialised on a user function never hit it
 def backward(transition, precompute, N, X, controls, w, p, tab, VT, LT, use_level, level_tol,
              lo, inv_dx, n, uniform, pts, strides, clip, policy, store_policy, mode):

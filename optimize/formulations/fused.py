@@ -16,7 +16,7 @@ with the engine to rounding; cross-checked in tests/test_formulations.py) by exp
   limits the heat (cold coolant) the full trilinear interpolation is used. The "hold the bound" heater
   control's heat depends on the cabin node only: it is one more (T_cab node, heat) slice per node.
 * levels are signed (negative inside the terminal set) and the true minimum is stored, with the engine's
-  choice rule (:func:`optimize.dp.kernels.level_better`).
+  choice rule (:func:`optimize.dp.kernels.level_choose`).
 
 The forward pass is the engine's (:func:`optimize.dp.engine.forward_pass`) on the value functions produced here.
 """
@@ -32,7 +32,7 @@ from optimize.formulations.layout import (_C_CH, _C_CHI, _C_CREL, _C_PEN, _C_SH,
 from optimize.dp.kernels import _interp_slow as _slow  # the engine's exact multilinear interpolation
 from optimize.dp.kernels import _hermite, _interp_cubic_last  # the engine's cubic along the cabin axis
 from optimize.dp.kernels import _interp, _interp_reach, _lin_reach  # the engine's reach-boundary interpolation
-from optimize.dp.kernels import level_better, level_needs_cost  # the engine's level-set choice rule
+from optimize.dp.kernels import level_choose, level_needs_cost  # the engine's level-set choice rule
 from optimize.dp.engine import ValueFunctions
 from calib.model.equations import cabin_heat_rate, coolant_heat_rate, heater_core_limit
 from optimize.formulations.transition import hold_heat
@@ -90,6 +90,27 @@ def _extend(V, L, i_lo, i_hi, ns, row):
             for e in range(row):
                 V[i * row + e] = V[src * row + e]
                 L[i * row + e] = L[src * row + e]
+
+
+@njit(inline="always", cache=True)
+def _at2(ib, tb, a, b, ta, tt):
+    """Cell indices and fractions of a 2-state query for the general interpolators (the fallbacks): every
+    fallback sets all of them here, none reads what an earlier query left."""
+    ib[0] = a
+    ib[1] = b
+    tb[0] = ta
+    tb[1] = tt
+
+
+@njit(inline="always", cache=True)
+def _at3(ib, tb, a, b, c, ta, tt, t2):
+    """The same for a 3-state query."""
+    ib[0] = a
+    ib[1] = b
+    ib[2] = c
+    tb[0] = ta
+    tb[1] = tt
+    tb[2] = t2
 
 
 @njit(parallel=True, cache=True)
@@ -173,10 +194,7 @@ def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol, reach, skip):
                     o = oa + TB[ip, j]
                     lv = _bilin(Ln, o, nt, ta, tt)
                     if not np.isfinite(lv):
-                        ib[0] = a
-                        ib[1] = TB[ip, j]
-                        tb[0] = ta
-                        tb[1] = tt
+                        _at2(ib, tb, a, TB[ip, j], ta, tt)
                         lv = _slow(Ln, 2, strides, ib, tb)
                         if not (lv < np.inf):
                             continue
@@ -192,26 +210,17 @@ def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol, reach, skip):
                               + tt * _lin_reach(np.float64(Vn[o + 1]), np.float64(Vn[o + nt + 1]),
                                                 np.float64(Ln[o + 1]), np.float64(Ln[o + nt + 1]), level_tol, ta))
                         if not np.isfinite(vv):
-                            ib[0] = a
-                            ib[1] = TB[ip, j]
-                            tb[0] = ta
-                            tb[1] = tt
+                            _at2(ib, tb, a, TB[ip, j], ta, tt)
                             vv = _interp(Vn, 2, strides, ib, tb)
                     else:
                         vv = _bilin(Vn, o, nt, ta, tt)
                         if not np.isfinite(vv):
-                            ib[0] = a
-                            ib[1] = TB[ip, j]
-                            tb[0] = ta
-                            tb[1] = tt
+                            _at2(ib, tb, a, TB[ip, j], ta, tt)
                             vv = _slow(Vn, 2, strides, ib, tb)
                     v = C0[ip, j] + PEN * (pen0 + PT[ip, j]) + vv
                     if not (v < np.inf):
                         continue
-                    if level_better(lv, v, level_tol, feas[j], Lsel[j], best[j]):
-                        best[j] = v
-                        Lsel[j] = lv
-                        feas[j] = lv <= level_tol
+                    level_choose(lv, v, level_tol, j, best, Lsel, feas)
             for j in range(nt):
                 VT[k, i * nt + j] = best[j]
                 LT[k, i * nt + j] = Lmin[j]
@@ -246,12 +255,7 @@ def _limited(P, tab, ip, a, ta, sidx, c0, pen0, q, Q_fuel, T_cl, loss, T_m, lb, 
         pen += (tc - P[_C_CHI]) / P[_C_CH]
     bb, tt = _loc(tn, t_lo, t_inv, nt)
     c, t2 = _loc(tc - off_n, c_lo, c_inv, nc)
-    ib[0] = a
-    ib[1] = bb
-    ib[2] = c
-    tb[0] = ta
-    tb[1] = tt
-    tb[2] = t2
+    _at3(ib, tb, a, bb, c, ta, tt, t2)
     o = a * s0 + bb * s1 + c
     lv = _tri(Ln, o, s0, s1, ta, tt, t2)
     if not np.isfinite(lv):
@@ -273,10 +277,7 @@ def _limited(P, tab, ip, a, ta, sidx, c0, pen0, q, Q_fuel, T_cl, loss, T_m, lb, 
     v = c0 + P[_C_PEN] * pen + vv
     if not (v < np.inf):
         return
-    if level_better(lv, v, level_tol, feas[sidx], Lsel[sidx], best[sidx]):
-        best[sidx] = v
-        Lsel[sidx] = lv
-        feas[sidx] = lv <= level_tol
+    level_choose(lv, v, level_tol, sidx, best, Lsel, feas)
 
 
 @njit(parallel=True, cache=True)
@@ -445,12 +446,7 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold,
                             o = oa + TB[ip, j, iq]
                             lv = _bilin(SL[rr], o, nt, ta, tt)
                             if not np.isfinite(lv):
-                                ib[0] = a
-                                ib[1] = TB[ip, j, iq]
-                                ib[2] = cu[m, iq]
-                                tb[0] = ta
-                                tb[1] = tt
-                                tb[2] = tu[m, iq]
+                                _at3(ib, tb, a, TB[ip, j, iq], cu[m, iq], ta, tt, tu[m, iq])
                                 lv = _slow(Ln, 3, strides, ib, tb)
                                 if not (lv < np.inf):
                                     continue
@@ -467,12 +463,7 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold,
                             else:
                                 vv = _bilin(SV[rr], o, nt, ta, tt)
                             if not np.isfinite(vv):
-                                ib[0] = a
-                                ib[1] = TB[ip, j, iq]
-                                ib[2] = cu[m, iq]
-                                tb[0] = ta
-                                tb[1] = tt
-                                tb[2] = tu[m, iq]
+                                _at3(ib, tb, a, TB[ip, j, iq], cu[m, iq], ta, tt, tu[m, iq])
                                 if cubic:
                                     vv = _interp_cubic_last(Vn, 3, nn, unif, strides, ib, tb)
                                 elif reach:
@@ -482,10 +473,7 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold,
                             v = c0 + PEN * ((pen0 + PT[ip, j, iq]) + pcu[m, iq]) + vv
                             if not (v < np.inf):
                                 continue
-                            if level_better(lv, v, level_tol, feas[sidx], Lsel[sidx], best[sidx]):
-                                best[sidx] = v
-                                Lsel[sidx] = lv
-                                feas[sidx] = lv <= level_tol
+                            level_choose(lv, v, level_tol, sidx, best, Lsel, feas)
                         if nu_ < nq:
                             # the first heater-limited control (the others repeat it)
                             _limited(P, tab, ip, a, ta, sidx, c0, pen0, qlim[j, m], QFUEL[ip, j], tclg[j],
@@ -499,12 +487,7 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold,
                         o = oa + TB[ip, j, nq + m]
                         lv = _bilin(SL[rr], o, nt, ta, tt)
                         if not np.isfinite(lv):
-                            ib[0] = a
-                            ib[1] = TB[ip, j, nq + m]
-                            ib[2] = cu[m, nq]
-                            tb[0] = ta
-                            tb[1] = tt
-                            tb[2] = tu[m, nq]
+                            _at3(ib, tb, a, TB[ip, j, nq + m], cu[m, nq], ta, tt, tu[m, nq])
                             lv = _slow(Ln, 3, strides, ib, tb)
                             if not (lv < np.inf):
                                 continue
@@ -521,12 +504,7 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold,
                         else:
                             vv = _bilin(SV[rr], o, nt, ta, tt)
                         if not np.isfinite(vv):
-                            ib[0] = a
-                            ib[1] = TB[ip, j, nq + m]
-                            ib[2] = cu[m, nq]
-                            tb[0] = ta
-                            tb[1] = tt
-                            tb[2] = tu[m, nq]
+                            _at3(ib, tb, a, TB[ip, j, nq + m], cu[m, nq], ta, tt, tu[m, nq])
                             if cubic:
                                 vv = _interp_cubic_last(Vn, 3, nn, unif, strides, ib, tb)
                             elif reach:
@@ -536,10 +514,7 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold,
                         v = c0 + PEN * ((pen0 + PT[ip, j, nq + m]) + pcu[m, nq]) + vv
                         if not (v < np.inf):
                             continue
-                        if level_better(lv, v, level_tol, feas[sidx], Lsel[sidx], best[sidx]):
-                            best[sidx] = v
-                            Lsel[sidx] = lv
-                            feas[sidx] = lv <= level_tol
+                        level_choose(lv, v, level_tol, sidx, best, Lsel, feas)
             for e in range(nt * nc):
                 VT[k, i * nt * nc + e] = best[e]
                 LT[k, i * nt * nc + e] = Lmin[e]
