@@ -69,6 +69,10 @@ def test_posterior_is_weak_when_the_data_narrowed_the_prior_by_less_than_30_perc
     assert e.status == "estimated" and "weakly" not in e.note
     e = posterior_estimate("a", _out(0.9, post_sd=0.05), "", 1.0)
     assert (e.status, e.note) == ("estimated", "data informed 90 % (prior sd 0.5, posterior sd 0.05)")
+    # a posterior mode at a bound says so, after the rest of the note
+    out = {**_out(0.9, post_sd=0.05), "at_bound": {"a": "posterior mode 1.2 at its bound [0, 1.2]"}}
+    assert posterior_estimate("a", out, "", 1.0).note == ("data informed 90 % (prior sd 0.5, posterior sd 0.05); "
+                                                          "posterior mode 1.2 at its bound [0, 1.2]")
 
 
 def test_map_fit_of_a_line_through_the_origin():
