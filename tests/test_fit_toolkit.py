@@ -459,3 +459,4 @@ def test_map_fit_takes_half_the_difference_of_an_input_moved_both_ways():
     assert moved["post_sd"]["a"] == pytest.approx(math.hypot(out["post_sd"]["a"], 0.05), rel=1e-6)
     empty = map_fit(make, segs, ["a"], perturbed=[(pair[0], lambda ps: [])], **kw)
     assert empty["post_sd"]["a"] == out["post_sd"]["a"]
+

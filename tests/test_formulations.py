@@ -606,6 +606,21 @@ def test_initial_state_on_a_grid_end_is_accepted_and_beyond_it_refused(params):
             build_problem(params, replace(scen, **kw), g, 2)
 
 
+def test_cabin_grid_of_thermal_cabin_dp_reaches_its_upper_limit_to_within_1e_9_K(params):
+    """The last node of the cabin grid counts as reaching the upper limit when it lies at most 1e-9 K below
+    it: with ``T_cab_ub`` 22 K + 1e-9 K (above the cold scenario's cabin) the 1-K grid ends at 22, with
+    22 K + 3e-9 K one node is added, at 23."""
+    from dataclasses import replace
+
+    from optimize.formulations.solve import build_problem
+
+    assert (22.0 + 1e-9) - 1e-9 == 22.0  # the tie the rule decides, exactly representable
+    for ub, top in ((22.0 + 1e-9, 22.0), (22.0 + 3e-9, 23.0)):
+        scen = replace(COLD, duration_s=60.0, T_cab_ub=ub)
+        g = build_problem(params, scen, replace(COARSE3, tcab=1.0), 3, cabin="absolute").prob.grids[2]
+        assert g[-1] == top and g[-2] == top - 1.0, (ub, g[-3:])
+
+
 def test_cabin_grid_of_thermal_cabin_dp_spans_its_bounds_with_the_fewest_nodes(params):
     """The cabin grid runs from the floor of the lowest comfort bound (the untuned rule-based run's cabin
     minus ``cab_lb_offset``, simulated here directly) in steps of ``tcab`` to the first node at or above
