@@ -9,7 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from calib.fit.toolkit import WEAK_INFORMED, combine_with_prior, inflation, map_fit, neff, posterior_estimate
+from calib.fit.toolkit import (WEAK_INFORMED, combine_with_prior, held_by_bound, inflation, map_fit, neff,
+                               posterior_estimate)
 
 
 def _rho1(r):
@@ -460,3 +461,14 @@ def test_map_fit_takes_half_the_difference_of_an_input_moved_both_ways():
     empty = map_fit(make, segs, ["a"], perturbed=[(pair[0], lambda ps: [])], **kw)
     assert empty["post_sd"]["a"] == out["post_sd"]["a"]
 
+
+
+def test_a_bound_holds_a_posterior_mode_closer_than_1e_4_of_the_span():
+    """Bounds [0, 1e4]: 1e-4 of the span is exactly 1, so 1 and 9999 are free and anything closer to a bound
+    is held; an infinite or empty span holds nothing."""
+    assert 1e-4 * 1e4 == 1.0
+    assert not held_by_bound(1.0, 0.0, 1e4) and held_by_bound(0.999, 0.0, 1e4) and held_by_bound(0.0, 0.0, 1e4)
+    assert not held_by_bound(9999.0, 0.0, 1e4) and held_by_bound(9999.5, 0.0, 1e4) and held_by_bound(1e4, 0.0, 1e4)
+    assert not held_by_bound(5e3, 0.0, 1e4)
+    assert not held_by_bound(0.0, 0.0, np.inf) and not held_by_bound(0.0, -np.inf, 0.0)
+    assert not held_by_bound(2.0, 2.0, 2.0)

@@ -342,14 +342,20 @@ def map_fit(make_params, data_segments, cand, *, prior, prior_sd, noise_sd, extr
     at_bound = {}
     for k in cand:
         lo, hi = params[k].min, params[k].max
-        span = hi - lo
-        if np.isfinite(span) and span > 0 and (values[k] - lo < 1e-4 * span or hi - values[k] < 1e-4 * span):
+        if held_by_bound(values[k], lo, hi):
             at_bound[k] = f"posterior mode {values[k]:.6g} at its bound [{lo:g}, {hi:g}]"
     n, ne = neff(data_segments(params))
     return {"values": values, "post_sd": post, "prior_sd": {k: float(prior_sd[k]) for k in cand if k in prior_sd},
             "informed": informed, "correl": correl, "params": params, "noise_sd": s,
             "rmse": rms, "n": n, "n_eff": float(ne), "at_bound": at_bound, "cov": cov, "cov_names": names,
             "prior_cov": prior_cov}
+
+
+def held_by_bound(value, lo, hi) -> bool:
+    """Whether a posterior mode lies less than 1e-4 of its bounds' span from either bound (the bound holds
+    it; an infinite or empty span holds nothing)."""
+    span = hi - lo
+    return bool(np.isfinite(span) and span > 0 and (value - lo < 1e-4 * span or hi - value < 1e-4 * span))
 
 
 def posterior_estimate(name, out, note, prior_value):
