@@ -978,3 +978,15 @@ def test_forward_pass_reports_the_first_control_when_it_is_optimal():
     r = solve(prob, [0.0])
     np.testing.assert_array_equal(r.u, np.zeros((3, 1)))
     assert r.cost == 0.0 and r.feasible
+
+
+def test_a_grid_counts_as_uniform_when_its_steps_vary_by_at_most_1e_10_of_its_span():
+    """Nodes 0, 1 and 2 + 2e: the steps 1 and 1 + 2e deviate from their mean by e, against 1e-10 of the whole
+    span (about 2e-10). e = 1.5e-10 is uniform (an index by division), e = 3e-10 is not (binary search);
+    the span of the first steps alone (1e-10) would call neither uniform."""
+    for e, uniform in ((1.5e-10, True), (3e-10, False)):
+        g = np.array([0.0, 1.0, 2.0 + 2 * e])
+        prob = DPProblem(grids=[g, np.linspace(0.0, 1.0, 4)], controls=np.zeros((1, 2)), N=1, transition=counting,
+                         params=np.zeros(4))
+        _, _, _, flags, _, _ = prob._grid_arrays()
+        assert flags.tolist() == [uniform, True], e
