@@ -180,24 +180,51 @@ def _replace(tree, old, new):
     raise ValueError("node not found")
 
 
-def relocate(r: dict, src: str):
+def relocate(r: dict, src: str, old_src: str | None = None):
     """(index, line) of an earlier report's mutant ``r`` in the module's current source ``src``: at its index
     when that is still the same mutation at the same line, else the one site with the same mutation on a
-    line reading as ``r["source"]`` (moved by an edit elsewhere in the module); None when there is no such
-    site or more than one."""
+    line reading as ``r["source"]`` (moved by an edit elsewhere in the module). Where that line holds the
+    same mutation more than once (``x - 1`` and ``max(..., 1)``), the module's source when the report was
+    made, ``old_src``, tells which: the mutations of one line keep their order. None when there is no such
+    site, or more than one and no ``old_src`` to choose."""
     ss = {i: (ln, d) for i, ln, d in sites(src)}
     if ss.get(r["index"]) == (r["line"], r["mutation"]):
         return r["index"], r["line"]
     lines = src.splitlines()
     cand = [(i, ln) for i, (ln, d) in ss.items() if d == r["mutation"] and ln and lines[ln - 1].strip() == r.get("source")]
-    return cand[0] if len(cand) == 1 else None
+    if len(cand) == 1:
+        return cand[0]
+    if len(cand) < 2 or old_src is None or len({ln for _, ln in cand}) != 1:
+        return None
+    old = sorted(i for i, ln, d in sites(old_src) if ln == r["line"] and d == r["mutation"])
+    if r["index"] not in old or len(old) != len(cand):
+        return None
+    return sorted(cand)[old.index(r["index"])]
 
 
-def reclassify(mutants, cfg, read_source) -> list:
+def _clean_head() -> str | None:
+    """HEAD's commit when the modules under test are as committed (so a report can name the source its
+    mutants were numbered in), else None."""
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True)
+    dirty = subprocess.run(["git", "status", "--porcelain", "--", *config()["modules"]], cwd=ROOT,
+                           capture_output=True, text=True)
+    return head.stdout.strip() if head.returncode == 0 and dirty.returncode == 0 and not dirty.stdout.strip() else None
+
+
+def source_at(commit: str | None, module: str) -> str | None:
+    """A module's source at ``commit`` (the one a report was made at), or None."""
+    if not commit:
+        return None
+    out = subprocess.run(["git", "show", f"{commit}:{module}"], cwd=ROOT, capture_output=True, text=True)
+    return out.stdout if out.returncode == 0 else None
+
+
+def reclassify(mutants, cfg, read_source, commit=None) -> list:
     """An earlier report's mutants judged by today's list of equivalents: each survivor (or earlier
     equivalent) is found in its module's current source (:func:`relocate`, ``read_source(module)``) and is
     equivalent if pyproject lists it at that line, a survivor otherwise; one no longer found keeps its
-    recorded status. Killed mutants stay killed: the tests are not re-run."""
+    recorded status. Killed mutants stay killed: the tests are not re-run. ``commit``: the one the report's
+    survivors were numbered at (see :func:`relocate`)."""
     equiv = {(e["module"], e["line"], e["mutation"]) for e in cfg.get("equivalent", [])}
     srcs, out = {}, []
     for r in mutants:
@@ -206,7 +233,7 @@ def reclassify(mutants, cfg, read_source) -> list:
             continue
         if r["module"] not in srcs:
             srcs[r["module"]] = read_source(r["module"])
-        at = relocate(r, srcs[r["module"]])
+        at = relocate(r, srcs[r["module"]], source_at(commit, r["module"]))
         if at is None:
             out.append(r)
             continue
@@ -217,7 +244,7 @@ def reclassify(mutants, cfg, read_source) -> list:
 
 def rejudge(report: dict, cfg, read_source) -> dict:
     """``report`` summarised again with today's equivalents (:func:`reclassify`); no test is run."""
-    muts = reclassify(report["mutants"], cfg, read_source)
+    muts = reclassify(report["mutants"], cfg, read_source, report.get("commit"))
     out = summarise(muts, muts, {})
     out.update({k: report[k] for k in ("seed", "sample", "wall_s") if k in report})
     out["planned"] = report.get("planned", len(muts))
@@ -318,7 +345,7 @@ def main(argv=None) -> int:
         earlier = earlier_report["mutants"]
         surv = [r for r in earlier if r["status"] in ("survived", "equivalent")]
         for r in surv:
-            at = relocate(r, (ROOT / r["module"]).read_text())
+            at = relocate(r, (ROOT / r["module"]).read_text(), source_at(earlier_report.get("commit"), r["module"]))
             if at is None:
                 raise SystemExit(f"{r['module']}:{r['line']} {r['mutation']} changed since {a.rerun}; run the full "
                                  "sample again")
@@ -344,6 +371,7 @@ def main(argv=None) -> int:
         for m, i, ln, d in plan:
             print(f"{m}:{ln}  #{i}  {d}")
         return 0
+    commit = _clean_head()
     t_start = time.perf_counter()
     # the sources as they are now: a module edited in the checkout during the run (hours) changes no mutant
     snap = {m: (ROOT / m).read_text() for m in mods}
@@ -400,6 +428,8 @@ def main(argv=None) -> int:
             shutil.rmtree(w, ignore_errors=True)
     report = summarise(earlier + results, plan, cfg)
     report.update(seed=a.seed, sample=a.sample, wall_s=round(time.perf_counter() - t_start))
+    if commit:  # the survivors' indices and lines are those of this commit's source
+        report["commit"] = commit
     if a.rerun:  # the merged report describes the earlier run's sample, plus the time of this re-run
         report.update({k: earlier_report[k] for k in ("seed", "sample", "planned", "wall_s") if k in earlier_report})
         report["rerun_wall_s"] = round(time.perf_counter() - t_start)

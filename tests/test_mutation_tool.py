@@ -134,3 +134,21 @@ def test_reclassify_judges_an_earlier_report_by_todays_equivalents_where_the_cod
     assert mutation.reclassify([surv], {"equivalent": []}, lambda m: moved)[0]["status"] == "survived"
     gone = moved.replace(src_line, src_line + "  # edited")  # moved and edited: not found, though listed
     assert mutation.reclassify([surv], listed, lambda m: gone)[0] == surv
+
+
+
+def test_rerun_tells_apart_two_equal_mutations_of_one_line_by_the_source_the_report_was_made_in():
+    """``a - 1`` and ``max(..., 1)`` on one line both mutate as ``1 -> 2``: after a line added above renumbers
+    the mutants (1 and 2 become 4 and 6), the line alone cannot say which one survived; the module's source at
+    the report's commit can (the mutations of a line keep their order), and each relocates to its own
+    constant."""
+    src = "def f(a):\n    return max(a - 1, 1)\n"
+    moved = "def f(a):\n    b = 2.0 * a - 3\n    return max(a - 1, 1)\n"
+    ones = sorted(i for i, ln, d in mutation.sites(src) if d == "1 -> 2")
+    assert len(ones) == 2
+    for i in ones:
+        r = dict(index=i, line=2, mutation="1 -> 2", source="return max(a - 1, 1)")
+        assert mutation.relocate(r, moved) is None
+        j, ln = mutation.relocate(r, moved, src)
+        assert ln == 3 and j != i
+        assert mutation.mutate(moved, j).splitlines()[2] == mutation.mutate(src, i).splitlines()[1]
