@@ -70,6 +70,7 @@ def test_bad_input(ps):
     for g in (0.0, -1.0, float("nan")):
         with pytest.raises(ScenarioError, match="grams must be positive"):
             continuation_credit_per_gram(ps, 15e3, grams=g, cycle="udds")
+    assert np.isfinite(continuation_credit_per_gram(ps, 15e3, grams=0.5, cycle="udds"))  # any positive amount
     # a result that records no ambient needs it given, and then uses the one given
     res = simulate(ps, "nycc", T_amb=-10.0, soc0=X0[0], T_cl0=X0[1], T_cab0=X0[2], Q_heat=1500.0)
     bare = replace(res, info={k: v for k, v in res.info.items() if k != "T_amb_degC"})

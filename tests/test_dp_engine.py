@@ -990,3 +990,20 @@ def test_a_grid_counts_as_uniform_when_its_steps_vary_by_at_most_1e_10_of_its_sp
                          params=np.zeros(4))
         _, _, _, flags, _, _ = prob._grid_arrays()
         assert flags.tolist() == [uniform, True], e
+
+
+def test_interpolation_rules_locate_a_grid_node_exactly_and_the_last_node_in_the_last_cell():
+    """A point on the last node lies in the last cell at fraction 1 (a cell starting there would reach past
+    the grid); a point within 1e-9 cells of an interior node is snapped onto it (fraction 0), so an
+    infinite neighbour is not read with a weight of 1e-10; one 1e-8 cells away is not snapped."""
+    from optimize.dp.kernels import _locate
+
+    lo, inv_dx, n = np.array([0.0]), np.array([2.0]), np.array([5])  # nodes 0, 0.5, ..., 2
+    uniform, pts = np.array([True]), np.linspace(0.0, 2.0, 5)[None, :]
+    for x, cell, frac in ((2.0, 3, 1.0), (1.5 - 2e-10, 3, 0.0), (1.5 + 2e-10, 3, 0.0), (0.0, 0, 0.0)):
+        ib, tb = np.zeros(1, np.int64), np.zeros(1)
+        assert _locate(x, 0, lo, inv_dx, n, uniform, pts, False, ib, tb), x
+        assert (ib[0], tb[0]) == (cell, frac), x
+    ib, tb = np.zeros(1, np.int64), np.zeros(1)
+    assert _locate(1.5 - 5e-9, 0, lo, inv_dx, n, uniform, pts, False, ib, tb)
+    assert ib[0] == 2 and tb[0] == pytest.approx(1.0 - 1e-8, abs=1e-12)

@@ -648,3 +648,17 @@ def test_cabin_grid_of_thermal_cabin_dp_spans_its_bounds_with_the_fewest_nodes(p
             np.testing.assert_allclose(np.diff(g), step, rtol=1e-6)
             assert g[-1] >= hi - 1e-9 and g[-2] < hi - 1e-9, (step, g[-2:], hi)
     assert float(r.T_cab[-2]) < g[-2] < hi  # the case that tells the last sample from the one before
+
+
+def test_fused_locate_snaps_to_a_node_and_puts_the_last_node_in_the_last_cell():
+    """The fused kernels' own locate (the engine's with clipping): the last node lies in the last cell at
+    fraction 1; a point within 1e-9 cells of a node is snapped onto it; points beyond the grid are clipped
+    to its ends."""
+    from optimize.formulations.fused import _loc
+
+    lo, inv, n = 0.0, 2.0, 5  # nodes 0, 0.5, ..., 2
+    assert _loc(2.0, lo, inv, n) == (3, 1.0)
+    assert _loc(1.5 - 2e-10, lo, inv, n) == (3, 0.0) and _loc(1.5 + 2e-10, lo, inv, n) == (3, 0.0)
+    i, t = _loc(1.5 - 5e-9, lo, inv, n)
+    assert i == 2 and t == pytest.approx(1.0 - 1e-8, abs=1e-12)
+    assert _loc(7.0, lo, inv, n) == (3, 1.0) and _loc(-1.0, lo, inv, n) == (0, 0.0)
