@@ -15,7 +15,7 @@ TRUE = dict(C_eng_J_per_K=95e3, gamma_exh=0.42, hA_eng_W_per_K=34.0)
 KAPPA = 0.3  # the prior: kappa is not fitted without the engine-bay temperature
 
 
-def _log(n=1500, T0=-5.0, T_amb=-8.0, bay_samples=0):
+def _log(n=1500, T0=-5.0, T_amb=-8.0, bay_samples=0, kappa=KAPPA):
     t = np.arange(n, dtype=float)
     rpm = 1800.0 + 400.0 * np.sin(2 * np.pi * t / 300.0)  # off the optimal operating line: P = n tau
     torque = 25.0 + 12.0 * np.sin(2 * np.pi * t / 170.0)
@@ -27,13 +27,13 @@ def _log(n=1500, T0=-5.0, T_amb=-8.0, bay_samples=0):
     for k in range(n - 1):  # eq. 3 with eqs. 6-8, below the thermostat (no radiator)
         Q_fuel = LHV * W[k]
         Q_exh = TRUE["gamma_exh"] * (Q_fuel - P[k])
-        Q_air = TRUE["hA_eng_W_per_K"] * (1.0 - KAPPA) * (T[k] - T_amb)
+        Q_air = TRUE["hA_eng_W_per_K"] * (1.0 - kappa) * (T[k] - T_amb)
         T[k + 1] = T[k] + (Q_fuel - P[k] - Q_exh - Q_air - Q_heat[k]) / TRUE["C_eng_J_per_K"]
     data = pd.DataFrame({"engine_speed_rpm": rpm, "engine_torque_Nm": torque, "fuel_rate_g_per_s": W,
                          "heater_power_W": Q_heat, "coolant_temp_degC": T, "ambient_temp_degC": T_amb,
                          "speed_mps": 12.0}, index=pd.Index(t, name="time_s"))
     if bay_samples:  # engine-bay temperature (eq. 8) logged for the last few samples only
-        bay = T_amb + KAPPA * (T - T_amb)
+        bay = T_amb + kappa * (T - T_amb)
         bay[:-bay_samples] = np.nan
         data["bay_temp_degC"] = bay
     return DriveLog(data=data, meta=LogMeta(source="independent eq. 3 integration", format="test",
@@ -234,3 +234,17 @@ def test_initial_coolant_temperature_is_held_within_5_K_of_the_mean_of_the_first
     log.data["coolant_temp_degC"] = T
     fit = fit_thermal([log], default_parameters())
     assert fit.nuisance["T0_0"] == pytest.approx(float(np.mean(T[1:6])) - 5.0, abs=1e-6)
+
+
+@pytest.mark.filterwarnings("ignore:rel_change")
+def test_an_estimated_kappa_is_the_one_the_coolant_fit_uses():
+    """The reference drive with kappa 0.5 (the prior is 0.3) and the engine-bay temperature logged over its
+    last 300 samples (+-0.05 K of noise): kappa is estimated from the bay temperature, and the coolant fit, which sees only
+    hA_eng (1 - kappa), returns hA_eng itself (34 W/K) only if it uses that kappa (with the prior's it would
+    read 34 x 0.5 / 0.7 = 24.3 W/K)."""
+    log = _log(bay_samples=300, kappa=0.5)
+    log.data.loc[log.data.index[-300:], "bay_temp_degC"] += 0.05 * np.tile([1.0, -1.0], 150)  # sensor noise
+    fit = fit_thermal([log], default_parameters(), allowed={"kappa", "C_eng_J_per_K", "gamma_exh", "hA_eng_W_per_K"})
+    assert fit.estimates["kappa"].status == "estimated"
+    assert fit.estimates["kappa"].value == pytest.approx(0.5, rel=1e-3)
+    assert fit.estimates["hA_eng_W_per_K"].value == pytest.approx(TRUE["hA_eng_W_per_K"], rel=1e-3)
