@@ -186,6 +186,26 @@ def test_fused_kernel_equals_generic_engine_next_to_an_infinite_cabin_node(param
     assert np.isnan(p.controls[chosen, 2]).sum() >= 5  # hold-the-bound controls (heat NaN)
 
 
+def test_fused_kernel_equals_generic_engine_with_the_cubic_on_a_three_node_cabin_grid(params):
+    """Three cabin nodes are enough for the cubic cost-to-go (its end slopes are one-sided): the fused
+    kernel uses it there as the engine does, bit for bit, and the answer is not the linear one."""
+    import dataclasses
+
+    from optimize.dp.engine import backward_pass
+    from optimize.formulations.fused import backward_pass_fused
+
+    b = build_problem(params, DPScenario(duration_s=30.0, T_cl0=28.0, cab_lb_offset=0.37),
+                      DPGrids(soc=0.02, tcl=4.0, tcab=2.0, pbat=2500.0, qheat=200.0), 3, cabin="bound", hold=True,
+                      interp="cubic_last")
+    assert b.prob.grids[2].size == 3
+    vg, vf = backward_pass(b.prob), backward_pass_fused(b.prob, skip=False)
+    np.testing.assert_array_equal(vg.V, vf.V)
+    np.testing.assert_array_equal(vg.L, vf.L)
+    lin = backward_pass(dataclasses.replace(b.prob, interp="multilinear"))
+    fin = np.isfinite(vg.V[0])
+    assert np.abs(vg.V[0][fin] - lin.V[0][fin]).max() > 1.0
+
+
 def test_fused_kernel_equals_generic_engine_next_to_an_infinite_soc_node_two_states(params):
     """Thermal-DP on the fixed SOC grid with V_N = +inf at SOC node 1: a next charge below the grid is
     clipped to node 0 and reads node 1 with weight 0 (the kernel's bilinear value is NaN, its exact
