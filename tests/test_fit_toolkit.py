@@ -140,6 +140,7 @@ def test_map_fit_posterior_correlation_of_slope_and_offset():
     cov = np.linalg.inv(X.T @ X / s ** 2 + np.diag([1.0, 0.25]))
     r = cov[0, 1] / np.sqrt(cov[0, 0] * cov[1, 1])
     assert r < -0.9
+    assert list(out["correl"]) == ["a|c"]  # each pair once, in the order of ``cand``
     assert out["correl"]["a|c"] == pytest.approx(r, rel=1e-4)
     assert out["post_sd"]["c"] == pytest.approx(np.sqrt(cov[1, 1]), rel=1e-4)
 
