@@ -205,9 +205,12 @@ def relocate(r: dict, src: str, old_src: str | None = None):
 def _clean_head() -> str | None:
     """HEAD's commit when the modules under test are as committed (so a report can name the source its
     mutants were numbered in), else None."""
-    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True)
-    dirty = subprocess.run(["git", "status", "--porcelain", "--", *config()["modules"]], cwd=ROOT,
-                           capture_output=True, text=True)
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", *config()["modules"]], cwd=ROOT,
+                               capture_output=True, text=True)
+    except OSError:  # no git here
+        return None
     return head.stdout.strip() if head.returncode == 0 and dirty.returncode == 0 and not dirty.stdout.strip() else None
 
 
@@ -215,7 +218,10 @@ def source_at(commit: str | None, module: str) -> str | None:
     """A module's source at ``commit`` (the one a report was made at), or None."""
     if not commit:
         return None
-    out = subprocess.run(["git", "show", f"{commit}:{module}"], cwd=ROOT, capture_output=True, text=True)
+    try:
+        out = subprocess.run(["git", "show", f"{commit}:{module}"], cwd=ROOT, capture_output=True, text=True)
+    except OSError:
+        return None
     return out.stdout if out.returncode == 0 else None
 
 
