@@ -168,11 +168,16 @@ def test_continued_terminal_cost_is_zero_at_the_initial_state_and_c_differences_
     # difference of the continuation values computed directly (Thermal-DP: at the reference run's final cabin)
     from optimize.formulations.solve import build_problem
 
-    scen = replace(SHORT, duration_s=30.0)
+    scen = replace(SHORT, duration_s=30.0, cont_soc_every=3)
     b = build_problem(ps, scen, GRIDS, 2)
     phi = b.prob.terminal_cost
     assert phi(np.array([[scen.soc0, scen.T_cl0]]))[0] == pytest.approx(0.0, abs=1e-12)
     soc_n, tcl_n, _ = (np.array(a) for a in b.extra["continuation_nodes"])
+    # every 3rd node of the SOC range, and its top, which the stride misses here (a shorter last gap)
+    gaps = np.diff(soc_n)
+    assert soc_n[0] == scen.soc_min and soc_n[-1] == pytest.approx(scen.soc_max, abs=1e-12)
+    np.testing.assert_allclose(gaps[:-1], gaps[0], rtol=1e-9)
+    assert 0.0 < gaps[-1] < gaps[0] - 1e-9
     xa, xb = (soc_n[0], tcl_n[0]), (soc_n[-1], tcl_n[-1])
     C = continuation_value(ps, np.array([xa[0], xb[0]]), np.array([xa[1], xb[1]]), b.extra["T_cab_ref_final"],
                            ref=(scen.soc0, scen.T_cl0, scen.T_cab0), T_amb=scen.T_amb, Q_heat=scen.Q_heat,

@@ -682,3 +682,21 @@ def test_fused_locate_snaps_to_a_node_and_puts_the_last_node_in_the_last_cell():
     i, t = _loc(1.5 - 5e-9, lo, inv, n)
     assert i == 2 and t == pytest.approx(1.0 - 1e-8, abs=1e-12)
     assert _loc(7.0, lo, inv, n) == (3, 1.0) and _loc(-1.0, lo, inv, n) == (0, 0.0)
+
+
+def test_problem_layout_gives_the_kernels_the_grids_ends_and_steps_and_the_outcome_its_speed(params):
+    """The parameter vector the kernels read holds each state grid's ends and step, the step being the
+    unit of the penalty for leaving the grid (a 4-K coolant grid from 10 degC: 4 K, not the sum of two
+    nodes); the outcome's speed is its evaluations over the backward pass's time."""
+    from optimize.formulations.layout import _C_SH, _C_SHI, _C_SLO, _C_TH, _C_THI, _C_TLO
+    from optimize.formulations.solve import solve_thermal
+
+    scen = DPScenario(duration_s=20.0, T_cl0=20.0, T_cl_min=10.0)
+    b = build_problem(params, scen, COARSE3, 2)
+    P, tclg = b.prob.params, b.prob.grids[1]
+    assert (P[_C_SLO], P[_C_SHI]) == (scen.soc_min, scen.soc_max) and P[_C_SH] == pytest.approx(0.02, rel=1e-12)
+    assert (P[_C_TLO], P[_C_THI]) == (tclg[0], tclg[-1]) and P[_C_TH] == pytest.approx(4.0, rel=1e-12)
+    assert tclg[0] > 0.0  # a sum of two nodes would differ from the step
+    out = solve_thermal(params, scen, COARSE3, threads=1)
+    assert out.t_backward > 0 and out.n_evaluations > 1000
+    assert out.evals_per_second == out.n_evaluations / out.t_backward
