@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import functools
 import json
 import os
 import random
@@ -214,8 +215,9 @@ def _clean_head() -> str | None:
     return head.stdout.strip() if head.returncode == 0 and dirty.returncode == 0 and not dirty.stdout.strip() else None
 
 
+@functools.lru_cache(maxsize=None)
 def source_at(commit: str | None, module: str) -> str | None:
-    """A module's source at ``commit`` (the one a report was made at), or None."""
+    """A module's source at ``commit`` (the one a report was made at), or None; read once per pair."""
     if not commit:
         return None
     try:

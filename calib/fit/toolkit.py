@@ -316,7 +316,7 @@ def map_fit(make_params, data_segments, cand, *, prior, prior_sd, noise_sd, extr
     for rfun in perturbed:
         if isinstance(rfun, tuple):
             up, down = moved(rfun[0]), moved(rfun[1])
-            d = 0.5 * (up - down) if up is not None and down is not None and up.size == down.size else None
+            d = 0.5 * (up - down) if up is not None and down is not None else None
         else:
             d = moved(rfun)
         if d is None or d.size != r0.size:
