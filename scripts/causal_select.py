@@ -25,14 +25,41 @@ import numpy as np
 GRID = {"alpha": [0.1, 0.3, 1.0], "w_soc_g_per_s": [50.0, 100.0, 200.0], "soc_bias": [0.0, 0.01],
         "regen": ["constant", "fit"]}
 SOC_TOL = 0.01
+MARGIN = 0.0025  # a quarter of the band
+
+
+def choose(rows: list) -> dict | None:
+    """The rule: settings with every training drive's |dSOC| <= SOC_TOL - MARGIN, then the least mean gap."""
+    ok = [r for r in rows if r["max_abs_dsoc"] <= SOC_TOL - MARGIN]
+    return min(ok, key=lambda r: r["mean_gap_pct"]) if ok else None
+
+
+def _report(rows: list, out: Path) -> None:
+    from calib.fileio import write_json
+
+    best = choose(rows)
+    if best is None:
+        print(f"no setting ends every training drive within {SOC_TOL - MARGIN:g} of its starting SOC")
+    else:
+        print(f"chosen: alpha {best['alpha']:g}, w_soc {best['w_soc_g_per_s']:g} g/s, soc_bias {best['soc_bias']:g}, "
+              f"regen {best['regen']} ({best['regen_fraction']:.3f}{best['regen_slope_per_mps']:+.4f} v) "
+              f"(mean gap {best['mean_gap_pct']:+.2f} %, max |dSOC| {best['max_abs_dsoc']:.4f})")
+    write_json(out, {"grid": GRID, "rule": f"|dSOC| <= {SOC_TOL - MARGIN:g} on every training drive (the {SOC_TOL:g} "
+                     f"band less a margin of {MARGIN:g}), then least mean corrected-fuel gap to Thermal-DP",
+                     "rows": rows, "chosen": best})
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="reports/causal-select.json")
+    ap.add_argument("--rechoose", type=Path, help="apply the rule to the rows of this earlier report")
     a = ap.parse_args(argv)
+    if a.rechoose is not None:
+        import json
 
-    from calib.fileio import write_json
+        _report(json.loads(a.rechoose.read_text())["rows"], Path(a.out))
+        return 0
+
     from calib.ingest import read_log
     from calib.model.params import default_parameters
     from calib.model.simulate import simulate
@@ -85,16 +112,7 @@ def main(argv=None) -> int:
             print(f"alpha {alpha:<4g} w_soc {w:<5g} soc_bias {bias:<5g} regen {kind:<8}: mean gap to DP "
                   f"{row['mean_gap_pct']:+.2f} %, max |dSOC| {row['max_abs_dsoc']:.4f} "
                   f"({'charge sustaining' if row['charge_sustaining'] else 'NOT'}) [{row['seconds']:.0f} s]", flush=True)
-    ok = [r for r in rows if r["charge_sustaining"]]
-    best = min(ok, key=lambda r: r["mean_gap_pct"]) if ok else None
-    if best is None:
-        print("no setting is charge sustaining on every training drive")
-    else:
-        print(f"chosen: alpha {best['alpha']:g}, w_soc {best['w_soc_g_per_s']:g} g/s, soc_bias {best['soc_bias']:g}, "
-              f"regen {best['regen']} ({best['regen_fraction']:.3f}{best['regen_slope_per_mps']:+.4f} v) "
-              f"(mean gap {best['mean_gap_pct']:+.2f} %, max |dSOC| {best['max_abs_dsoc']:.4f})")
-    write_json(Path(a.out), {"grid": GRID, "rule": f"|dSOC| <= {SOC_TOL} on every training drive, then least mean "
-                             "corrected-fuel gap to Thermal-DP", "rows": rows, "chosen": best})
+    _report(rows, Path(a.out))
     return 0
 
 

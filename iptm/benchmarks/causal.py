@@ -8,22 +8,23 @@ from pathlib import Path
 TRAIN_LOG = Path("logs") / "winter_cold_start.blf"
 
 
-def run(quick: bool = False, valuation: str = "corrected") -> dict:
+def run(quick: bool = False, valuation: str = "corrected", drives: str = "held-out") -> dict:
     import numpy as np
     import pandas as pd
 
     from calib.model.params import default_parameters
-    from optimize.causal.compare import AMBIENTS, HELD_OUT, TRAIN_CYCLES, compare_causal, step_timing
+    from optimize.causal.compare import AMBIENTS, DRIVE_SETS, TRAIN_CYCLES, compare_causal, step_timing
     from optimize.causal.controllers import ECMSController, SDPController
 
     ps = default_parameters()
+    HELD_OUT = DRIVE_SETS[drives]
     logs = []
     if TRAIN_LOG.is_file():
         from calib.ingest import read_log
 
         logs = [read_log(TRAIN_LOG)]
     print(f"training drives: {', '.join(TRAIN_CYCLES)}" + (f" + log {TRAIN_LOG} (SYNTHETIC)" if logs else "")
-          + f"; held out: {', '.join(HELD_OUT)}; ambients {', '.join(f'{a:g}' for a in AMBIENTS)} degC")
+          + f"; held out ({drives}): {', '.join(HELD_OUT)}; ambients {', '.join(f'{a:g}' for a in AMBIENTS)} degC")
     # compile (or load the numba cache) outside the timings: a tiny policy and one ECMS drive
     from optimize.causal import DemandMarkov, SDPConfig, build_policy
 
@@ -68,7 +69,7 @@ def run(quick: bool = False, valuation: str = "corrected") -> dict:
               f"x {p.info['n_controls']} controls, {p.info['iterations']} iterations, converged "
               f"{p.info['converged']}) (goal < 60 s)")
     return {"table": cmp.rows, "goals": cmp.goals(),
-            "credit_per_gram": {str(k): v for k, v in credit.items()}, "valuation": valuation,
+            "credit_per_gram": {str(k): v for k, v in credit.items()}, "valuation": valuation, "drives": drives,
             "continuation_credit_per_gram": {str(k): v for k, v in cont.items()}, "validation": cmp.validation, "step": steps,
             "build": {str(T): p.info for T, p in cmp.policies.items()},
             "mean_abs_gap_pct": float(np.mean([abs(r["gap_to_dp_pct"]) for r in cmp.rows]))}

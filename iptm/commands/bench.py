@@ -36,6 +36,9 @@ def register(sub):
                    help="causal: how final states are valued: corrected (fuel equivalents of the stored energy, "
                         "default) or continuation (the rule-based controller's fuel over UDDS six times from the final "
                         "state; Thermal-DP with the 'continued' terminal)")
+    p.add_argument("--drives", choices=("held-out", "fresh"), default="held-out",
+                   help="causal: the drives compared on: held-out (six drives, looked at while the settings were "
+                        "developed) or fresh (eight real trips first simulated after the settings were last chosen)")
     p.add_argument("--halve", action="store_true",
                    help="dp: also solve the converged Thermal-Cabin-DP grid with every step halved (about 32 times "
                         "its time) and print the change")
@@ -61,7 +64,7 @@ def run(args) -> int:
         print(f"== {n}")
         extra = {"n": args.n, "seed": args.seed} if n == "fuzz" else {}
         if n == "causal":
-            extra = {"valuation": args.valuation}
+            extra = {"valuation": args.valuation, "drives": args.drives}
         if n == "dp":
             extra = {"halve": args.halve}
         results[n] = mod.run(quick=args.quick, **extra)

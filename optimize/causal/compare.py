@@ -32,6 +32,15 @@ TRAIN_CYCLES = ("udds", "hwfet", "us06")
 #: Drives never used to build or tune anything: three urban cycles, the urban half of WLTC and two
 #: real-world GPS-logged drives (a 5-min suburban trip, an 18-min highway commute).
 HELD_OUT = ("artemis_urban", "nycc", "manhattan", "wltc_city_3b", "tsdc_trip_42648", "cmap_chicago_commute")
+#: A second held-out set, first simulated after the SDP's settings were last chosen (the settings were
+#: revised after results on :data:`HELD_OUT` had been seen, so those are no longer a clean test of them):
+#: eight real GPS-logged trips of eight other vehicles of the CMAP survey, picked by a rule fixed in
+#: advance (scripts/extract_cmap_trips.py; calib/data/cycles/README.md).
+FRESH_TEST = ("cmap_4107032_1_20070522", "cmap_4108468_1_20070624", "cmap_4108468_2_20070621",
+              "cmap_4109114_1_20070517", "cmap_4111928_1_20070519", "cmap_4112082_1_20070703",
+              "cmap_4115957_1_20070409", "cmap_4116813_2_20070405")
+#: The drive sets ``iptm bench causal --drives`` compares on.
+DRIVE_SETS = {"held-out": HELD_OUT, "fresh": FRESH_TEST}
 AMBIENTS = (-10.0, 0.0)
 GOAL_GAP_PCT = 3.0
 SOC_TOL = 0.01
@@ -59,10 +68,13 @@ class CausalComparison:
         c = df[df.strategy.isin(["sdp", "ecms"])]
         out = {}
         for s, g in c.groupby("strategy"):
-            out[s] = {"max_gap_to_dp_pct": float(g.gap_to_dp_pct.max()),
-                      "within_3pct_all": bool((g.gap_to_dp_pct <= GOAL_GAP_PCT).all()),
-                      "better_than_rule_all": bool((g.vs_rule_pct > 0).all()),
-                      "charge_sustaining_all": bool((g.dsoc.abs() <= SOC_TOL).all())}
+            within, better = g.gap_to_dp_pct <= GOAL_GAP_PCT, g.vs_rule_pct > 0
+            sustaining = g.dsoc.abs() <= SOC_TOL
+            out[s] = {"runs": int(len(g)), "max_gap_to_dp_pct": float(g.gap_to_dp_pct.max()),
+                      "within_3pct": int(within.sum()), "within_3pct_all": bool(within.all()),
+                      "better_than_rule": int(better.sum()), "better_than_rule_all": bool(better.all()),
+                      "charge_sustaining": int(sustaining.sum()), "charge_sustaining_all": bool(sustaining.all()),
+                      "dsoc_range": (float(g.dsoc.min()), float(g.dsoc.max()))}
         return out
 
     def format(self) -> str:
@@ -76,10 +88,14 @@ class CausalComparison:
                 if self.valuation == "continuation" else "corrected (fuel minus fuel equivalents of stored energy)")
         lines = [f"fuel_corrected_g: {what}; credit_g = fuel_g - fuel_corrected_g", txt, ""]
         for s, g in self.goals().items():
-            lines.append(f"{s}: max gap to DP {g['max_gap_to_dp_pct']:.2f} % (goal <= {GOAL_GAP_PCT:g} %: "
-                         f"{'met' if g['within_3pct_all'] else 'NOT met'}); better than tuned rule-based on every "
-                         f"held-out drive: {'yes' if g['better_than_rule_all'] else 'NO'}; charge sustaining "
-                         f"(|dSOC| <= {SOC_TOL}): {'yes' if g['charge_sustaining_all'] else 'NO'}")
+            n = g["runs"]
+            lines.append(f"{s}: within {GOAL_GAP_PCT:g} % of DP on {g['within_3pct']}/{n} runs (max gap "
+                         f"{g['max_gap_to_dp_pct']:.2f} %: goal {'met' if g['within_3pct_all'] else 'NOT met'}); "
+                         f"better than tuned rule-based on {g['better_than_rule']}/{n} "
+                         f"({'met' if g['better_than_rule_all'] else 'NOT met'}); charge sustaining "
+                         f"(|dSOC| <= {SOC_TOL}) on {g['charge_sustaining']}/{n} "
+                         f"({'met' if g['charge_sustaining_all'] else 'NOT met'}; dSOC {g['dsoc_range'][0]:+.4f} to "
+                         f"{g['dsoc_range'][1]:+.4f})")
         return "\n".join(lines)
 
 

@@ -28,6 +28,9 @@ DEFAULT_EDGES_W = np.array([-20e3, -12e3, -8e3, -5e3, -3e3, -1.5e3, -0.3e3, 0.3e
                             10e3, 13e3, 17e3, 22e3, 28e3, 36e3])
 #: Ambient bands (degC): upper edges of all bands but the last.
 DEFAULT_BANDS_DEGC = (-5.0,)
+#: Additive prior on the transition counts, chosen with the SDP's settings on the training drives
+#: (``scripts/causal_select.py``).
+DEFAULT_ALPHA = 0.1
 
 
 def demand_trace(params, source, Ts: float = 1.0):
@@ -79,7 +82,7 @@ class DemandMarkov:
     counts: np.ndarray
     bands_degC: tuple = DEFAULT_BANDS_DEGC
     sources: list = field(default_factory=list)
-    alpha: float = 1.0
+    alpha: float = DEFAULT_ALPHA
 
     @property
     def n_bins(self) -> int:
@@ -97,7 +100,7 @@ class DemandMarkov:
         return self.values_W[b], self.P[b]
 
     @classmethod
-    def estimate(cls, params, sources, *, edges_W=None, bands_degC=DEFAULT_BANDS_DEGC, alpha: float = 1.0,
+    def estimate(cls, params, sources, *, edges_W=None, bands_degC=DEFAULT_BANDS_DEGC, alpha: float = DEFAULT_ALPHA,
                  Ts: float = 1.0) -> DemandMarkov:
         """Count transitions of every source (cycle names, CSV paths, Cycles, DriveLogs). The default
         ``alpha`` was chosen with the SDP's settings on the training drives (``scripts/causal_select.py``)."""
@@ -177,7 +180,7 @@ class DemandMarkov:
         try:
             return cls(np.asarray(d["edges_W"], float), np.asarray(d["values_W"], float),
                        np.asarray(d["P"], float), np.asarray(d["counts"], float), tuple(d["bands_degC"]),
-                       list(d.get("sources", [])), float(d.get("alpha", 0.1)))
+                       list(d.get("sources", [])), float(d.get("alpha", DEFAULT_ALPHA)))
         except KeyError as exc:
             raise IptmError(f"Markov demand model: field {exc} missing in the stored model") from None
 

@@ -1,0 +1,124 @@
+"""The drives the causal controllers are chosen on and tested on, the rule that chooses the SDP's settings, and
+the script that cut the fresh test trips out of FASTSim's CMAP subset."""
+import importlib.util
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from calib.model.cycles import load_cycle
+from optimize.causal.compare import DRIVE_SETS, FRESH_TEST, HELD_OUT, TRAIN_CYCLES
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _script(name):
+    spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_training_held_out_and_fresh_drives_are_disjoint_and_bundled():
+    assert not set(TRAIN_CYCLES) & set(HELD_OUT)
+    assert not set(FRESH_TEST) & (set(TRAIN_CYCLES) | set(HELD_OUT))
+    assert DRIVE_SETS == {"held-out": HELD_OUT, "fresh": FRESH_TEST}
+    for name in FRESH_TEST:
+        c = load_cycle(name)
+        assert 300.0 <= c.t[-1] <= 1800.0, name  # the rule's 5-30 min
+        assert c.v[0] == 0.0 and c.v[-1] == 0.0, name  # a trip starts and ends at rest
+        assert np.all(np.diff(c.t) == 1.0)
+
+
+def _row(gap, dsocs):
+    return {"mean_gap_pct": gap, "max_abs_dsoc": max(abs(d) for d in dsocs)}
+
+
+def test_selection_keeps_a_margin_inside_the_charge_band():
+    sel = _script("causal_select")
+    assert sel.SOC_TOL - sel.MARGIN == pytest.approx(0.0075)
+    edge = _row(2.4, [0.009, 0.004])  # inside the band, but fills it: cheapest on corrected fuel
+    inside = _row(2.8, [0.0054, -0.005])
+    at_limit = _row(2.9, [0.0075, 0.0])
+    out = _row(1.0, [0.012])
+    assert sel.choose([edge, out, inside, at_limit]) is inside
+    assert sel.choose([edge, out, at_limit]) is at_limit  # the limit itself is inside
+    assert sel.choose([edge, out]) is None
+
+
+def test_selection_rechooses_from_a_stored_report(tmp_path, capsys):
+    import json
+
+    sel = _script("causal_select")
+    rows = [dict(_row(2.4, [0.009]), alpha=1.0, w_soc_g_per_s=100.0, soc_bias=0.01, regen="fit", regen_fraction=0.8,
+                 regen_slope_per_mps=-0.012),
+            dict(_row(2.8, [0.005]), alpha=0.1, w_soc_g_per_s=100.0, soc_bias=0.01, regen="fit", regen_fraction=0.8,
+                 regen_slope_per_mps=-0.012)]
+    src = tmp_path / "old.json"
+    src.write_text(json.dumps({"rows": rows}))
+    assert sel.main(["--rechoose", str(src), "--out", str(tmp_path / "new.json")]) == 0
+    new = json.loads((tmp_path / "new.json").read_text())
+    assert new["chosen"]["alpha"] == 0.1 and "0.0075" in new["rule"]
+    assert "chosen: alpha 0.1" in capsys.readouterr().out
+
+
+@pytest.mark.skipif(shutil.which("git") is None, reason="needs git")
+def test_cmap_trips_are_cut_by_the_fixed_rule(tmp_path):
+    """A miniature of FASTSim's layout: the rule skips the bundled commute's household, trips outside 5-30 min
+    and trips with a gap over 2 s, keeps each vehicle's first qualifying trip and resamples it to 1 Hz in km/h."""
+    ex = _script("extract_cmap_trips")
+    work = tmp_path / "w"
+    sub = work / ex.SUBSET
+    head = ("sampno,vehno,start_ts,end_ts,absolute_time_duration_hrs,max_gap_between_samples_s\n")
+
+    def vehicle(veh, trips, day, samples):
+        d = sub / veh
+        d.mkdir(parents=True)
+        (d / "trips.csv").write_text(head + "".join(f"1,1,{a},{b},{h},{g}\n" for a, b, h, g in trips))
+        (d / f"{day}.csv").write_text("timestamp,cycle_sec,timestep,speed_mph,accel_meters_ps\n"
+                                      + "".join(f"{t},0,1,{v},0\n" for t, v in samples))
+
+    def stamp(s):
+        return f"2007-05-01 10:{s // 60:02d}:{s % 60:02d}"
+
+    ramp = [(stamp(s), 10.0 if 0 < s < 400 else 0.0) for s in range(0, 401, 2)]  # 2-s samples, 400 s
+    vehicle("4033363_1", [(stamp(0), stamp(400), 400 / 3600, 1.0)], "2007-05-01", ramp)  # the commute's household
+    vehicle("4100000_1", [(stamp(0), stamp(100), 100 / 3600, 1.0),  # too short
+                          (stamp(0), stamp(400), 400 / 3600, 5.0),  # a 5-s gap
+                          (stamp(0), stamp(400), 400 / 3600, 2.0)], "2007-05-01", ramp)
+    vehicle("4200000_2", [(stamp(0), stamp(400), 400 / 3600, 3.0)], "2007-05-01", ramp)
+    subprocess.run(["git", "init", "-q", str(work)], check=True)
+    subprocess.run(["git", "-C", str(work), "add", "."], check=True)
+    subprocess.run(["git", "-C", str(work), "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "x"],
+                   check=True)
+    trips = ex.select(work / ".git")
+    assert trips == [{"vehicle": "4100000_1", "start": stamp(0), "end": stamp(400)}]
+    df = ex.cut(work / ".git", trips[0])
+    assert df.time_s.tolist() == list(np.arange(401.0))
+    assert df.speed_kph.iloc[0] == 0.0 and df.speed_kph.iloc[-1] == 0.0
+    assert df.speed_kph.iloc[200] == pytest.approx(16.093)  # 10 mph
+    assert df.speed_kph.iloc[1] == pytest.approx(8.047)  # half-way between 0 and 10 mph, a 2-s gap
+
+
+def test_goals_count_the_runs_that_meet_each_goal():
+    from optimize.causal.compare import CausalComparison
+
+    def r(strategy, gap, vs_rule, dsoc):
+        return {"cycle": "x", "T_amb": 0.0, "strategy": strategy, "fuel_g": 1.0, "fuel_corrected_g": 1.0,
+                "credit_g": 0.0, "soc_final": 0.6 + dsoc, "T_cl_final": 80.0, "gap_to_dp_pct": gap,
+                "vs_rule_pct": vs_rule, "dsoc": dsoc}
+
+    rows = [r("dp_thermal", 0.0, 1.0, 0.0), r("sdp", 3.0, 0.5, 0.01), r("sdp", 3.01, 0.0, -0.0101),
+            r("ecms", 1.0, 2.0, 0.001), r("ecms", -1.0, 0.1, -0.002)]
+    cmp = CausalComparison(rows, markov=None, validation=[])
+    g = cmp.goals()
+    assert set(g) == {"sdp", "ecms"}  # the DP and the rule are references, not judged
+    assert (g["sdp"]["runs"], g["sdp"]["within_3pct"], g["sdp"]["better_than_rule"], g["sdp"]["charge_sustaining"]) \
+        == (2, 1, 1, 1)  # 3 % and 0.01 themselves meet the goal; a saving of 0 % does not
+    assert not (g["sdp"]["within_3pct_all"] or g["sdp"]["better_than_rule_all"] or g["sdp"]["charge_sustaining_all"])
+    assert g["ecms"]["within_3pct_all"] and g["ecms"]["better_than_rule_all"] and g["ecms"]["charge_sustaining_all"]
+    assert g["sdp"]["dsoc_range"] == (-0.0101, 0.01) and g["sdp"]["max_gap_to_dp_pct"] == 3.01
+    txt = cmp.format()
+    assert "sdp: within 3 % of DP on 1/2 runs" in txt and "better than tuned rule-based on 2/2 (met)" in txt
