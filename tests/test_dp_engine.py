@@ -327,12 +327,13 @@ def _counting_problem(N=3, n=100, nu=2):
                      params=p), p
 
 
-def _backward_pass_on_one_thread(prob):
-    """The backward pass with numba on one thread (then the thread count as it was)."""
+def _on_one_thread(fn, *args):
+    """``fn(*args)`` with numba on one thread (then the thread count as it was): the counting transition
+    increments a shared counter, which parallel threads would race on."""
     old = numba.get_num_threads()
     try:
         numba.set_num_threads(1)
-        backward_pass(prob)
+        return fn(*args)
     finally:
         numba.set_num_threads(old)
 
@@ -342,7 +343,7 @@ def test_backward_pass_evaluates_each_state_control_pair_once_per_step():
     control) pair is evaluated exactly once per step, as n_evaluations reports, with the node's grid
     index; without a precompute hook the table is an empty (0, 0) array."""
     prob, p = _counting_problem()
-    _backward_pass_on_one_thread(prob)
+    _on_one_thread(backward_pass, prob)
     assert p[0] == 3 * 100 * 2
     assert (p[1], p[2], p[3]) == (0.0, 0.0, 0.0)
 
@@ -354,7 +355,7 @@ def test_backward_pass_gives_each_node_its_grid_index_in_every_dimension():
     p = np.zeros(2)
     prob = DPProblem(grids=[np.arange(4.0), np.arange(3.0), np.arange(5.0)], controls=np.zeros((2, 1)), N=2,
                      transition=index_check, params=p)
-    _backward_pass_on_one_thread(prob)
+    _on_one_thread(backward_pass, prob)
     assert (p[0], p[1]) == (2 * 60 * 2, 0.0)
 
 
@@ -375,7 +376,7 @@ def test_solve_time_is_the_backward_plus_the_forward_pass_time():
 def test_forward_pass_gives_the_transition_grid_index_minus_one():
     """The forward pass runs from the true (off-grid) state: every grid index it passes is -1."""
     prob, p = _counting_problem()
-    res = solve(prob, [0.55])
+    res = _on_one_thread(solve, prob, [0.55])
     assert res.feasible and p[3] == -1.0
     # the backward pass, then per step one evaluation per control and one more of the chosen control
     assert p[0] == res.n_evaluations + 3 * (2 + 1)
