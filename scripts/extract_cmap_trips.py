@@ -4,10 +4,11 @@ The CMAP Travel Tracker subset in NREL FASTSim's resources (``python/fastsim/res
 Apache-2.0) holds GPS speed logs per vehicle and day and a ``trips.csv`` per vehicle with each trip's start
 and end. The rule, fixed before any of these trips was simulated: trips of 5 to 30 minutes whose samples
 are never more than 2 s apart, of vehicles other than the one whose commute is already bundled
-(``cmap_chicago_commute``), the first such trip of each vehicle. Each is resampled to 1 Hz (linear
+(``cmap_chicago_commute``), the first such trip of each vehicle (``--nth 2``: the second, for the vehicles
+that have one: the reserve set). Each is resampled to 1 Hz (linear
 across the 2-s gaps), speed converted from mph to km/h, time counted from the trip's start.
 
-Usage: ``python scripts/extract_cmap_trips.py FASTSIM_GIT_DIR [--out calib/data/cycles]``; FASTSIM_GIT_DIR
+Usage: ``python scripts/extract_cmap_trips.py FASTSIM_GIT_DIR [--nth 1|2] [--out calib/data/cycles]``; FASTSIM_GIT_DIR
 is a clone (or bare repository) of https://github.com/NREL/fastsim. Prints the trips it wrote.
 """
 from __future__ import annotations
@@ -31,7 +32,8 @@ def _show(repo: Path, path: str) -> str:
                           capture_output=True, text=True).stdout
 
 
-def select(repo: Path) -> list[dict]:
+def select(repo: Path, nth: int = 1) -> list[dict]:
+    """The ``nth`` qualifying trip (by start time) of every vehicle outside the bundled household that has one."""
     files = subprocess.run(["git", "--git-dir", str(repo), "ls-tree", "-r", "--name-only", "HEAD", SUBSET],
                            check=True, capture_output=True, text=True).stdout.split()
     household = BUNDLED_VEHICLE.split("_")[0]
@@ -43,8 +45,8 @@ def select(repo: Path) -> list[dict]:
         t = pd.read_csv(io.StringIO(_show(repo, f)))
         dur = 3600.0 * t["absolute_time_duration_hrs"]
         ok = t[(dur >= MIN_S) & (dur <= MAX_S) & (t["max_gap_between_samples_s"] <= MAX_GAP_S)]
-        if len(ok):
-            r = ok.sort_values("start_ts").iloc[0]
+        if len(ok) >= nth:
+            r = ok.sort_values("start_ts").iloc[nth - 1]
             chosen.append({"vehicle": veh, "start": r["start_ts"], "end": r["end_ts"]})
     return chosen
 
@@ -66,10 +68,13 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("repo", type=Path)
     ap.add_argument("--out", type=Path, default=Path("calib/data/cycles"))
+    ap.add_argument("--nth", type=int, default=1, choices=(1, 2), help="which qualifying trip of each vehicle")
     a = ap.parse_args(argv)
-    for trip in select(a.repo):
+    for trip in select(a.repo, a.nth):
         df = cut(a.repo, trip)
         name = f"cmap_{trip['vehicle']}_{trip['start'][:10].replace('-', '')}"
+        if a.nth > 1:  # a vehicle's second trip may start on its first one's day
+            name += f"_{trip['start'][11:16].replace(':', '')}"
         path = a.out / f"{name}.csv"
         tmp = path.with_suffix(".tmp")
         df.to_csv(tmp, index=False, float_format="%.3f")

@@ -8,7 +8,7 @@ from pathlib import Path
 TRAIN_LOG = Path("logs") / "winter_cold_start.blf"
 
 
-def run(quick: bool = False, valuation: str = "corrected", drives: str = "held-out") -> dict:
+def run(quick: bool = False, valuation: str = "corrected", drives: str = "held-out", learn_from: str | None = None) -> dict:
     import numpy as np
     import pandas as pd
 
@@ -23,15 +23,19 @@ def run(quick: bool = False, valuation: str = "corrected", drives: str = "held-o
         from calib.ingest import read_log
 
         logs = [read_log(TRAIN_LOG)]
+    more = DRIVE_SETS[learn_from] if learn_from else ()
     print(f"training drives: {', '.join(TRAIN_CYCLES)}" + (f" + log {TRAIN_LOG} (SYNTHETIC)" if logs else "")
-          + f"; held out ({drives}): {', '.join(HELD_OUT)}; ambients {', '.join(f'{a:g}' for a in AMBIENTS)} degC")
+          + f"; held out ({drives}): {', '.join(HELD_OUT)}; ambients {', '.join(f'{a:g}' for a in AMBIENTS)} degC"
+          + (f"; sdp_own: the SDP on a chain that also learnt the {learn_from} drives ({', '.join(more)})"
+             if more else ""))
     # compile (or load the numba cache) outside the timings: a tiny policy and one ECMS drive
     from optimize.causal import DemandMarkov, SDPConfig, build_policy
 
     build_policy(ps, DemandMarkov.estimate(ps, ["nycc"]), SDPConfig(soc_step=0.1, tcl_step=25.0, max_iter=3))
     held = HELD_OUT[:1] if quick else HELD_OUT
     amb = AMBIENTS[:1] if quick else AMBIENTS
-    cmp = compare_causal(ps, train_logs=logs, held_out=held, ambients=amb, threads=2, valuation=valuation)
+    cmp = compare_causal(ps, train_logs=logs, held_out=held, ambients=amb, threads=2, valuation=valuation,
+                         learn_from=more)
     val = pd.DataFrame(cmp.validation)
     print("\ndemand Markov chain vs held-out drives:")
     with pd.option_context("display.width", 200, "display.max_columns", 20):
@@ -70,6 +74,7 @@ def run(quick: bool = False, valuation: str = "corrected", drives: str = "held-o
               f"{p.info['converged']}) (goal < 60 s)")
     return {"table": cmp.rows, "goals": cmp.goals(),
             "credit_per_gram": {str(k): v for k, v in credit.items()}, "valuation": valuation, "drives": drives,
+            "learn_from": list(more),
             "continuation_credit_per_gram": {str(k): v for k, v in cont.items()}, "validation": cmp.validation, "step": steps,
             "build": {str(T): p.info for T, p in cmp.policies.items()},
             "mean_abs_gap_pct": float(np.mean([abs(r["gap_to_dp_pct"]) for r in cmp.rows]))}

@@ -36,9 +36,13 @@ def register(sub):
                    help="causal: how final states are valued: corrected (fuel equivalents of the stored energy, "
                         "default) or continuation (the rule-based controller's fuel over UDDS six times from the final "
                         "state; Thermal-DP with the 'continued' terminal)")
-    p.add_argument("--drives", choices=("held-out", "fresh"), default="held-out",
+    p.add_argument("--drives", choices=("held-out", "fresh", "reserve"), default="held-out",
                    help="causal: the drives compared on: held-out (six drives, looked at while the settings were "
-                        "developed) or fresh (eight real trips first simulated after the settings were last chosen)")
+                        "developed), fresh (eight real trips first simulated after the settings were last chosen) "
+                        "or reserve (the later trip of seven of the fresh trips' cars)")
+    p.add_argument("--learn-from", choices=("held-out", "fresh"), metavar="SET",
+                   help="causal: also run the SDP on a demand chain that learnt these drives too (rows sdp_own), "
+                        "e.g. --drives reserve --learn-from fresh: each car's earlier trip")
     p.add_argument("--halve", action="store_true",
                    help="dp: also solve the converged Thermal-Cabin-DP grid with every step halved (about 32 times "
                         "its time) and print the change")
@@ -64,7 +68,10 @@ def run(args) -> int:
         print(f"== {n}")
         extra = {"n": args.n, "seed": args.seed} if n == "fuzz" else {}
         if n == "causal":
-            extra = {"valuation": args.valuation, "drives": args.drives}
+            if args.learn_from == args.drives:
+                raise IptmError(f"bench causal: --learn-from {args.learn_from} is also the test set; "
+                                "learn from another set than --drives")
+            extra = {"valuation": args.valuation, "drives": args.drives, "learn_from": args.learn_from}
         if n == "dp":
             extra = {"halve": args.halve}
         results[n] = mod.run(quick=args.quick, **extra)

@@ -39,8 +39,16 @@ HELD_OUT = ("artemis_urban", "nycc", "manhattan", "wltc_city_3b", "tsdc_trip_426
 FRESH_TEST = ("cmap_4107032_1_20070522", "cmap_4108468_1_20070624", "cmap_4108468_2_20070621",
               "cmap_4109114_1_20070517", "cmap_4111928_1_20070519", "cmap_4112082_1_20070703",
               "cmap_4115957_1_20070409", "cmap_4116813_2_20070405")
+#: A third set, simulated only after everything above was fixed: the later trip of seven of the
+#: :data:`FRESH_TEST` vehicles that made a second trip meeting the same rule (``extract_cmap_trips.py --nth 2``).
+#: With ``learn_from=FRESH_TEST`` it tests a chain that has also seen each car's earlier trip.
+RESERVE_TEST = ("cmap_4107032_1_20070526_2131", "cmap_4108468_1_20070624_2007", "cmap_4108468_2_20070621_1833",
+                "cmap_4109114_1_20070519_1252", "cmap_4111928_1_20070519_1723", "cmap_4112082_1_20070705_0717",
+                "cmap_4115957_1_20070409_2006")
 #: The drive sets ``iptm bench causal --drives`` compares on.
-DRIVE_SETS = {"held-out": HELD_OUT, "fresh": FRESH_TEST}
+DRIVE_SETS = {"held-out": HELD_OUT, "fresh": FRESH_TEST, "reserve": RESERVE_TEST}
+#: The causal strategies of a comparison (``sdp_own``: the SDP on a chain that also learnt ``learn_from``).
+CAUSAL = ("sdp", "ecms", "sdp_own")
 AMBIENTS = (-10.0, 0.0)
 GOAL_GAP_PCT = 3.0
 SOC_TOL = 0.01
@@ -59,13 +67,14 @@ class CausalComparison:
     timings: dict = field(default_factory=dict)
     valuation: str = "corrected"
     soc_band: float = SOC_TOL
+    learn_from: tuple = ()
 
     def table(self) -> pd.DataFrame:
         return pd.DataFrame(self.rows)
 
     def goals(self) -> dict:
         df = self.table()
-        c = df[df.strategy.isin(["sdp", "ecms"])]
+        c = df[df.strategy.isin(CAUSAL)]
         out = {}
         for s, g in c.groupby("strategy"):
             within, better = g.gap_to_dp_pct <= GOAL_GAP_PCT, g.vs_rule_pct > 0
@@ -122,8 +131,12 @@ def _row(cycle, T_amb, strategy, sim, dp_corr, rule_corr, t_s, corr, residual=np
 def compare_causal(params, *, train=TRAIN_CYCLES, train_logs=(), held_out=HELD_OUT, ambients=AMBIENTS,
                    sdp_config: SDPConfig | None = None, ecms: ECMSParams | None = None, grids=None,
                    scenario=None, threads: int | None = 2, progress: bool = True,
-                   valuation: str = "corrected", soc_band: float | None = None) -> CausalComparison:
+                   valuation: str = "corrected", soc_band: float | None = None,
+                   learn_from=()) -> CausalComparison:
     """Build statistics and policies from ``train`` (+ ``train_logs``) and compare on ``held_out``.
+
+    ``learn_from``: more drives (e.g. the same cars' earlier trips) for a second demand chain, whose
+    policy (same settings) drives every held-out drive as ``sdp_own`` beside the ``sdp`` of ``train`` alone.
 
     ``valuation``: ``"corrected"`` (fuel minus the fuel equivalents of the stored-energy changes; Thermal-DP
     with the scenario's terminal condition) or ``"continuation"`` (continuation-corrected fuel; Thermal-DP
@@ -139,7 +152,7 @@ def compare_causal(params, *, train=TRAIN_CYCLES, train_logs=(), held_out=HELD_O
     from optimize.tuning import tune_rule_based
 
     say = print if progress else (lambda *a, **k: None)
-    overlap = set(train) & set(held_out)
+    overlap = (set(train) | set(learn_from)) & set(held_out)
     if overlap:
         from calib.errors import IptmError
 
@@ -156,6 +169,7 @@ def compare_causal(params, *, train=TRAIN_CYCLES, train_logs=(), held_out=HELD_O
         base = replace(base, terminal="continued", cont_soc_band=SOC_TOL if soc_band is None else soc_band)
     mp = params.model_params() if hasattr(params, "model_params") else params
     markov = DemandMarkov.estimate(params, list(train) + list(train_logs))
+    own = DemandMarkov.estimate(params, list(train) + list(train_logs) + list(learn_from)) if learn_from else None
     validation = []
     rows, policies, timings = [], {}, {}
     for T_amb in ambients:
@@ -166,6 +180,7 @@ def compare_causal(params, *, train=TRAIN_CYCLES, train_logs=(), held_out=HELD_O
         timings[f"sdp_build_s@{T_amb:g}"] = pol.info["t_build_s"]
         say(f"SDP policy at {T_amb:g} degC: {pol.info['t_build_s']:.1f} s, {pol.info['iterations']} iterations",
             flush=True)
+        pol_own = build_policy(params, own, cfg, threads=threads) if own is not None else None
         ep = replace(ecms or ECMSParams(), Q_heat_W=base.Q_heat, soc_target=base.soc0)
         for cyc in held_out:
             scen = replace(base, cycle=cyc, T_amb=T_amb)
@@ -181,16 +196,19 @@ def compare_causal(params, *, train=TRAIN_CYCLES, train_logs=(), held_out=HELD_O
             kw = dict(T_amb=T_amb, soc0=scen.soc0, T_cl0=scen.T_cl0, T_cab0=scen.T_cab0, Q_heat=scen.Q_heat)
             rows.append(_row(cyc, T_amb, "dp_thermal", dp.sim, dp_corr, rule_corr, t_dp, dp_corr, dp_res))
             rows.append(_row(cyc, T_amb, "rule_tuned", tr.result, dp_corr, rule_corr, t_rule, rule_corr, rule_res))
-            for name, ctrl in (("sdp", SDPController(mp, pol, T_amb)), ("ecms", ECMSController(mp, ep, T_amb))):
+            ctrls = [("sdp", SDPController(mp, pol, T_amb)), ("ecms", ECMSController(mp, ep, T_amb))]
+            if pol_own is not None:
+                ctrls.append(("sdp_own", SDPController(mp, pol_own, T_amb)))
+            for name, ctrl in ctrls:
                 t0 = time.perf_counter()
                 sim = simulate(params, scen.load_cycle(), ctrl, **kw)
                 t_s = time.perf_counter() - t0
                 rows.append(_row(cyc, T_amb, name, sim, dp_corr, rule_corr, t_s, *_corrected(sim, scen, valuation)))
-            say(f"  {cyc} at {T_amb:g} degC: DP {dp_corr:.2f} g, rule {rule_corr:.2f} g, SDP "
-                f"{rows[-2]['fuel_corrected_g']:.2f} g, ECMS {rows[-1]['fuel_corrected_g']:.2f} g (corrected)",
-                flush=True)
+            say(f"  {cyc} at {T_amb:g} degC: DP {dp_corr:.2f} g, rule {rule_corr:.2f} g, "
+                + ", ".join(f"{n} {r['fuel_corrected_g']:.2f} g" for (n, _), r in zip(ctrls, rows[-len(ctrls):]))
+                + " (corrected)", flush=True)
     return CausalComparison(rows, markov, validation, policies, timings, valuation,
-                            base.cont_soc_band if valuation == "continuation" else SOC_TOL)
+                            base.cont_soc_band if valuation == "continuation" else SOC_TOL, tuple(learn_from))
 
 
 def step_timing(params, controller, cycle="artemis_urban", T_amb=-10.0, reps: int = 3) -> dict:
