@@ -9,8 +9,12 @@ built at each ambient, and the controller drives every training cycle at that am
 settings that end every training drive within 0.01 of its starting SOC, the least mean corrected-fuel
 gap to Thermal-DP of the same drive. Held-out drives are never simulated here.
 
-Usage: ``python scripts/causal_select.py [--out reports/causal-select.json]`` (about 20 minutes on
-2 cores). Prints one line per setting and the chosen one.
+``--learn-from SET[,SET]`` (sets of ``optimize.causal.compare.DRIVE_SETS``): those drives are added to the
+chain's sources, to the stops the regeneration line is fitted to and to the drives the rule judges on:
+the settings for a chain that has learnt a car's own trips (``iptm bench causal --own-settings``).
+
+Usage: ``python scripts/causal_select.py [--learn-from SET] [--out reports/causal-select.json]`` (about
+20 minutes on 2 cores). Prints one line per setting and the chosen one.
 """
 from __future__ import annotations
 
@@ -34,7 +38,7 @@ def choose(rows: list) -> dict | None:
     return min(ok, key=lambda r: r["mean_gap_pct"]) if ok else None
 
 
-def _report(rows: list, out: Path) -> None:
+def _report(rows: list, out: Path, drives=None) -> None:
     from calib.fileio import write_json
 
     best = choose(rows)
@@ -44,7 +48,7 @@ def _report(rows: list, out: Path) -> None:
         print(f"chosen: alpha {best['alpha']:g}, w_soc {best['w_soc_g_per_s']:g} g/s, soc_bias {best['soc_bias']:g}, "
               f"regen {best['regen']} ({best['regen_fraction']:.3f}{best['regen_slope_per_mps']:+.4f} v) "
               f"(mean gap {best['mean_gap_pct']:+.2f} %, max |dSOC| {best['max_abs_dsoc']:.4f})")
-    write_json(out, {"grid": GRID, "rule": f"|dSOC| <= {SOC_TOL - MARGIN:g} on every training drive (the {SOC_TOL:g} "
+    write_json(out, {"grid": GRID, "drives": drives, "rule": f"|dSOC| <= {SOC_TOL - MARGIN:g} on every judged drive (the {SOC_TOL:g} "
                      f"band less a margin of {MARGIN:g}), then least mean corrected-fuel gap to Thermal-DP",
                      "rows": rows, "chosen": best})
 
@@ -53,11 +57,15 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="reports/causal-select.json")
     ap.add_argument("--rechoose", type=Path, help="apply the rule to the rows of this earlier report")
+    ap.add_argument("--learn-from", default="", metavar="SET[,SET]",
+                    help="drive sets (held-out, fresh, reserve) the chain learns and the rule judges on, besides "
+                         "the training drives")
     a = ap.parse_args(argv)
     if a.rechoose is not None:
         import json
 
-        _report(json.loads(a.rechoose.read_text())["rows"], Path(a.out))
+        d = json.loads(a.rechoose.read_text())
+        _report(d["rows"], Path(a.out), d.get("drives"))
         return 0
 
     from calib.ingest import read_log
@@ -65,7 +73,7 @@ def main(argv=None) -> int:
     from calib.model.simulate import simulate
     from iptm.benchmarks.causal import TRAIN_LOG
     from optimize.causal import DemandMarkov, SDPConfig, build_policy
-    from optimize.causal.compare import AMBIENTS, TRAIN_CYCLES
+    from optimize.causal.compare import AMBIENTS, DRIVE_SETS, TRAIN_CYCLES
     from optimize.causal.controllers import SDPController
     from optimize.causal.onestep import fit_stop_regen
     from optimize.formulations.scenario import DPScenario
@@ -73,14 +81,19 @@ def main(argv=None) -> int:
 
     ps = default_parameters()
     mp = ps.model_params()
-    sources = list(TRAIN_CYCLES) + [read_log(TRAIN_LOG)]
+    sets = [x for x in a.learn_from.split(",") if x]
+    unknown = [x for x in sets if x not in DRIVE_SETS]
+    if unknown:
+        raise SystemExit(f"--learn-from {','.join(unknown)}: choose among {', '.join(DRIVE_SETS)}")
+    drives = list(TRAIN_CYCLES) + [c for x in sets for c in DRIVE_SETS[x]]
+    sources = list(TRAIN_CYCLES) + [read_log(TRAIN_LOG)] + drives[len(TRAIN_CYCLES):]
     base = DPScenario()
     ref = {}
     for T in AMBIENTS:
-        for c in TRAIN_CYCLES:
+        for c in drives:
             ref[(c, T)] = solve_thermal(ps, replace(base, cycle=c, T_amb=T), None).sim.summary()["fuel_corrected_g"]
-    # (regen_fraction, regen_slope_per_mps): half at every speed, or the line fitted to the training cycles
-    regen = {"constant": (0.5, 0.0), "fit": fit_stop_regen(mp, TRAIN_CYCLES, base.soc0)}
+    # (regen_fraction, regen_slope_per_mps): half at every speed, or the line fitted to the judged drives' stops
+    regen = {"constant": (0.5, 0.0), "fit": fit_stop_regen(mp, drives, base.soc0)}
     print("regen share: " + ", ".join(f"{k} {f0:.3f}{f1:+.4f} v" for k, (f0, f1) in regen.items()), flush=True)
     rows = []
     for alpha, w, bias in itertools.product(GRID["alpha"], GRID["w_soc_g_per_s"], GRID["soc_bias"]):
@@ -94,7 +107,7 @@ def main(argv=None) -> int:
             for kind in GRID["regen"]:  # a controller setting: the same tables
                 f0, f1 = regen[kind]
                 pk = replace(pol, config=replace(cfg, regen_fraction=f0, regen_slope_per_mps=f1))
-                for c in TRAIN_CYCLES:
+                for c in drives:
                     scen = replace(base, cycle=c, T_amb=T)
                     s = simulate(ps, scen.load_cycle(), SDPController(mp, pk, T), T_amb=T, soc0=scen.soc0,
                                  T_cl0=scen.T_cl0, T_cab0=scen.T_cab0, Q_heat=scen.Q_heat).summary()
@@ -112,7 +125,7 @@ def main(argv=None) -> int:
             print(f"alpha {alpha:<4g} w_soc {w:<5g} soc_bias {bias:<5g} regen {kind:<8}: mean gap to DP "
                   f"{row['mean_gap_pct']:+.2f} %, max |dSOC| {row['max_abs_dsoc']:.4f} "
                   f"({'charge sustaining' if row['charge_sustaining'] else 'NOT'}) [{row['seconds']:.0f} s]", flush=True)
-    _report(rows, Path(a.out))
+    _report(rows, Path(a.out), drives)
     return 0
 
 

@@ -1,5 +1,5 @@
 """The drives the causal controllers are chosen on and tested on, the rule that chooses the SDP's settings, and
-the script that cut the fresh test trips out of FASTSim's CMAP subset."""
+the script that cut the fresh and reserve test trips out of FASTSim's CMAP subset."""
 import importlib.util
 import shutil
 import subprocess
@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 
 from calib.model.cycles import load_cycle
-from optimize.causal.compare import DRIVE_SETS, FRESH_TEST, HELD_OUT, TRAIN_CYCLES
+from calib.errors import IptmError
+from optimize.causal.compare import (DRIVE_SETS, FRESH_TEST, HELD_OUT, RESERVE_TEST, THIRD_TEST, TRAIN_CYCLES,
+                                     compare_causal)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -21,11 +23,20 @@ def _script(name):
     return mod
 
 
-def test_training_held_out_and_fresh_drives_are_disjoint_and_bundled():
+def test_training_held_out_fresh_and_reserve_drives_are_disjoint_and_bundled():
     assert not set(TRAIN_CYCLES) & set(HELD_OUT)
     assert not set(FRESH_TEST) & (set(TRAIN_CYCLES) | set(HELD_OUT))
-    assert DRIVE_SETS == {"held-out": HELD_OUT, "fresh": FRESH_TEST}
-    for name in FRESH_TEST:
+    assert not set(RESERVE_TEST) & (set(TRAIN_CYCLES) | set(HELD_OUT) | set(FRESH_TEST))
+    assert not set(THIRD_TEST) & (set(TRAIN_CYCLES) | set(HELD_OUT) | set(FRESH_TEST) | set(RESERVE_TEST))
+    assert DRIVE_SETS == {"held-out": HELD_OUT, "fresh": FRESH_TEST, "reserve": RESERVE_TEST, "third": THIRD_TEST}
+    # each reserve trip is a later trip of a car of the fresh set, each third trip later than its car's reserve one
+    first = {n.split("_")[1] + "_" + n.split("_")[2]: (n.split("_")[3], "") for n in FRESH_TEST}
+    second = {n.split("_")[1] + "_" + n.split("_")[2]: tuple(n.split("_")[3:]) for n in RESERVE_TEST}
+    for later, earlier in ((RESERVE_TEST, first), (THIRD_TEST, second)):
+        for n in later:
+            _, veh, no, day, hhmm = n.split("_")
+            assert (day, hhmm) > earlier[f"{veh}_{no}"] and len(hhmm) == 4, n
+    for name in FRESH_TEST + RESERVE_TEST + THIRD_TEST:
         c = load_cycle(name)
         assert 300.0 <= c.t[-1] <= 1800.0, name  # the rule's 5-30 min
         assert c.v[0] == 0.0 and c.v[-1] == 0.0, name  # a trip starts and ends at rest
@@ -87,6 +98,7 @@ def test_cmap_trips_are_cut_by_the_fixed_rule(tmp_path):
     vehicle("4033363_1", [(stamp(0), stamp(400), 400 / 3600, 1.0)], "2007-05-01", ramp)  # the commute's household
     vehicle("4100000_1", [(stamp(0), stamp(100), 100 / 3600, 1.0),  # too short
                           (stamp(0), stamp(400), 400 / 3600, 5.0),  # a 5-s gap
+                          (stamp(2), stamp(400), 398 / 3600, 2.0),  # the second qualifying trip (by start)
                           (stamp(0), stamp(400), 400 / 3600, 2.0)], "2007-05-01", ramp)
     vehicle("4200000_2", [(stamp(0), stamp(400), 400 / 3600, 3.0)], "2007-05-01", ramp)
     subprocess.run(["git", "init", "-q", str(work)], check=True)
@@ -95,6 +107,8 @@ def test_cmap_trips_are_cut_by_the_fixed_rule(tmp_path):
                    check=True)
     trips = ex.select(work / ".git")
     assert trips == [{"vehicle": "4100000_1", "start": stamp(0), "end": stamp(400)}]
+    assert ex.select(work / ".git", nth=2) == [{"vehicle": "4100000_1", "start": stamp(2), "end": stamp(400)}]
+    assert ex.select(work / ".git", nth=3) == []
     df = ex.cut(work / ".git", trips[0])
     assert df.time_s.tolist() == list(np.arange(401.0))
     assert df.speed_kph.iloc[0] == 0.0 and df.speed_kph.iloc[-1] == 0.0
@@ -111,10 +125,12 @@ def test_goals_count_the_runs_that_meet_each_goal():
                 "vs_rule_pct": vs_rule, "dsoc": dsoc}
 
     rows = [r("dp_thermal", 0.0, 1.0, 0.0), r("sdp", 3.0, 0.5, 0.01), r("sdp", 3.01, 0.0, -0.0101),
-            r("ecms", 1.0, 2.0, 0.001), r("ecms", -1.0, 0.1, -0.002)]
+            r("ecms", 1.0, 2.0, 0.001), r("ecms", -1.0, 0.1, -0.002), r("rule_tuned", 1.0, 0.0, 0.0),
+            r("sdp_own", 4.0, -1.0, -0.02)]
     cmp = CausalComparison(rows, markov=None, validation=[])
     g = cmp.goals()
-    assert set(g) == {"sdp", "ecms"}  # the DP and the rule are references, not judged
+    assert set(g) == {"sdp", "ecms", "sdp_own"}  # the DP and the rule are references, not judged
+    assert (g["sdp_own"]["within_3pct"], g["sdp_own"]["charge_sustaining"]) == (0, 0)
     assert (g["sdp"]["runs"], g["sdp"]["within_3pct"], g["sdp"]["better_than_rule"], g["sdp"]["charge_sustaining"]) \
         == (2, 1, 1, 1)  # 3 % and 0.01 themselves meet the goal; a saving of 0 % does not
     assert not (g["sdp"]["within_3pct_all"] or g["sdp"]["better_than_rule_all"] or g["sdp"]["charge_sustaining_all"])
@@ -122,3 +138,8 @@ def test_goals_count_the_runs_that_meet_each_goal():
     assert g["sdp"]["dsoc_range"] == (-0.0101, 0.01) and g["sdp"]["max_gap_to_dp_pct"] == 3.01
     txt = cmp.format()
     assert "sdp: within 3 % of DP on 1/2 runs" in txt and "better than tuned rule-based on 2/2 (met)" in txt
+
+
+def test_a_drive_the_chain_learns_from_cannot_also_test_it():
+    with pytest.raises(IptmError, match="held-out drives must not be training drives"):
+        compare_causal(None, held_out=RESERVE_TEST[:1], learn_from=RESERVE_TEST[:2], progress=False)

@@ -30,3 +30,8 @@ def test_bad_params_file_one_line_error(tmp_path, capsys):
 def test_unknown_cycle(capsys):
     assert main(["simulate", "--cycle", "nope"]) == 2
     assert "not found" in capsys.readouterr().err
+
+
+def test_bench_causal_refuses_to_learn_from_its_test_set(capsys):
+    assert main(["bench", "causal", "--drives", "fresh", "--learn-from", "fresh"]) == 2
+    assert "learn from another set than --drives" in capsys.readouterr().err

@@ -8,7 +8,8 @@ from pathlib import Path
 TRAIN_LOG = Path("logs") / "winter_cold_start.blf"
 
 
-def run(quick: bool = False, valuation: str = "corrected", drives: str = "held-out", learn_from: str | None = None) -> dict:
+def run(quick: bool = False, valuation: str = "corrected", drives: str = "held-out", learn_from=(),
+        own_settings: dict | None = None) -> dict:
     import numpy as np
     import pandas as pd
 
@@ -23,11 +24,13 @@ def run(quick: bool = False, valuation: str = "corrected", drives: str = "held-o
         from calib.ingest import read_log
 
         logs = [read_log(TRAIN_LOG)]
-    more = DRIVE_SETS[learn_from] if learn_from else ()
+    learn_from = [learn_from] if isinstance(learn_from, str) else list(learn_from or ())
+    more = tuple(c for x in learn_from for c in DRIVE_SETS[x])
+    learn = ",".join(learn_from)
     print(f"training drives: {', '.join(TRAIN_CYCLES)}" + (f" + log {TRAIN_LOG} (SYNTHETIC)" if logs else "")
           + f"; held out ({drives}): {', '.join(HELD_OUT)}; ambients {', '.join(f'{a:g}' for a in AMBIENTS)} degC"
-          + (f"; sdp_own: the SDP on a chain that also learnt the {learn_from} drives ({', '.join(more)})"
-             if more else ""))
+          + (f"; sdp_own: the SDP on a chain that also learnt the {learn} drives ({', '.join(more)}), "
+             + (f"settings {own_settings}" if own_settings else "the SDP's settings") if more else ""))
     # compile (or load the numba cache) outside the timings: a tiny policy and one ECMS drive
     from optimize.causal import DemandMarkov, SDPConfig, build_policy
 
@@ -35,13 +38,15 @@ def run(quick: bool = False, valuation: str = "corrected", drives: str = "held-o
     held = HELD_OUT[:1] if quick else HELD_OUT
     amb = AMBIENTS[:1] if quick else AMBIENTS
     cmp = compare_causal(ps, train_logs=logs, held_out=held, ambients=amb, threads=2, valuation=valuation,
-                         learn_from=more)
-    val = pd.DataFrame(cmp.validation)
-    print("\ndemand Markov chain vs held-out drives:")
-    with pd.option_context("display.width", 200, "display.max_columns", 20):
-        print(val[["drive", "T_amb", "tv_distance_vs_training", "stay_prob_heldout", "stay_prob_model",
-                   "lag1_autocorr_heldout", "lag1_autocorr_model", "mean_demand_kW_heldout", "mean_demand_kW_model",
-                   "loglik_per_step_markov", "loglik_per_step_iid"]].to_string(index=False, float_format="%.3f"))
+                         learn_from=more, own_settings=own_settings)
+    cols = ["drive", "T_amb", "tv_distance_vs_training", "stay_prob_heldout", "stay_prob_model", "lag1_autocorr_heldout",
+            "lag1_autocorr_model", "mean_demand_kW_heldout", "mean_demand_kW_model", "loglik_per_step_markov",
+            "loglik_per_step_iid"]
+    for what, v in (("", cmp.validation), (f" (sdp_own's chain, which also learnt {learn})", cmp.validation_own)):
+        if v:
+            print(f"\ndemand Markov chain{what} vs held-out drives:")
+            with pd.option_context("display.width", 200, "display.max_columns", 20):
+                print(pd.DataFrame(v)[cols].to_string(index=False, float_format="%.3f"))
     print(f"\n{valuation} fuel (g) on held-out drives; gap to DP and saving vs tuned rule-based in %:")
     print(cmp.format())
     from calib.model import credit_per_gram
@@ -74,7 +79,8 @@ def run(quick: bool = False, valuation: str = "corrected", drives: str = "held-o
               f"{p.info['converged']}) (goal < 60 s)")
     return {"table": cmp.rows, "goals": cmp.goals(),
             "credit_per_gram": {str(k): v for k, v in credit.items()}, "valuation": valuation, "drives": drives,
-            "learn_from": list(more),
-            "continuation_credit_per_gram": {str(k): v for k, v in cont.items()}, "validation": cmp.validation, "step": steps,
+            "learn_from": list(more), "own_settings": own_settings,
+            "continuation_credit_per_gram": {str(k): v for k, v in cont.items()}, "validation": cmp.validation,
+            "validation_own": cmp.validation_own, "step": steps,
             "build": {str(T): p.info for T, p in cmp.policies.items()},
             "mean_abs_gap_pct": float(np.mean([abs(r["gap_to_dp_pct"]) for r in cmp.rows]))}

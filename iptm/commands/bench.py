@@ -36,13 +36,16 @@ def register(sub):
                    help="causal: how final states are valued: corrected (fuel equivalents of the stored energy, "
                         "default) or continuation (the rule-based controller's fuel over UDDS six times from the final "
                         "state; Thermal-DP with the 'continued' terminal)")
-    p.add_argument("--drives", choices=("held-out", "fresh", "reserve"), default="held-out",
+    p.add_argument("--drives", choices=("held-out", "fresh", "reserve", "third"), default="held-out",
                    help="causal: the drives compared on: held-out (six drives, looked at while the settings were "
                         "developed), fresh (eight real trips first simulated after the settings were last chosen) "
-                        "or reserve (the later trip of seven of the fresh trips' cars)")
-    p.add_argument("--learn-from", choices=("held-out", "fresh"), metavar="SET",
-                   help="causal: also run the SDP on a demand chain that learnt these drives too (rows sdp_own), "
+                        "reserve (the later trip of seven of the fresh trips' cars) or third (the third trip of four)")
+    p.add_argument("--learn-from", metavar="SET[,SET]",
+                   help="causal: also run the SDP on a demand chain that learnt these drive sets too (rows sdp_own), "
                         "e.g. --drives reserve --learn-from fresh: each car's earlier trip")
+    p.add_argument("--own-settings", metavar="FILE",
+                   help="causal: the settings of sdp_own, the 'chosen' row of a scripts/causal_select.py report "
+                        "(default: the SDP's own)")
     p.add_argument("--halve", action="store_true",
                    help="dp: also solve the converged Thermal-Cabin-DP grid with every step halved (about 32 times "
                         "its time) and print the change")
@@ -68,13 +71,43 @@ def run(args) -> int:
         print(f"== {n}")
         extra = {"n": args.n, "seed": args.seed} if n == "fuzz" else {}
         if n == "causal":
-            if args.learn_from == args.drives:
-                raise IptmError(f"bench causal: --learn-from {args.learn_from} is also the test set; "
+            from optimize.causal.compare import DRIVE_SETS
+
+            sets = [x for x in (args.learn_from or "").split(",") if x]
+            bad = [x for x in sets if x not in DRIVE_SETS]
+            if bad:
+                raise IptmError(f"bench causal: --learn-from {','.join(bad)}: choose among {', '.join(DRIVE_SETS)}")
+            if args.drives in sets:
+                raise IptmError(f"bench causal: --learn-from {args.drives} is also the test set; "
                                 "learn from another set than --drives")
-            extra = {"valuation": args.valuation, "drives": args.drives, "learn_from": args.learn_from}
+            own = None
+            if args.own_settings:
+                if not sets:
+                    raise IptmError("bench causal: --own-settings needs --learn-from (the chain they were chosen for)")
+                own = _chosen_settings(args.own_settings)
+            extra = {"valuation": args.valuation, "drives": args.drives, "learn_from": sets, "own_settings": own}
         if n == "dp":
             extra = {"halve": args.halve}
         results[n] = mod.run(quick=args.quick, **extra)
     if args.json:
         write_json(args.json, results)
     return 0
+
+
+def _chosen_settings(path: str) -> dict:
+    """The ``chosen`` row of a ``scripts/causal_select.py`` report, or a clear error."""
+    import json
+
+    from calib.errors import IptmError
+    from optimize.causal.compare import SELECTED
+
+    try:
+        row = json.loads(open(path, encoding="utf-8").read()).get("chosen")
+    except (OSError, ValueError) as exc:
+        raise IptmError(f"--own-settings {path}: cannot read it as JSON ({exc}); give a report of "
+                        "scripts/causal_select.py") from None
+    missing = [k for k in SELECTED if not isinstance(row, dict) or k not in row]
+    if missing:
+        raise IptmError(f"--own-settings {path}: no chosen setting with {', '.join(missing)}; the selection chose "
+                        "none, or this is not a report of scripts/causal_select.py")
+    return {k: row[k] for k in SELECTED}

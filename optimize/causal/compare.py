@@ -45,8 +45,14 @@ FRESH_TEST = ("cmap_4107032_1_20070522", "cmap_4108468_1_20070624", "cmap_410846
 RESERVE_TEST = ("cmap_4107032_1_20070526_2131", "cmap_4108468_1_20070624_2007", "cmap_4108468_2_20070621_1833",
                 "cmap_4109114_1_20070519_1252", "cmap_4111928_1_20070519_1723", "cmap_4112082_1_20070705_0717",
                 "cmap_4115957_1_20070409_2006")
+#: A fourth set: the third qualifying trip of the four cars that made one (``extract_cmap_trips.py --nth 3``),
+#: for a chain that learnt each car's two earlier trips (fresh and reserve) with settings chosen again for it.
+THIRD_TEST = ("cmap_4108468_1_20070625_0810", "cmap_4108468_2_20070627_1507", "cmap_4111928_1_20070522_1636",
+              "cmap_4112082_1_20070705_1419")
 #: The drive sets ``iptm bench causal --drives`` compares on.
-DRIVE_SETS = {"held-out": HELD_OUT, "fresh": FRESH_TEST, "reserve": RESERVE_TEST}
+DRIVE_SETS = {"held-out": HELD_OUT, "fresh": FRESH_TEST, "reserve": RESERVE_TEST, "third": THIRD_TEST}
+#: The settings ``scripts/causal_select.py`` chooses (the chain's ``alpha``, the rest :class:`SDPConfig` fields).
+SELECTED = ("alpha", "w_soc_g_per_s", "soc_bias", "regen_fraction", "regen_slope_per_mps")
 #: The causal strategies of a comparison (``sdp_own``: the SDP on a chain that also learnt ``learn_from``).
 CAUSAL = ("sdp", "ecms", "sdp_own")
 AMBIENTS = (-10.0, 0.0)
@@ -68,6 +74,7 @@ class CausalComparison:
     valuation: str = "corrected"
     soc_band: float = SOC_TOL
     learn_from: tuple = ()
+    validation_own: list = field(default_factory=list)  # the ``learn_from`` chain against the held-out drives
 
     def table(self) -> pd.DataFrame:
         return pd.DataFrame(self.rows)
@@ -132,11 +139,13 @@ def compare_causal(params, *, train=TRAIN_CYCLES, train_logs=(), held_out=HELD_O
                    sdp_config: SDPConfig | None = None, ecms: ECMSParams | None = None, grids=None,
                    scenario=None, threads: int | None = 2, progress: bool = True,
                    valuation: str = "corrected", soc_band: float | None = None,
-                   learn_from=()) -> CausalComparison:
+                   learn_from=(), own_settings: dict | None = None) -> CausalComparison:
     """Build statistics and policies from ``train`` (+ ``train_logs``) and compare on ``held_out``.
 
     ``learn_from``: more drives (e.g. the same cars' earlier trips) for a second demand chain, whose
-    policy (same settings) drives every held-out drive as ``sdp_own`` beside the ``sdp`` of ``train`` alone.
+    policy drives every held-out drive as ``sdp_own`` beside the ``sdp`` of ``train`` alone. ``own_settings``:
+    the settings ``sdp_own`` uses (a row of ``scripts/causal_select.py``'s report: ``alpha``,
+    ``w_soc_g_per_s``, ``soc_bias``, ``regen_fraction``, ``regen_slope_per_mps``); None: the same as ``sdp``.
 
     ``valuation``: ``"corrected"`` (fuel minus the fuel equivalents of the stored-energy changes; Thermal-DP
     with the scenario's terminal condition) or ``"continuation"`` (continuation-corrected fuel; Thermal-DP
@@ -169,18 +178,22 @@ def compare_causal(params, *, train=TRAIN_CYCLES, train_logs=(), held_out=HELD_O
         base = replace(base, terminal="continued", cont_soc_band=SOC_TOL if soc_band is None else soc_band)
     mp = params.model_params() if hasattr(params, "model_params") else params
     markov = DemandMarkov.estimate(params, list(train) + list(train_logs))
-    own = DemandMarkov.estimate(params, list(train) + list(train_logs) + list(learn_from)) if learn_from else None
-    validation = []
+    own_cfg = {k: float(own_settings[k]) for k in SELECTED} if own_settings else {}
+    own = (DemandMarkov.estimate(params, list(train) + list(train_logs) + list(learn_from),
+                                 **({"alpha": own_cfg.pop("alpha")} if own_cfg else {})) if learn_from else None)
+    validation, validation_own = [], []
     rows, policies, timings = [], {}, {}
     for T_amb in ambients:
         validation += [{**r, "T_amb": T_amb} for r in markov.validate(params, held_out, T_amb=T_amb)]
+        if own is not None:
+            validation_own += [{**r, "T_amb": T_amb} for r in own.validate(params, held_out, T_amb=T_amb)]
         cfg = replace(sdp_config or SDPConfig(), T_amb=T_amb, Q_heat=base.Q_heat, soc_target=base.soc0)
         pol = build_policy(params, markov, cfg, threads=threads)
         policies[T_amb] = pol
         timings[f"sdp_build_s@{T_amb:g}"] = pol.info["t_build_s"]
         say(f"SDP policy at {T_amb:g} degC: {pol.info['t_build_s']:.1f} s, {pol.info['iterations']} iterations",
             flush=True)
-        pol_own = build_policy(params, own, cfg, threads=threads) if own is not None else None
+        pol_own = build_policy(params, own, replace(cfg, **own_cfg), threads=threads) if own is not None else None
         ep = replace(ecms or ECMSParams(), Q_heat_W=base.Q_heat, soc_target=base.soc0)
         for cyc in held_out:
             scen = replace(base, cycle=cyc, T_amb=T_amb)
@@ -208,7 +221,8 @@ def compare_causal(params, *, train=TRAIN_CYCLES, train_logs=(), held_out=HELD_O
                 + ", ".join(f"{n} {r['fuel_corrected_g']:.2f} g" for (n, _), r in zip(ctrls, rows[-len(ctrls):]))
                 + " (corrected)", flush=True)
     return CausalComparison(rows, markov, validation, policies, timings, valuation,
-                            base.cont_soc_band if valuation == "continuation" else SOC_TOL, tuple(learn_from))
+                            base.cont_soc_band if valuation == "continuation" else SOC_TOL, tuple(learn_from),
+                            validation_own)
 
 
 def step_timing(params, controller, cycle="artemis_urban", T_amb=-10.0, reps: int = 3) -> dict:
