@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import json
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -38,7 +39,17 @@ def choose(rows: list) -> dict | None:
     return min(ok, key=lambda r: r["mean_gap_pct"]) if ok else None
 
 
-def _report(rows: list, out: Path, drives=None) -> None:
+def _union(grids: list) -> dict:
+    """The settings tried over several reports, per setting in the order first met."""
+    out = {}
+    for g in grids:
+        for k, vs in g.items():
+            out.setdefault(k, [])
+            out[k] += [v for v in vs if v not in out[k]]
+    return out
+
+
+def _report(rows: list, out: Path, drives=None, grid=None) -> None:
     from calib.fileio import write_json
 
     best = choose(rows)
@@ -48,7 +59,7 @@ def _report(rows: list, out: Path, drives=None) -> None:
         print(f"chosen: alpha {best['alpha']:g}, w_soc {best['w_soc_g_per_s']:g} g/s, soc_bias {best['soc_bias']:g}, "
               f"regen {best['regen']} ({best['regen_fraction']:.3f}{best['regen_slope_per_mps']:+.4f} v) "
               f"(mean gap {best['mean_gap_pct']:+.2f} %, max |dSOC| {best['max_abs_dsoc']:.4f})")
-    write_json(out, {"grid": GRID, "drives": drives, "rule": f"|dSOC| <= {SOC_TOL - MARGIN:g} on every judged drive (the {SOC_TOL:g} "
+    write_json(out, {"grid": grid or GRID, "drives": drives, "rule": f"|dSOC| <= {SOC_TOL - MARGIN:g} on every judged drive (the {SOC_TOL:g} "
                      f"band less a margin of {MARGIN:g}), then least mean corrected-fuel gap to Thermal-DP",
                      "rows": rows, "chosen": best})
 
@@ -56,16 +67,18 @@ def _report(rows: list, out: Path, drives=None) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="reports/causal-select.json")
-    ap.add_argument("--rechoose", type=Path, help="apply the rule to the rows of this earlier report")
+    ap.add_argument("--rechoose", type=Path, nargs="+", metavar="REPORT",
+                    help="apply the rule to the rows of these earlier reports (together)")
+    ap.add_argument("--grid", type=json.loads, metavar="JSON",
+                    help='the settings to try instead of GRID, e.g. \'{"alpha": [1, 3], "w_soc_g_per_s": [200, 400], '
+                         '"soc_bias": [0.01, 0.02], "regen": ["constant", "fit"]}\'')
     ap.add_argument("--learn-from", default="", metavar="SET[,SET]",
                     help="drive sets (held-out, fresh, reserve) the chain learns and the rule judges on, besides "
                          "the training drives")
     a = ap.parse_args(argv)
     if a.rechoose is not None:
-        import json
-
-        d = json.loads(a.rechoose.read_text())
-        _report(d["rows"], Path(a.out), d.get("drives"))
+        ds = [json.loads(p.read_text()) for p in a.rechoose]
+        _report([r for d in ds for r in d["rows"]], Path(a.out), ds[0].get("drives"), _union([d.get("grid", {}) for d in ds]))
         return 0
 
     from calib.ingest import read_log
@@ -96,15 +109,19 @@ def main(argv=None) -> int:
     regen = {"constant": (0.5, 0.0), "fit": fit_stop_regen(mp, drives, base.soc0)}
     print("regen share: " + ", ".join(f"{k} {f0:.3f}{f1:+.4f} v" for k, (f0, f1) in regen.items()), flush=True)
     rows = []
-    for alpha, w, bias in itertools.product(GRID["alpha"], GRID["w_soc_g_per_s"], GRID["soc_bias"]):
+    grid = a.grid or GRID
+    missing = [k for k in GRID if k not in grid]
+    if missing:
+        raise SystemExit(f"--grid: give every setting ({', '.join(missing)} missing)")
+    for alpha, w, bias in itertools.product(grid["alpha"], grid["w_soc_g_per_s"], grid["soc_bias"]):
         t0 = time.perf_counter()
         mk = DemandMarkov.estimate(ps, sources, alpha=alpha)
-        res = {k: [] for k in GRID["regen"]}
+        res = {k: [] for k in grid["regen"]}
         for T in AMBIENTS:
             cfg = replace(SDPConfig(), T_amb=T, Q_heat=base.Q_heat, soc_target=base.soc0, w_soc_g_per_s=w,
                           soc_bias=bias)
             pol = build_policy(ps, mk, cfg, threads=2)
-            for kind in GRID["regen"]:  # a controller setting: the same tables
+            for kind in grid["regen"]:  # a controller setting: the same tables
                 f0, f1 = regen[kind]
                 pk = replace(pol, config=replace(cfg, regen_fraction=f0, regen_slope_per_mps=f1))
                 for c in drives:
@@ -114,7 +131,7 @@ def main(argv=None) -> int:
                     res[kind].append({"cycle": c, "T_amb": T, "fuel_corrected_g": s["fuel_corrected_g"],
                                       "gap_to_dp_pct": 100.0 * (s["fuel_corrected_g"] / ref[(c, T)] - 1.0),
                                       "dsoc": s["soc_final"] - s["soc_initial"]})
-        for kind in GRID["regen"]:
+        for kind in grid["regen"]:
             row = {"alpha": alpha, "w_soc_g_per_s": w, "soc_bias": bias, "regen": kind,
                    "regen_fraction": regen[kind][0], "regen_slope_per_mps": regen[kind][1],
                    "mean_gap_pct": float(np.mean([r["gap_to_dp_pct"] for r in res[kind]])),
@@ -125,7 +142,7 @@ def main(argv=None) -> int:
             print(f"alpha {alpha:<4g} w_soc {w:<5g} soc_bias {bias:<5g} regen {kind:<8}: mean gap to DP "
                   f"{row['mean_gap_pct']:+.2f} %, max |dSOC| {row['max_abs_dsoc']:.4f} "
                   f"({'charge sustaining' if row['charge_sustaining'] else 'NOT'}) [{row['seconds']:.0f} s]", flush=True)
-    _report(rows, Path(a.out), drives)
+    _report(rows, Path(a.out), drives, grid)
     return 0
 
 

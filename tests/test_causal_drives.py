@@ -73,6 +73,15 @@ def test_selection_rechooses_from_a_stored_report(tmp_path, capsys):
     new = json.loads((tmp_path / "new.json").read_text())
     assert new["chosen"]["alpha"] == 0.1 and "0.0075" in new["rule"]
     assert "chosen: alpha 0.1" in capsys.readouterr().out
+    # two reports judged together (a grid extended after the first chose nothing)
+    a, b = tmp_path / "a.json", tmp_path / "b.json"
+    a.write_text(json.dumps({"grid": {"alpha": [0.1]}, "drives": ["udds"], "rows": rows[:1]}))
+    b.write_text(json.dumps({"grid": {"alpha": [1.0, 0.1]}, "drives": ["udds"], "rows": rows[1:]}))
+    assert sel.main(["--rechoose", str(a), str(b), "--out", str(tmp_path / "ab.json")]) == 0
+    ab = json.loads((tmp_path / "ab.json").read_text())
+    assert ab["grid"] == {"alpha": [0.1, 1.0]} and ab["drives"] == ["udds"] and ab["chosen"]["alpha"] == 0.1
+    assert sel.main(["--rechoose", str(a), "--out", str(tmp_path / "a2.json")]) == 0
+    assert json.loads((tmp_path / "a2.json").read_text())["chosen"] is None  # 0.009 is outside the margin
 
 
 @pytest.mark.skipif(shutil.which("git") is None, reason="needs git")
