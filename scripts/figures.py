@@ -1,7 +1,8 @@
 """README figures that cannot drift: the blocks between ``<!-- figures:NAME -->`` and ``<!-- /figures:NAME -->``
 in README.md are rendered from the benchmarks' JSON (``iptm bench SUITE --json``), committed under
-reports/figures/, and from the mutation report reports/mutation.json (written by scripts/mutation.py, which
-``run`` does not re-run: it takes hours).
+reports/figures/, from the mutation report reports/mutation.json (written by scripts/mutation.py, which
+``run`` does not re-run: it takes hours) and from the causal comparisons' reports/causal-SET-VALUATION.json
+(``iptm bench causal``; not re-run either).
 
     python scripts/figures.py run      # re-run the benchmarks, write their JSON, rewrite the README blocks
     python scripts/figures.py render   # rewrite the README blocks from the committed JSON (no benchmark)
@@ -26,6 +27,14 @@ README = ROOT / "README.md"
 JSON_DIR = ROOT / "reports" / "figures"
 SUITES = ("sim",)
 MUTATION_JSON = ROOT / "reports" / "mutation.json"
+#: ``iptm bench causal --drives SET --valuation V --json reports/causal-SET-V.json`` (each run takes minutes:
+#: ``run`` does not re-run them)
+CAUSAL_SETS = ("held-out", "fresh", "reserve", "third")
+CAUSAL_VALUATIONS = ("corrected", "continuation")
+
+
+def causal_json(drives: str, valuation: str) -> Path:
+    return ROOT / "reports" / f"causal-{drives}-{valuation}.json"
 
 
 def bench_json(suite: str) -> Path:
@@ -59,7 +68,25 @@ def _mutation(d: dict) -> str:
             f"equivalent (excluded, each with its reason in `pyproject.toml`) of {m['run']} mutants, {what}")
 
 
-RENDER = {"epa": _epa, "sim-speed": _sim_speed, "mutation": _mutation}
+def _causal(d: dict) -> str:
+    rows = ["| drives | valuation | controller | within 3 % of Thermal-DP | better than the tuned rule | "
+            "ends within 0.01 of SOC_0 | largest gap to DP | final SOC - SOC_0 |", "|---|---|---|---|---|---|---|---|"]
+    for (drives, valuation), c in d["causal"].items():
+        for s in ("sdp", "ecms", "sdp_own"):
+            g = c["goals"].get(s)
+            if g is None:
+                continue
+            name = {"sdp": "SDP", "ecms": "ECMS"}.get(s) or (
+                f"SDP, chain also learnt {len(c['learn_from'])} earlier trips"
+                + (", settings chosen again" if c.get("own_settings") else ""))
+            n = g["runs"]
+            rows.append(f"| {drives} | {valuation} | {name} | {g['within_3pct']}/{n} | {g['better_than_rule']}/{n} | "
+                        f"{g['charge_sustaining']}/{n} | {g['max_gap_to_dp_pct']:+.2f} % | "
+                        f"{g['dsoc_range'][0]:+.4f} to {g['dsoc_range'][1]:+.4f} |")
+    return "\n".join(rows)
+
+
+RENDER = {"epa": _epa, "sim-speed": _sim_speed, "mutation": _mutation, "causal": _causal}
 
 
 # --------------------------------------------------------------------------------------------------- README blocks
@@ -72,6 +99,16 @@ def load() -> dict:
         p = bench_json(s)
         if p.exists():
             d.update(json.loads(p.read_text()))
+    causal = {}
+    for drives in CAUSAL_SETS:
+        for v in CAUSAL_VALUATIONS:
+            p = causal_json(drives, v)
+            if p.exists():
+                c = json.loads(p.read_text())["causal"]
+                causal[(drives, v)] = {"goals": c["goals"], "learn_from": c.get("learn_from", []),
+                                       "own_settings": c.get("own_settings")}
+    if causal:
+        d["causal"] = causal
     if MUTATION_JSON.exists():
         m = json.loads(MUTATION_JSON.read_text())
         d["mutation"] = {k: m.get(k) for k in ("score", "killed", "survived", "equivalent", "run", "sample", "seed")}
@@ -135,7 +172,8 @@ def main(argv=None) -> int:
             tmp = README.with_suffix(".tmp")
             tmp.write_text(new)
             tmp.replace(README)
-        src = [bench_json(s) for s in SUITES] + [MUTATION_JSON]
+        src = [bench_json(s) for s in SUITES] + [MUTATION_JSON] + [causal_json(a, b) for a in CAUSAL_SETS
+                                                                    for b in CAUSAL_VALUATIONS]
         print(f"README figures rendered from {', '.join(str(p.relative_to(ROOT)) for p in src if p.exists())}")
         return 0
     if cmd == "check":

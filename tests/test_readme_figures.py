@@ -38,3 +38,14 @@ def test_check_catches_an_edited_mutation_score():
     assert old in figures.blocks(text)["mutation"]
     edited = text.replace(old, f"score {100 * m['score'] + 1:.1f} %")
     assert [b[0] for b in figures.check(edited, data)] == ["mutation"]
+
+
+def test_check_catches_an_edited_causal_count():
+    data = figures.load()
+    assert ("fresh", "continuation") in data["causal"], "reports/causal-fresh-continuation.json missing"
+    text = figures.render_readme(figures.README.read_text(), data)
+    g = data["causal"][("fresh", "continuation")]["goals"]["ecms"]
+    old = f"| fresh | continuation | ECMS | {g['within_3pct']}/{g['runs']} |"
+    assert old in figures.blocks(text)["causal"]
+    edited = text.replace(old, f"| fresh | continuation | ECMS | {g['runs']}/{g['runs']} |")
+    assert [b[0] for b in figures.check(edited, data)] == ["causal"]
