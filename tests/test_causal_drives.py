@@ -152,3 +152,42 @@ def test_goals_count_the_runs_that_meet_each_goal():
 def test_a_drive_the_chain_learns_from_cannot_also_test_it():
     with pytest.raises(IptmError, match="held-out drives must not be training drives"):
         compare_causal(None, held_out=RESERVE_TEST[:1], learn_from=RESERVE_TEST[:2], progress=False)
+
+
+def test_own_chain_takes_the_chosen_settings():
+    """``sdp_own``'s chain and settings: the selection report's alpha goes to the chain, the rest to SDPConfig."""
+    from dataclasses import replace
+
+    from calib.model.params import default_parameters
+    from optimize.causal.compare import own_chain
+    from optimize.causal.markov import DEFAULT_ALPHA
+    from optimize.causal.sdp import SDPConfig
+
+    ps = default_parameters()
+    chosen = {"alpha": 3, "w_soc_g_per_s": 400, "soc_bias": 0.01, "regen_fraction": 0.5, "regen_slope_per_mps": 0.0,
+              "mean_gap_pct": 3.23}
+    mk, cfg = own_chain(ps, ["nycc"], chosen)
+    assert mk.alpha == 3.0 and cfg == {"w_soc_g_per_s": 400.0, "soc_bias": 0.01, "regen_fraction": 0.5,
+                                       "regen_slope_per_mps": 0.0}
+    c = replace(SDPConfig(), **cfg)
+    assert (c.w_soc_g_per_s, c.regen_fraction) == (400.0, 0.5)
+    mk0, cfg0 = own_chain(ps, ["nycc"])
+    assert mk0.alpha == DEFAULT_ALPHA and cfg0 == {}
+    # the prior changes the chain: a rarely seen transition is likelier with the larger alpha
+    assert mk.P.min() > mk0.P.min()
+
+
+def test_own_settings_must_be_a_chosen_selection(tmp_path, capsys):
+    import json
+
+    from iptm.cli import main
+
+    none = tmp_path / "none.json"
+    none.write_text(json.dumps({"rows": [], "chosen": None}))
+    cases = [(["--learn-from", "fresh", "--own-settings", str(none)], "no chosen setting"),
+             (["--learn-from", "fresh", "--own-settings", str(tmp_path / "missing.json")], "cannot read it"),
+             (["--own-settings", str(none)], "needs --learn-from"),
+             (["--learn-from", "nope"], "choose among held-out, fresh, reserve, third")]
+    for extra, why in cases:
+        assert main(["bench", "causal", "--drives", "third"] + extra) == 2, extra
+        assert why in capsys.readouterr().err, extra

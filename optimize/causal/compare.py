@@ -135,6 +135,14 @@ def _row(cycle, T_amb, strategy, sim, dp_corr, rule_corr, t_s, corr, residual=np
             "vs_rule_pct": 100.0 * (1.0 - corr / rule_corr) if rule_corr else np.nan, "time_s": t_s}
 
 
+def own_chain(params, sources, settings: dict | None = None) -> tuple[DemandMarkov, dict]:
+    """The demand chain of ``sources`` with ``settings``' ``alpha`` and the :class:`SDPConfig` fields the other
+    :data:`SELECTED` settings set (None: the defaults, i.e. the committed SDP's)."""
+    cfg = {k: float(settings[k]) for k in SELECTED} if settings else {}
+    alpha = cfg.pop("alpha", None)
+    return DemandMarkov.estimate(params, sources, **({} if alpha is None else {"alpha": alpha})), cfg
+
+
 def compare_causal(params, *, train=TRAIN_CYCLES, train_logs=(), held_out=HELD_OUT, ambients=AMBIENTS,
                    sdp_config: SDPConfig | None = None, ecms: ECMSParams | None = None, grids=None,
                    scenario=None, threads: int | None = 2, progress: bool = True,
@@ -178,9 +186,8 @@ def compare_causal(params, *, train=TRAIN_CYCLES, train_logs=(), held_out=HELD_O
         base = replace(base, terminal="continued", cont_soc_band=SOC_TOL if soc_band is None else soc_band)
     mp = params.model_params() if hasattr(params, "model_params") else params
     markov = DemandMarkov.estimate(params, list(train) + list(train_logs))
-    own_cfg = {k: float(own_settings[k]) for k in SELECTED} if own_settings else {}
-    own = (DemandMarkov.estimate(params, list(train) + list(train_logs) + list(learn_from),
-                                 **({"alpha": own_cfg.pop("alpha")} if own_cfg else {})) if learn_from else None)
+    own, own_cfg = (own_chain(params, list(train) + list(train_logs) + list(learn_from), own_settings)
+                    if learn_from else (None, {}))
     validation, validation_own = [], []
     rows, policies, timings = [], {}, {}
     for T_amb in ambients:
