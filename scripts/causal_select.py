@@ -86,7 +86,8 @@ def main(argv=None) -> int:
     from calib.model.simulate import simulate
     from iptm.benchmarks.causal import TRAIN_LOG
     from optimize.causal import DemandMarkov, SDPConfig, build_policy
-    from optimize.causal.compare import AMBIENTS, DRIVE_SETS, TRAIN_CYCLES
+    from calib.errors import IptmError
+    from optimize.causal.compare import AMBIENTS, TRAIN_CYCLES, drives_of
     from optimize.causal.controllers import SDPController
     from optimize.causal.onestep import fit_stop_regen
     from optimize.formulations.scenario import DPScenario
@@ -94,11 +95,10 @@ def main(argv=None) -> int:
 
     ps = default_parameters()
     mp = ps.model_params()
-    sets = [x for x in a.learn_from.split(",") if x]
-    unknown = [x for x in sets if x not in DRIVE_SETS]
-    if unknown:
-        raise SystemExit(f"--learn-from {','.join(unknown)}: choose among {', '.join(DRIVE_SETS)}")
-    drives = list(TRAIN_CYCLES) + [c for x in sets for c in DRIVE_SETS[x]]
+    try:
+        drives = list(TRAIN_CYCLES) + list(drives_of(a.learn_from, "--learn-from"))
+    except IptmError as exc:
+        raise SystemExit(str(exc)) from None
     sources = list(TRAIN_CYCLES) + [read_log(TRAIN_LOG)] + drives[len(TRAIN_CYCLES):]
     base = DPScenario()
     ref = {}

@@ -14,7 +14,7 @@ def run(quick: bool = False, valuation: str = "corrected", drives: str = "held-o
     import pandas as pd
 
     from calib.model.params import default_parameters
-    from optimize.causal.compare import AMBIENTS, DRIVE_SETS, TRAIN_CYCLES, compare_causal, step_timing
+    from optimize.causal.compare import AMBIENTS, DRIVE_SETS, TRAIN_CYCLES, compare_causal, drives_of, step_timing
     from optimize.causal.controllers import ECMSController, SDPController
 
     ps = default_parameters()
@@ -24,8 +24,7 @@ def run(quick: bool = False, valuation: str = "corrected", drives: str = "held-o
         from calib.ingest import read_log
 
         logs = [read_log(TRAIN_LOG)]
-    learn_from = [learn_from] if isinstance(learn_from, str) else list(learn_from or ())
-    more = tuple(c for x in learn_from for c in DRIVE_SETS[x])
+    more = drives_of(learn_from, "--learn-from")
     learn = ",".join(learn_from)
     print(f"training drives: {', '.join(TRAIN_CYCLES)}" + (f" + log {TRAIN_LOG} (SYNTHETIC)" if logs else "")
           + f"; held out ({drives}): {', '.join(HELD_OUT)}; ambients {', '.join(f'{a:g}' for a in AMBIENTS)} degC"

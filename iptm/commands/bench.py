@@ -71,12 +71,10 @@ def run(args) -> int:
         print(f"== {n}")
         extra = {"n": args.n, "seed": args.seed} if n == "fuzz" else {}
         if n == "causal":
-            from optimize.causal.compare import DRIVE_SETS
+            from optimize.causal.compare import drives_of
 
             sets = [x for x in (args.learn_from or "").split(",") if x]
-            bad = [x for x in sets if x not in DRIVE_SETS]
-            if bad:
-                raise IptmError(f"bench causal: --learn-from {','.join(bad)}: choose among {', '.join(DRIVE_SETS)}")
+            drives_of(sets, "bench causal: --learn-from")
             if args.drives in sets:
                 raise IptmError(f"bench causal: --learn-from {args.drives} is also the test set; "
                                 "learn from another set than --drives")

@@ -51,6 +51,19 @@ THIRD_TEST = ("cmap_4108468_1_20070625_0810", "cmap_4108468_2_20070627_1507", "c
               "cmap_4112082_1_20070705_1419")
 #: The drive sets ``iptm bench causal --drives`` compares on.
 DRIVE_SETS = {"held-out": HELD_OUT, "fresh": FRESH_TEST, "reserve": RESERVE_TEST, "third": THIRD_TEST}
+
+
+def drives_of(sets, what: str = "drive set") -> tuple:
+    """The drives of the named :data:`DRIVE_SETS` (a list, or names joined by commas), in order."""
+    names = [x for x in (sets.split(",") if isinstance(sets, str) else sets) if x]
+    bad = [x for x in names if x not in DRIVE_SETS]
+    if bad:
+        from calib.errors import IptmError
+
+        raise IptmError(f"{what} {','.join(bad)}: choose among {', '.join(DRIVE_SETS)}")
+    return tuple(c for x in names for c in DRIVE_SETS[x])
+
+
 #: The settings ``scripts/causal_select.py`` chooses (the chain's ``alpha``, the rest :class:`SDPConfig` fields).
 SELECTED = ("alpha", "w_soc_g_per_s", "soc_bias", "regen_fraction", "regen_slope_per_mps")
 #: The causal strategies of a comparison (``sdp_own``: the SDP on a chain that also learnt ``learn_from``).
