@@ -243,7 +243,7 @@ def comparable_truth(p: dict, base=None) -> dict:
         "f_cl": [float(f_cold(p, x)) / f_ref for x in xs_f],
         "U_oc_V": [float(ocv(p, x)) for x in xs_b],
         "R_int_ohm": [float(r_int(p, x, 26.0)) for x in xs_b],
-        "R_int_tc_per_K": p["R_tc_per_K"],
+        "R_int_tc_per_K": p["R_tc_per_K"], "U_hyst_V": 0.0,  # its pack has no hysteresis
         "f_cl_at_-10": float(f_cold(p, -10.0)) / f_ref, "f_cl_at_0": float(f_cold(p, 0.0)) / f_ref,
     }
     none = {"fuel_scale": "warm fuel follows another efficiency curve; no single scale reproduces it",
@@ -256,7 +256,7 @@ def comparable_truth(p: dict, base=None) -> dict:
 #: tables at SOC 0.6).
 SCORED = ["C_bat_Ah", "R_int_tc_per_K", "C_eng_J_per_K", "gamma_exh", "hA_eng_W_per_K", "C_cab_J_per_K",
           "UA_cab_W_per_K", "eps_hc", "Q_sun_W", "W_idle_g_per_s", "f_cl@-10", "f_cl@0", "U_oc_V@0.6",
-          "R_int_ohm@0.6"]
+          "R_int_ohm@0.6", "U_hyst_V"]
 
 
 def param_at(params, name) -> tuple[float, float | None]:

@@ -131,24 +131,26 @@ def main() -> None:
         return float(R * np.exp(-params["R_int_tc_per_K"] * (T - Tref)))
 
     print("  our battery fitted on each drive alone (power and SOC): energy, resistance at SOC 0.6 at the drive's "
-          "mean battery temperature")
+          "mean battery temperature, hysteresis")
     for n in names:
         f = fit_battery([logs[n]], base)
         vals = {k: e.value for k, e in f.estimates.items()}
         p1 = base.with_values(**vals)
         Tm = float(np.nanmean(logs[n].data["bat_temp_degC"]))
         print(f"    {n}: {vals['C_bat_Ah'] * U_mid / 1e3:.2f} kWh, R({Tm:.0f} degC) = {r_at(p1, Tm):.3f} ohm, "
-              f"tc {vals['R_int_tc_per_K']:.4f} 1/K, SOC balance RMSE {f.metrics['soc_balance_rmse']:.4f}")
+              f"tc {vals['R_int_tc_per_K']:.4f} 1/K, hysteresis {vals['U_hyst_V']:.2f} V, "
+              f"SOC balance RMSE {f.metrics['soc_balance_rmse']:.4f}")
     print(f"  calibrated (two cold drives): {ps['C_bat_Ah'] * U_mid / 1e3:.2f} kWh, R(-7 degC) = {r_at(ps, -7):.3f}, "
-          f"R(0 degC) = {r_at(ps, 0):.3f}, R(22 degC) = {r_at(ps, 22):.3f} ohm")
+          f"R(0 degC) = {r_at(ps, 0):.3f}, R(22 degC) = {r_at(ps, 22):.3f} ohm, hysteresis {ps['U_hyst_V']:.2f} V")
     for n in names[2:]:
         m = replay(logs[n], ps).metrics()["soc"]
         print(f"    held out {n}: SOC RMSE {m['rmse']:.4f} (bias {m['bias']:+.4f})")
     cal = [logs[n] for n in names[:2]]
-    variants = [("capacity only (resistance and its temperature coefficient at the prior)", base,
-                 ("R_int_ohm", "R_int_tc_per_K")),
-                ("temperature coefficient fixed at 0 (as FASTSim's pack below 23 degC)",
-                 base.with_values(R_int_tc_per_K=0.0), ("R_int_tc_per_K",))]
+    variants = [("capacity only (resistance and its temperature coefficient at the prior, no hysteresis)", base,
+                 ("R_int_ohm", "R_int_tc_per_K", "U_hyst_V")),
+                ("no hysteresis (losses R I^2 only)", base, ("U_hyst_V",)),
+                ("no hysteresis and the temperature coefficient fixed at 0 (as FASTSim's pack below 23 degC)",
+                 base.with_values(R_int_tc_per_K=0.0), ("R_int_tc_per_K", "U_hyst_V"))]
     for label, b, fix in variants:
         r = calibrate(cal, base=b, fix=fix, progress=False, diagnose=False)
         soc = {n: replay(logs[n], r.params).metrics()["soc"]["rmse"] for n in names[2:]}

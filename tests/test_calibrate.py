@@ -136,7 +136,7 @@ def test_report_and_plot(tmp_path):
     plot_validation(replay(val, res.params), f)
     assert f.stat().st_size > 10_000
     fig = res.plot(tmp_path / "c.png")
-    bars = {t.get_text(): b.get_width() for t, b in zip(fig.axes[0].get_yticklabels()[::-1], fig.axes[0].patches)}
+    bars = {t.get_text(): b.get_width() for t, b in zip(fig.axes[0].get_yticklabels(), fig.axes[0].patches, strict=True)}
     e = res.fits["thermal"].estimates["C_eng_J_per_K"]
     assert bars["C_eng_J_per_K (thermal)" + (" [weak]" if e.status == "weak" else "")] == pytest.approx(float(e.informed))
     assert all(0.0 <= w <= 1.0 for w in bars.values()) and (tmp_path / "c.png").stat().st_size > 0

@@ -24,7 +24,7 @@ def logs_for(seed, drop=()):
 
 
 def recovery_failures(fit, truth):
-    """Every estimated scalar / table entry within 3 se and 10 % of the truth."""
+    """Every estimated scalar / table entry within 3 se and 10 % of the truth (a zero truth: within 3 se)."""
     bad = []
     for n, e in fit.estimates.items():
         if e.status != "estimated":
@@ -34,7 +34,7 @@ def recovery_failures(fit, truth):
             for j, (v, s, st, t) in enumerate(zip(e.value, e.stderr, e.entry_status, tv)):
                 if st == "estimated" and (abs(v - t) > 3 * s or abs(v - t) > 0.1 * abs(t)):
                     bad.append((n, j, v, s, t))
-        elif abs(e.value - tv) > 3 * e.stderr or abs(e.value - tv) > 0.1 * abs(tv):
+        elif abs(e.value - tv) > 3 * e.stderr or (tv != 0 and abs(e.value - tv) > 0.1 * abs(tv)):
             bad.append((n, e.value, e.stderr, tv))
     return bad
 
@@ -126,22 +126,22 @@ def test_power_and_soc_inform_the_battery_of_an_independent_pack():
     U_mid = float(np.interp(0.6, base.param("U_oc_V").x, base.param("U_oc_V").value))
     assert C.value * U_mid * 3600.0 == pytest.approx(E_TRUE_J, rel=0.05)  # the energy, from a 1.43 kWh prior
     assert abs(C.value - C.prior) > 3 * C.stderr  # the data moved it, beyond its posterior sd
-    # the losses (10 % each way) exceed the prior resistance's at these powers: the fit raises R. At one
-    # battery temperature only R at that temperature is determined; R at T_ref (the parameter) is that
-    # extrapolated with the temperature coefficient's prior, so the two are reported as confounded
-    R = fit.estimates["R_int_ohm"]
-    tc = fit.estimates["R_int_tc_per_K"]
-    R5 = lambda r, c: np.asarray(r) * np.exp(-c * (5.0 - base["T_bat_ref_degC"]))  # noqa: E731
-    assert R.status in ("estimated", "weak")
-    assert np.all(R5(R.value, tc.value) > 1.3 * R5(R.prior, tc.prior))
-    assert any({a, b} == {"R_scale", "R_int_tc_per_K"} for a, b, _ in fit.confounded)
+    # losses of 10 % each way grow in proportion to |I|, as the hysteresis term's do (R_int's grow as I^2): the
+    # fit puts them there and leaves a small resistance; what the SOC sees, the loss fraction at a given
+    # power, is the truth's
+    H, R, tc = fit.estimates["U_hyst_V"], fit.estimates["R_int_ohm"], fit.estimates["R_int_tc_per_K"]
+    assert H.status == "estimated" and H.value > 10.0 and abs(H.value - H.prior) > 3 * H.stderr
+    post = base.with_values(C_bat_Ah=C.value, R_int_ohm=R.value, R_int_tc_per_K=tc.value, U_hyst_V=H.value)
+    P = np.array([2e3, 6e3, 10e3])
+    chem = current_from_power_table(P, 0.6, 5.0, post) * U_mid  # the energy counted: the capacity is at U_mid
+    assert chem / P == pytest.approx(1.0 / ETA_TRUE, abs=0.02)
+    chem = current_from_power_table(-P, 0.6, 5.0, post) * U_mid
+    assert chem / -P == pytest.approx(ETA_TRUE, abs=0.02)
     assert fit.estimates["U_oc_V"].status == "prior" and "energy" in fit.estimates["U_oc_V"].note
     assert fit.estimates["R_int_tc_per_K"].status == "weak"  # one battery temperature: nothing to learn
     assert "bat_power_W" in fit.used[logs[0].label()]["power"]
     # held out: a third drive's SOC from its power, with the posterior against the prior
     lg, soc_true = _energy_battery_log(3)
-    post = base.with_values(C_bat_Ah=C.value, R_int_ohm=R.value,
-                            R_int_tc_per_K=fit.estimates["R_int_tc_per_K"].value)
 
     def soc_rmse(ps):
         P = lg.data["bat_power_W"].to_numpy()
@@ -189,3 +189,22 @@ def test_replay_starts_from_the_soc_the_first_minute_implies():
     rep = replay(log, base)
     assert rep.simulated["soc"][0] == pytest.approx(soc[0], abs=0.0015)
     assert np.sqrt(np.mean((rep.simulated["soc"] - soc) ** 2)) < 0.0015
+
+
+def test_battery_recovers_a_hysteresis_from_current_and_voltage():
+    """Logs of a pack with a 4 V hysteresis: the table fit finds it where the current changes sign. These two
+    drives hold ~60 steady charging samples; the estimate is then 4-5 % low, several of its sd (the hysteresis
+    trades with the resistance's SOC and temperature shape), so the check is 10 % of the truth; the temperature
+    coefficient, with one battery temperature per drive, trades with it too and is checked to 3 sd only."""
+    truth = draw_truth(1).with_values(U_hyst_V=4.0)
+    logs = [to_drivelog(*synthesise(sc, truth, seed=1)[1:]) for sc in FIT]
+    fit = fit_battery(logs, default_parameters())
+    H = fit.estimates["U_hyst_V"]
+    assert H.status == "estimated" and H.value == pytest.approx(4.0, rel=0.1)
+    fit.estimates.pop("U_hyst_V")
+    tc = fit.estimates.pop("R_int_tc_per_K")
+    assert abs(tc.value - truth["R_int_tc_per_K"]) < 3 * tc.stderr
+    assert recovery_failures(fit, truth) == []
+    # the truth without hysteresis: the estimate stays at zero within its sd
+    H0 = fit_battery(logs_for(1)[1], default_parameters()).estimates["U_hyst_V"]
+    assert H0.value < 3 * H0.stderr + 1e-9

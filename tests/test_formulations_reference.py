@@ -450,7 +450,7 @@ def test_tables_next_charge_on_a_moved_grid_starts_from_the_nodes_moved_charge(p
             for i in range(socg.size):
                 s = socg[i] + off[k]
                 U, R = battery_ocv_r(mp, s, T_bat)
-                I = battery_current(U, R, tab[k, ip, _T_PBAT])
+                I = battery_current(U, R, tab[k, ip, _T_PBAT], mp.U_hyst)
                 if I == I:
                     assert tab[k, ip, _T_SOC0 + i] == pytest.approx(s - I * Ts / mp.C_bat_As, abs=1e-12)
                     n += 1
@@ -537,7 +537,7 @@ def test_off_grid_charge_step_follows_the_models_battery_at_the_packed_battery_t
         p[_C_TBAT] = T_bat
         for P_bat in (15e3, -12e3):
             U, R = battery_ocv_r(mp, 0.55, T_bat)
-            want = 0.55 - battery_current(U, R, P_bat) * 1.0 / mp.C_bat_As
+            want = 0.55 - battery_current(U, R, P_bat, mp.U_hyst) * 1.0 / mp.C_bat_As
             assert _soc_next(p, 0.55, P_bat, 1.0) == pytest.approx(want, rel=0.0, abs=1e-12)
 
 

@@ -131,10 +131,28 @@ def test_battery_current_solves_the_terminal_power_equation():
     """Eq. 1: P = U I - R I^2; the root of smaller magnitude; no real current where U^2 < 4 R P."""
     U, R = 200.0, 0.5
     for P in (10e3, 1.0, -15e3):
-        I = M.battery_current(U, R, P)
+        I = M.battery_current(U, R, P, 0.0)
         assert U * I - R * I * I == pytest.approx(P, rel=1e-12, abs=1e-9)
         assert I == pytest.approx((U - np.sqrt(U * U - 4 * R * P)) / (2 * R), rel=1e-9)
-    assert np.isnan(M.battery_current(U, R, U * U / (4 * R) * 1.001))
+    assert np.isnan(M.battery_current(U, R, U * U / (4 * R) * 1.001, 0.0))
+
+
+def test_battery_hysteresis_is_a_loss_linear_in_the_current():
+    """V = U - U_h sgn(I) - R I: the chemical power U I exceeds the terminal power by U_h |I| + R I^2 both ways;
+    the current is continuous through zero power; the terminal voltage has the step."""
+    U, R, Uh = 200.0, 0.5, 6.0
+    for P in (10e3, 300.0, -300.0, -15e3):
+        I = M.battery_current(U, R, P, Uh)
+        assert np.sign(I) == np.sign(P)
+        assert U * I - P == pytest.approx(Uh * abs(I) + R * I * I, rel=1e-10)
+    assert M.battery_current(U, R, 0.0, Uh) == 0.0
+    assert M.battery_current(U, R, 1e-6, Uh) == pytest.approx(0.0, abs=1e-8)
+    assert M.battery_current(U, R, -1e-6, Uh) == pytest.approx(0.0, abs=1e-8)
+    p = default_parameters().with_values(U_hyst_V=Uh).model_params()
+    I, V, U0, R0, code = M.battery(p, 0.6, 5e3, 20.0)
+    assert V == pytest.approx(U0 - Uh - R0 * I, rel=1e-12) and V * I == pytest.approx(5e3, rel=1e-10)
+    I, V, U0, R0, code = M.battery(p, 0.6, -5e3, 20.0)
+    assert V == pytest.approx(U0 + Uh - R0 * I, rel=1e-12) and V * I == pytest.approx(-5e3, rel=1e-10)
 
 
 def test_battery_power_limits_are_inclusive():

@@ -1,14 +1,17 @@
-"""Battery fit (docs/model.md s.3 and s.8): U_oc(SOC), R_int(SOC) tables, capacity, R_int(T).
+"""Battery fit (docs/model.md s.3 and s.8): U_oc(SOC), R_int(SOC) tables, hysteresis, capacity, R_int(T).
 
 - Tables: the terminal voltage ``V = U_oc(SOC) - R_int(SOC) exp(-tc (T_bat - T_ref)) I`` is linear in the
   table values given SOC, current and temperature. With the piecewise-linear (hat-function) basis
   ``h_j(SOC)`` of the breakpoints, ``V = sum_j h_j U_j - sum_j h_j g I R_j`` is solved by direct linear
   least squares over all logs. Only breakpoints the data covers (sum of hat weights >= 30 samples, and
   for R also a current spread) are unknowns; each estimate is combined with the entry's prior (precision
-  weighting); the others are the prior, with the prior sd, flagged weak.
+  weighting); the others are the prior, with the prior sd, flagged weak. The hysteresis ``U_hyst_V`` (``V =
+  U_oc - U_hyst sgn(I) - R I``) is one more column, ``-sgn(I)``, fitted when both charging and discharging
+  samples are steady; samples within ``I_SIGN_A`` of zero current then leave the fit.
 - Logs with battery power and SOC but no current and voltage (:func:`_fit_from_power`): the SOC balance
   of the replay fitted by maximum a posteriori gives the capacity (the energy: OCV x capacity), the level
-  of the resistance (a factor on the prior table: the losses) and its temperature coefficient; the OCV
+  of the resistance (a factor on the prior table: the losses quadratic in the current), the hysteresis
+  (the losses linear in it) and the resistance's temperature coefficient; the OCV
   table keeps its prior. Where some logs have current and voltage, the tables come from those and the
   power-only logs join the Coulomb counting with their current inferred from the fitted tables.
 - Capacity: Coulomb counting (with the current inferred from ``bat_power_W`` and the fitted OCV/resistance
@@ -33,8 +36,9 @@ from calib.fit.toolkit import (WEAK_INFORMED, ParamEstimate, SubsystemFit, combi
 from calib.model.params import prior_sd_of
 
 NEEDS = ("bat_current_A", "bat_voltage_V", "soc")
-PARAMS = ("U_oc_V", "R_int_ohm", "C_bat_Ah", "R_int_tc_per_K")
+PARAMS = ("U_oc_V", "R_int_ohm", "C_bat_Ah", "R_int_tc_per_K", "U_hyst_V")
 MIN_COVER = 30.0  # sum of hat weights for a breakpoint to be an unknown
+I_SIGN_A = 1.0  # A: samples nearer zero current leave the hysteresis fit (the sign of a noisy current is uncertain)
 MIN_T_SPAN = 10.0  # K, for the temperature coefficient
 V_CAL_REL_SD = 0.001  # calibration uncertainty (1 sd, relative) of the pack voltage sensor
 I_CAL_REL_SD = 0.005  # ... of the current sensor (a gain error scales the Coulomb count)
@@ -82,16 +86,20 @@ def steady(I, tol_A=2.0):
     return ok & (d < tol_A + 0.02 * np.abs(I))
 
 
-def _table_fit(rows, bpU, bpR, U0, R0, tc, T_ref, varyU, varyR):
-    """Linear LS for the table entries flagged in varyU/varyR; returns (U, R, cov, resid per log, sse, n)."""
+def _table_fit(rows, bpU, bpR, U0, R0, tc, T_ref, varyU, varyR, h=0.0, varyH=False):
+    """Linear LS for the table entries flagged in varyU/varyR and, with ``varyH``, the hysteresis ``U_hyst_V``
+    (else fixed at ``h``); returns (U, R, cov, resid per log, sse, n, h); the hysteresis is cov's last row."""
     A_parts, y_parts, seg_len = [], [], []
     for r in rows:
         ok = steady(r["I"]) & np.isfinite(r["V"]) & np.isfinite(r["soc"])
+        if varyH:
+            ok &= np.abs(r["I"]) > I_SIGN_A
         HU = hat_basis(r["soc"][ok], bpU)
         HR = hat_basis(r["soc"][ok], bpR)
         gI = (np.exp(-tc * (r["T"][ok] - T_ref)) * r["I"][ok])[:, None]
-        y = r["V"][ok] - HU[:, ~varyU] @ U0[~varyU] + (HR[:, ~varyR] * gI) @ R0[~varyR]
-        A = np.hstack([HU[:, varyU], -HR[:, varyR] * gI])
+        sg = np.sign(r["I"][ok])[:, None]
+        y = r["V"][ok] - HU[:, ~varyU] @ U0[~varyU] + (HR[:, ~varyR] * gI) @ R0[~varyR] + (0.0 if varyH else h) * sg[:, 0]
+        A = np.hstack([HU[:, varyU], -HR[:, varyR] * gI] + ([-sg] if varyH else []))
         A_parts.append(A)
         y_parts.append(y)
         seg_len.append(int(ok.sum()))
@@ -110,9 +118,10 @@ def _table_fit(rows, bpU, bpR, U0, R0, tc, T_ref, varyU, varyR):
     nU = int(varyU.sum())
     U = U0.copy()
     R = R0.copy()
+    nR = int(varyR.sum())
     U[varyU] = theta[:nU]
-    R[varyR] = theta[nU:]
-    return U, R, cov, segs, sse, A.shape[0]
+    R[varyR] = theta[nU:nU + nR]
+    return U, R, cov, segs, sse, A.shape[0], (float(theta[-1]) if varyH else h)
 
 
 def _capacity(rows):
@@ -239,6 +248,11 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
             for j in range(len(bpU)) if not varyU[j]}
     whyR = {j: f"SOC {bpR[j]:g} not covered (hat weight {coverR[j]:.1f}, rms current {spreadR[j]:.1f} A)"
             for j in range(len(bpR)) if not varyR[j]}
+    # hysteresis: a step of the terminal voltage where the current changes sign, so it needs both
+    h0 = float(base["U_hyst_V"])
+    n_dis, n_chg = int((Is > 1.0).sum()), int((Is < -1.0).sum())
+    varyH = "U_hyst_V" in allowed and min(n_dis, n_chg) >= MIN_COVER
+    tf = lambda c: _table_fit(rows, bpU, bpR, U0, R0, c, T_ref, varyU, varyR, h0, varyH)  # noqa: E731
 
     # temperature coefficient (profile), only with a wide enough temperature span
     T_all = np.concatenate([r["T"] for r in rows])
@@ -254,13 +268,13 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
                 "R_int_tc_per_K", tc, tc_sd, f"battery temperature spans {T_span:.1f} K < {MIN_T_SPAN:g} K")
         else:
             lo, hi = base.param("R_int_tc_per_K").bounds
-            sse = lambda c: _table_fit(rows, bpU, bpR, U0, R0, c, T_ref, varyU, varyR)[4]  # noqa: E731
+            sse = lambda c: tf(c)[4]  # noqa: E731
             c = float(minimize_scalar(sse, bounds=(lo, min(hi, 0.08)), method="bounded",
                                       options={"xatol": 1e-10}).x)
             h = max(1e-4, 0.02 * abs(c))
-            U_, R_, cov_, segs_, s0, n0 = _table_fit(rows, bpU, bpR, U0, R0, c, T_ref, varyU, varyR)
+            U_, R_, cov_, segs_, s0, n0, _ = tf(c)
             curv = (sse(c + h) - 2 * s0 + sse(c - h)) / h ** 2
-            s2 = s0 / max(n0 - int(varyU.sum() + varyR.sum()) - 1, 1)
+            s2 = s0 / max(n0 - int(varyU.sum() + varyR.sum() + varyH) - 1, 1)
             se = math.sqrt(2 * s2 / curv) * inflation(segs_, 1) if curv > 0 else None
             e = combine_with_prior("R_int_tc_per_K", c, se, tc, tc_sd, f"battery temperature span {T_span:.0f} K")
             fit.estimates["R_int_tc_per_K"] = e
@@ -270,20 +284,22 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
 
     # tables: every entry the data touches is an unknown (so a poorly covered neighbour left at its
     # prior cannot bias the others); each is then judged, and undetermined ones are reported at the prior.
-    U, R, cov, segs, sse_, n = _table_fit(rows, bpU, bpR, U0, R0, tc_use, T_ref, varyU, varyR)
-    f = inflation(segs, int(varyU.sum() + varyR.sum()))
+    U, R, cov, segs, sse_, n, H = tf(tc_use)
+    f = inflation(segs, int(varyU.sum() + varyR.sum() + varyH))
     se_all = np.sqrt(np.clip(np.diag(cov), 0, None)) * f if cov.size else np.array([])
     nU = int(varyU.sum())
     seU = np.full(len(bpU), np.nan)
     seR = np.full(len(bpR), np.nan)
     seU[varyU] = se_all[:nU]
-    seR[varyR] = se_all[nU:]
+    seR[varyR] = se_all[nU:nU + int(varyR.sum())]
+    seH = float(se_all[-1]) if varyH else float("nan")
     if tc_est is not None:  # the tables are conditional on tc: add its uncertainty
         se_tc = fit.estimates["R_int_tc_per_K"].stderr
         h = max(1e-5, 0.05 * se_tc)
-        U2, R2 = _table_fit(rows, bpU, bpR, U0, R0, tc_use + h, T_ref, varyU, varyR)[:2]
+        U2, R2, *_, H2 = tf(tc_use + h)
         seU = np.sqrt(seU ** 2 + ((U2 - U) / h * se_tc) ** 2)
         seR = np.sqrt(seR ** 2 + ((R2 - R) / h * se_tc) ** 2)
+        seH = math.hypot(seH, (H2 - H) / h * se_tc)
     # calibration of the voltage and current sensors (V_CAL_REL_SD, I_CAL_REL_SD): a bias the amount of
     # data does not average out
     seU = np.sqrt(seU ** 2 + (V_CAL_REL_SD * U) ** 2)
@@ -344,6 +360,22 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
         return ParamEstimate(name, val, ses, status, note, prior=list(map(float, prior)), entry_status=st,
                              prior_sd=list(map(float, psd)), informed=inf)
 
+    if "U_hyst_V" in allowed:
+        hsd = float(prior_sd_of(base.param("U_hyst_V")))
+        if varyH and np.isfinite(seH):
+            # the voltage sensor's calibration does not reach a step at the sign change; the current's gain
+            # error scales R I only
+            e = combine_with_prior("U_hyst_V", H, seH, h0, hsd, f"terminal voltage step where the current changes "
+                                   f"sign ({n_dis} discharging, {n_chg} charging steady samples)")
+            lo, hi = base.param("U_hyst_V").bounds
+            if not lo <= e.value <= hi:
+                e.note += f"; the estimate {e.value:.3g} V lies outside the bounds and is clipped"
+                e.value = float(min(max(e.value, lo), hi))
+            fit.estimates["U_hyst_V"] = e
+        else:
+            fit.estimates["U_hyst_V"] = prior_only(
+                "U_hyst_V", h0, hsd, f"too few steady samples on one side of zero current ({n_dis} discharging, "
+                f"{n_chg} charging; {MIN_COVER:g} needed)")
     if fitU:
         fit.estimates["U_oc_V"] = table_est("U_oc_V", U, U0, seU, varyU, whyU, fill=U_fill)
     if fitR:
@@ -351,7 +383,7 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
 
     if "C_bat_Ah" in allowed:
         if inferred:  # logs with power only: their current from the tables just fitted
-            fitted = {n: fit.estimates[n].value for n in ("U_oc_V", "R_int_ohm") if n in fit.estimates}
+            fitted = {n: fit.estimates[n].value for n in ("U_oc_V", "R_int_ohm", "U_hyst_V") if n in fit.estimates}
             inferred = _inferred_current_rows(logs, use, base.with_values(**fitted), fit, "fitted")
         _fit_capacity(fit, rows, inferred, base)
     return fit
@@ -405,6 +437,8 @@ def _inferred_current_rows(logs, use, base, fit, which="prior"):
 # ------------------------------------------------------------------------------------------------
 # logs with battery power and SOC but no current or voltage
 # ------------------------------------------------------------------------------------------------
+#: What the SOC balance of power-only logs fits (``R_scale``: a factor on the prior resistance table).
+BALANCE = ("C_bat_Ah", "R_scale", "R_int_tc_per_K", "U_hyst_V")
 #: A priori sd of the logged SOC at its level crossings (the fit re-estimates it from the residuals).
 SOC_NOISE_SD = 0.002
 
@@ -429,7 +463,7 @@ def _power_rows(logs, base, fit):
     return out
 
 
-def current_from_power_table(P, soc, T, base, R_scale=1.0, tc=None):
+def current_from_power_table(P, soc, T, base, R_scale=1.0, tc=None, U_h=None):
     """Eq. 1 solved for the current (vectorised) with the OCV table of ``base`` and its resistance table
     scaled by ``R_scale``; where the power exceeds what the pack can give (``U^2 < 4 R P``) the current is
     ``P / U``, as in the validation replay (:func:`calib.fit.replay.full_replay`)."""
@@ -441,7 +475,7 @@ def current_from_power_table(P, soc, T, base, R_scale=1.0, tc=None):
 
     U, R, P = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in (U, R, P)))
     flat = [np.ascontiguousarray(a).ravel() for a in (U, R, P)]
-    I = battery_current_array(*flat).reshape(U.shape)
+    I = battery_current_array(*flat, float(base["U_hyst_V"]) if U_h is None else U_h).reshape(U.shape)
     return np.where(np.isnan(I), P / U, I)
 
 
@@ -475,14 +509,16 @@ def _fit_from_power(fit, rows, base, names):
     tc_sd = float(prior_sd_of(base.param("R_int_tc_per_K")))
     C0 = float(base["C_bat_Ah"])
     C_sd = float(prior_sd_of(base.param("C_bat_Ah")))
+    h0 = float(base["U_hyst_V"])
+    h_sd = float(prior_sd_of(base.param("U_hyst_V")))
     T_logged = any(r["T_logged"] for r in rows)
     vary = {"C_bat_Ah": "C_bat_Ah" in names, "R_scale": "R_int_ohm" in names,
-            "R_int_tc_per_K": "R_int_tc_per_K" in names and T_logged}
-    prior = {"C_bat_Ah": C0, "R_scale": 1.0, "R_int_tc_per_K": tc0}
-    psd = {"C_bat_Ah": C_sd, "R_scale": R_rel_sd, "R_int_tc_per_K": tc_sd}
+            "R_int_tc_per_K": "R_int_tc_per_K" in names and T_logged, "U_hyst_V": "U_hyst_V" in names}
+    prior = {"C_bat_Ah": C0, "R_scale": 1.0, "R_int_tc_per_K": tc0, "U_hyst_V": h0}
+    psd = {"C_bat_Ah": C_sd, "R_scale": R_rel_sd, "R_int_tc_per_K": tc_sd, "U_hyst_V": h_sd}
     bounds = {"C_bat_Ah": base.param("C_bat_Ah").bounds, "R_scale": (Rlo / R0.min(), Rhi / R0.max()),
-              "R_int_tc_per_K": base.param("R_int_tc_per_K").bounds}
-    cand = [n for n in ("C_bat_Ah", "R_scale", "R_int_tc_per_K") if vary[n]]
+              "R_int_tc_per_K": base.param("R_int_tc_per_K").bounds, "U_hyst_V": base.param("U_hyst_V").bounds}
+    cand = [n for n in BALANCE if vary[n]]
     for r in rows:
         s = r["soc"]
         k = np.flatnonzero(np.isfinite(s[:-1]) & np.isfinite(s[1:]) & (s[1:] != s[:-1]))
@@ -491,13 +527,15 @@ def _fit_from_power(fit, rows, base, names):
     if not rows or not cand:
         fit.logs = []
         not_fitted(fit, base, names, "the logged SOC never changes level (fewer than 3 level crossings in every log)"
-                   if not rows else "none of C_bat_Ah, R_int_ohm, R_int_tc_per_K may vary")
+                   if not rows else "none of C_bat_Ah, R_int_ohm, R_int_tc_per_K, U_hyst_V may vary")
         return
 
     def make_params():
         ps = lmfit.Parameters()
-        for n in ("C_bat_Ah", "R_scale", "R_int_tc_per_K"):
-            ps.add(n, value=prior[n], min=bounds[n][0], max=bounds[n][1], vary=vary[n])
+        for n in BALANCE:
+            # a start exactly on a bound (U_hyst_V's prior 0) stalls lmfit's bound transform: step inside
+            v0 = min(max(prior[n], bounds[n][0] + 0.01 * psd[n]), bounds[n][1] - 0.01 * psd[n])
+            ps.add(n, value=v0, min=bounds[n][0], max=bounds[n][1], vary=vary[n])
         for i, r in enumerate(rows):
             ps.add(f"soc0_{i}", value=float(r["y"][0]), min=0.0, max=1.0)
         return ps
@@ -506,7 +544,8 @@ def _fit_from_power(fit, rows, base, names):
         v = ps.valuesdict()
         out = []
         for i, r in enumerate(rows):
-            I = current_from_power_table(gain * r["P"], r["soc_f"], r["T"], base, v["R_scale"], v["R_int_tc_per_K"])
+            I = current_from_power_table(gain * r["P"], r["soc_f"], r["T"], base, v["R_scale"], v["R_int_tc_per_K"],
+                                         v["U_hyst_V"])
             Q = np.concatenate([[0.0], np.cumsum(I[:-1] * r["dt"])])  # A s, as the replay steps
             k = r["k"]
             out.append(v[f"soc0_{i}"] - 0.5 * (Q[k] + Q[k + 1]) / (3600.0 * v["C_bat_Ah"]) - r["y"])
@@ -538,6 +577,10 @@ def _fit_from_power(fit, rows, base, names):
         fit.estimates["R_int_tc_per_K"] = (
             posterior_estimate("R_int_tc_per_K", out, src, tc0) if vary["R_int_tc_per_K"]
             else prior_only("R_int_tc_per_K", tc0, tc_sd, "no battery temperature logged"))
+    if "U_hyst_V" in names:
+        fit.estimates["U_hyst_V"] = posterior_estimate(
+            "U_hyst_V", out, src + "; the losses linear in |I| (R_int's are quadratic): discharge and charge at "
+            "several power levels separate the two", h0)
     if "U_oc_V" in names:
         pU = base.param("U_oc_V")
         fit.estimates["U_oc_V"] = ParamEstimate(

@@ -6,11 +6,12 @@ fitted and the held-out logs (:mod:`calib.fit.validate`) and says which drives w
 did not (:mod:`calib.fit.advice`):
 
 ========================  ==========================================================================
-:mod:`calib.fit.battery`  ``U_oc_V``, ``R_int_ohm`` tables (linear least squares on the table values,
-                          hat-function basis), ``C_bat_Ah`` (Coulomb counting against logged SOC),
-                          ``R_int_tc_per_K`` (profile, when the battery temperature spans >= 10 K); from
-                          battery power and SOC alone: ``C_bat_Ah``, the level of ``R_int_ohm`` and
-                          ``R_int_tc_per_K`` (MAP fit of the SOC balance; ``U_oc_V`` stays the prior)
+:mod:`calib.fit.battery`  ``U_oc_V``, ``R_int_ohm`` tables and ``U_hyst_V`` (linear least squares on
+                          the table values, hat-function basis, and the step at zero current),
+                          ``C_bat_Ah`` (Coulomb counting against logged SOC), ``R_int_tc_per_K``
+                          (profile, when the battery temperature spans >= 10 K); from battery power and
+                          SOC alone: ``C_bat_Ah``, the level of ``R_int_ohm``, ``R_int_tc_per_K`` and
+                          ``U_hyst_V`` (MAP fit of the SOC balance; ``U_oc_V`` stays the prior)
 :mod:`calib.fit.fuel`     ``eta_ool`` (the warm fuel rate along the operating line), ``W_idle_g_per_s``,
                           ``f_cl`` (monotone, smooth), on stable 1 s bins
 :mod:`calib.fit.thermal`  ``kappa`` (bay temperature, linear), ``C_eng_J_per_K``, ``gamma_exh``,

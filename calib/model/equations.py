@@ -87,9 +87,14 @@ def battery_ocv_r(p, soc, T_bat):
 
 
 @njit(cache=True)
-def battery_current(U, R, P_bat):
-    """Eq. 1's current for terminal power P_bat at open-circuit voltage U and resistance R (cancellation-
-    free root); NaN where ``U^2 < 4 R P_bat`` (no real current)."""
+def battery_current(U, R, P_bat, U_h):
+    """Eq. 1's current for terminal power P_bat at open-circuit voltage U, resistance R and hysteresis U_h
+    (``V = U - U_h sgn(I) - R I``; I has the sign of P_bat, so the effective source voltage is ``U - U_h``
+    discharging and ``U + U_h`` charging). Cancellation-free root; NaN where ``U_e^2 < 4 R P_bat``."""
+    if P_bat > 0.0:
+        U = U - U_h
+    elif P_bat < 0.0:
+        U = U + U_h
     disc = U * U - 4.0 * R * P_bat
     if disc < 0.0:
         return np.nan
@@ -100,13 +105,13 @@ def battery_current(U, R, P_bat):
 def battery(p, soc, P_bat, T_bat):
     """Eq. 1: returns (I, V, U_oc, R_int, code); code 0 feasible, else an infeasibility code."""
     U, R = battery_ocv_r(p, soc, T_bat)
-    I = battery_current(U, R, P_bat)
+    I = battery_current(U, R, P_bat, p.U_hyst)
     if not (I == I):
         return np.nan, np.nan, U, R, BATTERY_ROOT
     code = FEASIBLE
     if P_bat < p.P_bat_min or P_bat > p.P_bat_max:
         code = BATTERY_LIMIT
-    return I, U - R * I, U, R, code
+    return I, U - p.U_hyst * np.sign(I) - R * I, U, R, code
 
 
 @njit(cache=True)
@@ -291,9 +296,9 @@ def evaluate(params, soc, T_cl, T_cab, e_mode, P_bat_mg, Q_heat_cmd, v, v_next, 
 
 
 @njit(cache=True)
-def battery_current_array(U, R, P_bat):
+def battery_current_array(U, R, P_bat, U_h):
     """:func:`battery_current` element by element over 1-D arrays (NaN where there is no real current)."""
     out = np.empty(P_bat.shape[0])
     for k in range(P_bat.shape[0]):
-        out[k] = battery_current(U[k], R[k], P_bat[k])
+        out[k] = battery_current(U[k], R[k], P_bat[k], U_h)
     return out

@@ -201,6 +201,12 @@ def default_parameters() -> "ParameterSet":
            x=soc, x_name="soc", x_unit="dimensionless"),
         _p("R_int_tc_per_K", round(tc, 5), "1/K", 0.0, 0.1, bat + ": ratio of 1 and 26 degC tables at SOC 0.5",
            "R_int(T) = R_int(T_ref) exp(-tc (T - T_ref))"),
+        # instantaneous hysteresis (Plett 2004, J. Power Sources 134:262, the "M0 sgn(i)" term of the enhanced
+        # self-correcting cell model): a loss proportional to |I| that resistance alone cannot represent
+        _p("U_hyst_V", 0.0, "V", 0.0, 40.0,
+           "iptm prior: 0 (the ADVISOR pulse tests give discharge resistance only); sd 5 V, about 30 mV per cell "
+           "over the pack's 168 cells (judgement)",
+           "half the gap between charge and discharge open-circuit voltage: V = U_oc - U_hyst sgn(I) - R_int I"),
         _p("T_bat_ref_degC", 26.0, "degC", -40, 60, bat, "reference temperature of R_int_ohm", vary=False),
         _p("C_bat_Ah", 6.5, "A*h", 2.0, 20.0, "Toyota: NiMH 6.5 Ah (data/prius_facts.md)", "capacity"),
         # fuel
@@ -262,6 +268,7 @@ PRIOR_SD = {
     "U_oc_V": lambda v: 4.0,  # V: +-2 % between packs of the same type
     "R_int_ohm": lambda v: 0.25 * v,
     "R_int_tc_per_K": lambda v: 0.01,
+    "U_hyst_V": lambda v: 5.0,
     "C_bat_Ah": lambda v: 1.5,
     "eta_ool": lambda v: 0.20 * v,  # another engine, or this one with a biased fuel meter
     "fuel_scale": lambda v: 0.15,
@@ -324,7 +331,7 @@ ModelParams = namedtuple(
         "P_bat_min", "P_bat_max", "soc_bp", "U_oc", "soc_bp_R", "R_int", "R_tc", "T_bat_ref", "C_bat_As",
         "P_ool", "eta_ool", "w_ool", "fuel_scale", "W_idle", "T_fcl", "f_cl", "LHV", "C_eng", "gamma_exh",
         "hA_eng", "kappa", "T_open", "k_rad", "Q_rad_max", "eps_hc", "W_bl", "recirc", "cp_air",
-        "C_cab", "UA_cab", "Q_sun",
+        "C_cab", "UA_cab", "Q_sun", "U_hyst",
     ],
 )
 
@@ -418,6 +425,7 @@ class ParameterSet:
             hA_eng=g("hA_eng_W_per_K"), kappa=g("kappa"), T_open=g("T_open_degC"), k_rad=g("k_rad_W_per_K"),
             Q_rad_max=g("Q_rad_max_W"), eps_hc=g("eps_hc"), W_bl=g("W_bl_kg_per_s"), recirc=g("recirc_frac"),
             cp_air=g("cp_air_J_per_kgK"), C_cab=g("C_cab_J_per_K"), UA_cab=g("UA_cab_W_per_K"), Q_sun=g("Q_sun_W"),
+            U_hyst=g("U_hyst_V"),
         )
 
     # --- I/O --------------------------------------------------------------------------------------

@@ -267,6 +267,8 @@ def sim_from_arrays(d: dict) -> SimResult:
 
     from calib.model.params import ModelParams
 
+    # files written before the hysteresis term existed: that model had none, so 0 V is exact there
+    d = {"mp__U_hyst": np.asarray(0.0), **d}
     mp = ModelParams(**{f: (d[f"mp__{f}"] if d[f"mp__{f}"].ndim else float(d[f"mp__{f}"]))
                         for f in ModelParams._fields})
     flows = {k[6:]: d[k] for k in d if k.startswith("flow__")}

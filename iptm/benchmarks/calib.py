@@ -165,8 +165,8 @@ def fastsim_section() -> dict:
           "its engine efficiency keeps rising above the thermostat, its fuel per unit work 21 % lower above 120 degC "
           "than at 80-85 degC (our f_cl may fall "
           "below 1 above 80 degC, with a prior sd of 1.5 % per 10 K, and is flat beyond 120 degC); its battery "
-          "losses stop growing above 5 C and do not depend on temperature below 23 degC (ours: R I^2, R falling with "
-          "temperature). Evidence: scripts/fastsim_structure.py, docs/test_cars.md.")
+          "loses a fixed fraction of the power at each C-rate, independent of temperature below 23 degC (ours: "
+          "U_hyst |I| + R I^2, R falling with temperature; the hysteresis takes the proportional loss). Evidence: scripts/fastsim_structure.py, docs/test_cars.md.")
     return fig
 
 

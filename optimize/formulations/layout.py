@@ -30,11 +30,11 @@ LEVEL_TOL = 0.0
 # model scalars (float64 array): the generic engine's parallel kernel cannot take the ModelParams namedtuple
 # (numba's parfor gufunc rejects a struct holding arrays), so the transition gets plain arrays.
 _MS = ("R_tc", "T_bat_ref", "C_bat_As", "kappa", "hA_eng", "T_open", "k_rad", "Q_rad_max", "eps_hc", "cp_air",
-       "recirc", "LHV", "gamma_exh", "C_eng", "UA_cab", "C_cab", "Q_sun")
+       "recirc", "LHV", "gamma_exh", "C_eng", "UA_cab", "C_cab", "Q_sun", "U_hyst")
 (_R_TC, _TBREF, _CBAT, _KAPPA, _HA, _TOPEN, _KRAD, _QRADMAX, _EPS, _CP, _RECIRC, _LHV, _GAMMA, _CENG, _UACAB,
- _CCAB, _QSUN) = range(len(_MS))
+ _CCAB, _QSUN, _UHYST) = range(len(_MS))
 # heater range and the "hold the bound" switch (after the model scalars, inside the header)
-_C_QLO, _C_QHI, _C_HOLD = 57, 58, 59
+_C_QLO, _C_QHI, _C_HOLD = 58, 59, 60
 assert _MS0 + len(_MS) <= _C_QLO and _C_HOLD < _HEADER
 #: Heater command of the "hold the bound" control (a control row's Q_heat): the heat that puts the next cabin
 #: temperature on the next step's comfort bound, clipped to the heater grid's ends

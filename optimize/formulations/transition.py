@@ -12,7 +12,7 @@ from calib.model.equations import (IDLE, OFF, battery_current, battery_ocv_r, ca
 from optimize.formulations.layout import (_A_BIG, _A_FCL, _A_FCLG, _A_LOSSG, _A_RINT, _A_SOCBP, _A_SOCBPR, _A_TFCL, _A_UOC, _CBAT,
                      _CCAB, _CENG, _CP, _C_CH, _C_CHI, _C_CREL, _C_NQ, _C_QHI, _C_QLO, _C_NX, _C_PEN, _C_SH, _C_SHI, _C_SLO, _C_TAMB,
                      _C_TBAT, _C_TH, _C_THI, _C_TLO, _C_TS, _C_WBL, _EPS, _GAMMA, _HA, _KAPPA, _KRAD, _LHV,
-                     _MS0, _QRADMAX, _QSUN, _RECIRC, _R_TC, _TBREF, _TOPEN, _T_OK, _T_PBAT, _T_PE, _T_SOC0,
+                     _MS0, _QRADMAX, _QSUN, _RECIRC, _R_TC, _TBREF, _TOPEN, _T_OK, _T_PBAT, _T_PE, _T_SOC0, _UHYST,
                      _T_WF, _UACAB, _arr)
 
 @njit(cache=True)
@@ -48,7 +48,7 @@ def build_tables(mp, pc, socg, P_trac, Ts, T_bat, off):  # pragma: no cover - co
                 sn = np.nan
                 if ok:
                     # U_oc and R_int of the node precomputed
-                    I = battery_current(Us[i], Rs[i], P_bat)
+                    I = battery_current(Us[i], Rs[i], P_bat, mp.U_hyst)
                     if I == I:
                         sn = (socg[i] + off[k]) - I * Ts / mp.C_bat_As
                 out[k, ip, _T_SOC0 + i] = sn
@@ -71,7 +71,7 @@ def drift_offsets(mp, P_trac, Ts, T_bat, soc_end):  # pragma: no cover - compile
             x = r
             for _ in range(3):
                 U, R = battery_ocv_r(mp, x, T_bat)
-                I = battery_current(U, R, P_bat)
+                I = battery_current(U, R, P_bat, mp.U_hyst)
                 if not (I == I):
                     x = r
                     break
@@ -98,7 +98,7 @@ def _soc_next(p, soc, P_bat, Ts):
     """Off-grid SOC step (forward pass): calib.model.equations.battery with the tables of p; NaN if no real root."""
     U = np.interp(soc, _arr(p, _A_SOCBP), _arr(p, _A_UOC))
     R = np.interp(soc, _arr(p, _A_SOCBPR), _arr(p, _A_RINT)) * math.exp(-p[_MS0 + _R_TC] * (p[_C_TBAT] - p[_MS0 + _TBREF]))
-    return soc - battery_current(U, R, P_bat) * Ts / p[_MS0 + _CBAT]
+    return soc - battery_current(U, R, P_bat, p[_MS0 + _UHYST]) * Ts / p[_MS0 + _CBAT]
 
 
 @njit(inline="always", cache=True)
