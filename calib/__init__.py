@@ -15,6 +15,8 @@ toolkit, subsystem fitters, driver, validation), :mod:`calib.synth` (SYNTHETIC l
 (NREL FASTSim 3's thermal Sonata hybrid, optional).
 ``calib`` never imports ``optimize`` or ``iptm``.
 """
+# first, before any kernel is decorated: numba's compiled code is keyed by the source version
+from calib._numba_cache import CACHE_DIR as _NUMBA_CACHE_DIR  # noqa: F401
 from calib._version import __version__
 
 from calib.errors import (IptmError, LogFormatError, MissingChannelsError, ParameterError,

@@ -14,6 +14,8 @@ Sub-packages and modules: :mod:`optimize.dp` (the generic DP engine), :mod:`opti
 :mod:`optimize.convergence`, :mod:`optimize.sweep` (parameter studies on dask). ``optimize`` uses
 ``calib``'s model and never imports ``iptm``.
 """
+import calib  # noqa: F401  (first: it keys numba's kernel cache by the source version, calib._numba_cache)
+
 from .dp import DPProblem, DPResult, ValueFunctions, backward_pass, cartesian, forward_pass, solve
 from .formulations import (FORMULATIONS, DPGrids, DPOutcome, DPScenario, parse_grid_spec, solve_baseline,
                            solve_formulation, solve_thermal, solve_thermal_cabin)

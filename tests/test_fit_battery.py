@@ -208,3 +208,18 @@ def test_battery_recovers_a_hysteresis_from_current_and_voltage():
     # the truth without hysteresis: the estimate stays at zero within its sd
     H0 = fit_battery(logs_for(1)[1], default_parameters()).estimates["U_hyst_V"]
     assert H0.value < 3 * H0.stderr + 1e-9
+
+
+def test_advice_names_the_drive_that_separates_hysteresis_from_resistance():
+    from calib.fit.advice import advise
+    from calib.fit.toolkit import ParamEstimate, SubsystemFit
+
+    fit = SubsystemFit("battery", NEEDS, logs=["a"])
+    fit.estimates["U_hyst_V"] = ParamEstimate("U_hyst_V", 3.0, 4.5, "weak", "", prior=0.0, prior_sd=5.0, informed=0.1)
+    assert any("hysteresis" in a and "square" in a for a in advise({"battery": fit}))
+    fit.estimates["U_hyst_V"] = ParamEstimate("U_hyst_V", 3.0, 0.2, "estimated", "", prior=0.0, prior_sd=5.0,
+                                              informed=0.96)
+    assert not any("hysteresis" in a for a in advise({"battery": fit}))
+    fit.confounded = [("R_scale", "U_hyst_V", -0.97)]
+    adv = advise({"battery": fit})
+    assert sum("U_hyst" in a for a in adv) == 1  # the specific advice, not the generic one as well

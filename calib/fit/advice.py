@@ -87,12 +87,16 @@ def advise(fits) -> list[str]:
         if _weak(ba, "R_int_tc_per_K"):
             out.append("The temperature coefficient of R_int comes from the prior: logs at battery temperatures at "
                        "least 10 K apart would determine it.")
+        if _weak(ba, "U_hyst_V") or _pair(ba, "R_scale", "U_hyst_V"):
+            out.append("The hysteresis U_hyst and the resistance are not separated: charging and discharging at "
+                       "both low (a few kW) and high (over 15 kW) battery power would tell a loss that grows with "
+                       "the current from one that grows with its square.")
         if any("inferred" in str(u.get("current", "")) for u in ba.used.values()):
             out.append("Battery current was inferred from power: logging bat_current_A and bat_voltage_V would "
                        "determine the OCV and resistance tables.")
     # any remaining strong pair the rules above do not cover
     known = {frozenset(p) for p in (("C_eng_J_per_K", "gamma_exh"), ("gamma_exh", "hA_eng_W_per_K"),
-                                    ("C_cab_J_per_K", "UA_cab_W_per_K"))}
+                                    ("C_cab_J_per_K", "UA_cab_W_per_K"), ("R_scale", "U_hyst_V"))}
     for f in fits.values():
         for a, b, r in f.confounded:
             if frozenset((a, b)) not in known and not a.startswith(("eta_", "d_")):

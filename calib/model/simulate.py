@@ -124,7 +124,8 @@ class SimResult:
 
         - coolant: fuel energy = engine work + exhaust + engine-bay loss + radiator + heater + stored heat;
         - wheels: eta_mech * engine work + electric wheel power + friction brakes = traction energy;
-        - battery: electrochemical energy U_oc I = terminal energy + resistive loss;
+        - battery: electrochemical energy U_oc I = terminal energy + resistive and hysteresis loss
+          (``R_int I^2 + U_hyst |I|``);
         - cabin: heater + load + sun = stored heat.
         """
         f, Ts, p = self.flows, self.Ts, self.mp
@@ -136,7 +137,7 @@ class SimResult:
         wheel = E(f["P_trac"])
         chem = E(f["U_oc"] * f["I_bat"])
         term = E(f["P_bat"])
-        loss = E(f["R_int"] * f["I_bat"] ** 2)
+        loss = E(f["R_int"] * f["I_bat"] ** 2 + p.U_hyst * np.abs(f["I_bat"]))
         stored_cab = p.C_cab * (self.T_cab[-1] - self.T_cab[0])
         cab_in = E(f["Q_heat"] + f["Q_cab_load"]) + p.Q_sun * Ts * len(self.e_mode)
         return {

@@ -166,7 +166,8 @@ def fastsim_section() -> dict:
           "than at 80-85 degC (our f_cl may fall "
           "below 1 above 80 degC, with a prior sd of 1.5 % per 10 K, and is flat beyond 120 degC); its battery "
           "loses a fixed fraction of the power at each C-rate, independent of temperature below 23 degC (ours: "
-          "U_hyst |I| + R I^2, R falling with temperature; the hysteresis takes the proportional loss). Evidence: scripts/fastsim_structure.py, docs/test_cars.md.")
+          "U_hyst |I| + R I^2, R falling with temperature; the hysteresis takes the proportional loss). "
+          "Evidence: scripts/fastsim_structure.py, docs/test_cars.md.")
     return fig
 
 
