@@ -248,3 +248,24 @@ def test_an_estimated_kappa_is_the_one_the_coolant_fit_uses():
     assert fit.estimates["kappa"].status == "estimated"
     assert fit.estimates["kappa"].value == pytest.approx(0.5, rel=1e-3)
     assert fit.estimates["hA_eng_W_per_K"].value == pytest.approx(TRUE["hA_eng_W_per_K"], rel=1e-3)
+
+
+def test_radiator_advice_tells_a_coolant_that_never_got_there_from_one_the_model_does_not_fit():
+    from calib.fit.advice import advise
+    from calib.fit.toolkit import ParamEstimate, SubsystemFit
+
+    fit = SubsystemFit("thermal", ("coolant_temp_degC",), logs=["a"])
+    fit.estimates["T_open_degC"] = ParamEstimate("T_open_degC", 88.0, 4.0, "weak", "", prior=88.0, prior_sd=4.0,
+                                                 informed=0.0)
+    fit.estimates["k_rad_W_per_K"] = ParamEstimate("k_rad_W_per_K", 1500.0, 750.0, "weak", "", prior=1500.0,
+                                                   prior_sd=750.0, informed=0.0)
+    fit.metrics["coolant_max_degC"] = 72.0
+    (a,) = [x for x in advise({"thermal": fit}) if "thermostat" in x]
+    assert a.startswith("No log reaches the thermostat (coolant max 72 degC): T_open and k_rad come from the prior")
+    fit.metrics["coolant_max_degC"] = 146.0  # FASTSim's engine: hot, with a radiator that cools only at a stop
+    (a,) = [x for x in advise({"thermal": fit}) if "thermostat" in x]
+    assert "reaches 146 degC, above the thermostat (88 degC)" in a and "No log reaches" not in a
+    fit.estimates["T_open_degC"] = ParamEstimate("T_open_degC", 88.0, 0.5, "estimated", "", prior=88.0, prior_sd=4.0,
+                                                 informed=0.9)
+    (a,) = [x for x in advise({"thermal": fit}) if "thermostat" in x]
+    assert "yet k_rad stays weakly informed" in a

@@ -24,11 +24,24 @@ def advise(fits) -> list[str]:
     out = []
     th = fits.get("thermal")
     if th is not None and th.logs:
-        if _weak(th, "T_open_degC") or _weak(th, "k_rad_W_per_K"):
+        weak_rad = [short for n, short in (("T_open_degC", "T_open"), ("k_rad_W_per_K", "k_rad")) if _weak(th, n)]
+        if weak_rad:
             tmax = th.metrics.get("coolant_max_degC", float("nan"))
-            out.append(f"No log reaches the thermostat (coolant max {tmax:.0f} degC): T_open and k_rad come from the "
-                       "prior. A drive that warms the engine fully (15-20 min of highway after warm-up) would "
-                       "determine them.")
+            e = th.estimates.get("T_open_degC")
+            t_open = float(e.value) if e is not None else float("nan")
+            names = " and ".join(weak_rad)
+            one = len(weak_rad) == 1
+            stay, come, them = ("stays", "comes", "it") if one else ("stay", "come", "them")
+            if tmax >= t_open + 5.0:  # reached, yet not informative: the radiator is not the model's
+                out.append(f"The coolant reaches {tmax:.0f} degC, above the thermostat ({t_open:.0f} degC), yet "
+                           f"{names} {stay} weakly informed: the coolant up there does not follow a radiator that "
+                           "opens with temperature (one that cools only at some vehicle speeds, or a thermostat that "
+                           "never opens in these logs). Check the coolant trace above the thermostat; a steady "
+                           "highway stretch after warm-up (15-20 min) would show how the radiator works.")
+            else:
+                out.append(f"No log reaches the thermostat (coolant max {tmax:.0f} degC): {names} {come} from the "
+                           "prior. A drive that warms the engine fully (15-20 min of highway after warm-up) would "
+                           f"determine {them}.")
         if _pair(th, "C_eng_J_per_K", "gamma_exh") or _weak(th, "gamma_exh") or _weak(th, "C_eng_J_per_K"):
             out.append("C_eng and gamma_exh are separated only by the heat the heater draws: a few minutes with the "
                        "heater off (engine warm, then on again) would separate C_eng from gamma_exh.")

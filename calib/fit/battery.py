@@ -499,7 +499,7 @@ def _fit_from_power(fit, rows, base, names):
     for r in rows:
         fit.used[r["name"]] = {"power": r["source"], "soc": "soc",
                                "current": f"inferred from {r['source']} by eq. 1 solved for I (prior OCV table, fitted "
-                                          "resistance level)", "battery temperature": "bat_temp_degC" if r["T_logged"]
+                                          "resistance level and hysteresis)", "battery temperature": "bat_temp_degC" if r["T_logged"]
                                else "not logged: T_bat_ref assumed"}
     pR = base.param("R_int_ohm")
     R0 = np.array(pR.value, float)
