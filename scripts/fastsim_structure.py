@@ -142,6 +142,14 @@ def main() -> None:
               f"SOC balance RMSE {f.metrics['soc_balance_rmse']:.4f}")
     print(f"  calibrated (two cold drives): {ps['C_bat_Ah'] * U_mid / 1e3:.2f} kWh, R(-7 degC) = {r_at(ps, -7):.3f}, "
           f"R(0 degC) = {r_at(ps, 0):.3f}, R(22 degC) = {r_at(ps, 22):.3f} ohm, hysteresis {ps['U_hyst_V']:.2f} V")
+    from calib.fit.battery import current_from_power_table
+
+    for T in (-5.0, 22.0):  # the calibrated pack's chemical / electrical energy, as FASTSim's table above
+        P = np.array([2e3, 5e3, 10e3, 20e3])
+        dis = current_from_power_table(P, 0.6, T, ps) * U_mid / P
+        chg = current_from_power_table(-P, 0.6, T, ps) * U_mid / -P
+        print(f"    calibrated pack at {T:+.0f} degC, SOC 0.6, 2 / 5 / 10 / 20 kW: discharging "
+              + " / ".join(f"{x:.3f}" for x in dis) + ", charging " + " / ".join(f"{x:.3f}" for x in chg))
     for n in names[2:]:
         m = replay(logs[n], ps).metrics()["soc"]
         print(f"    held out {n}: SOC RMSE {m['rmse']:.4f} (bias {m['bias']:+.4f})")
