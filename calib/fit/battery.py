@@ -250,7 +250,7 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
             for j in range(len(bpR)) if not varyR[j]}
     # hysteresis: a step of the terminal voltage where the current changes sign, so it needs both
     h0 = float(base["U_hyst_V"])
-    n_dis, n_chg = int((Is > 1.0).sum()), int((Is < -1.0).sum())
+    n_dis, n_chg = int((Is > I_SIGN_A).sum()), int((Is < -I_SIGN_A).sum())
     varyH = "U_hyst_V" in allowed and min(n_dis, n_chg) >= MIN_COVER
     tf = lambda c: _table_fit(rows, bpU, bpR, U0, R0, c, T_ref, varyU, varyR, h0, varyH)  # noqa: E731
 

@@ -25,7 +25,7 @@ def run(quick: bool = False, valuation: str = "corrected", drives: str = "held-o
 
         logs = [read_log(TRAIN_LOG)]
     more = drives_of(learn_from, "--learn-from")
-    learn = ",".join(learn_from)
+    learn = learn_from if isinstance(learn_from, str) else ",".join(learn_from)  # drives_of takes either
     print(f"training drives: {', '.join(TRAIN_CYCLES)}" + (f" + log {TRAIN_LOG} (SYNTHETIC)" if logs else "")
           + f"; held out ({drives}): {', '.join(HELD_OUT)}; ambients {', '.join(f'{a:g}' for a in AMBIENTS)} degC"
           + (f"; sdp_own: the SDP on a chain that also learnt the {learn} drives ({', '.join(more)}), "
