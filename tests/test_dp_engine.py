@@ -1008,3 +1008,20 @@ def test_interpolation_rules_locate_a_grid_node_exactly_and_the_last_node_in_the
     ib, tb = np.zeros(1, np.int64), np.zeros(1)
     assert _locate(1.5 - 5e-9, 0, lo, inv_dx, n, uniform, pts, False, ib, tb)
     assert ib[0] == 2 and tb[0] == pytest.approx(1.0 - 1e-8, abs=1e-12)
+
+
+def test_reach_weights_are_the_reach_rule_as_weights_of_the_node_values():
+    """The separable kernel applies the reach rule as weights of values interpolated along other dimensions
+    first: a v0 + b v1 equals _lin_reach in every case of the rule (plain chord, chord from the boundary on
+    either side, boundary on a node), with weights summing to 1."""
+    from optimize.dp.kernels import _lin_reach, reach_weights
+
+    rng = np.random.default_rng(3)
+    for l0, l1 in [(0.5, -0.3), (-0.3, 0.5), (0.5, 0.0), (0.0, 0.5), (-1.0, -0.5), (2.0, 1.0), (0.7, -2.0)]:
+        for t in np.concatenate([[0.0, 1.0], rng.random(20)]):
+            v0, v1 = rng.normal(100.0, 30.0, 2)
+            a, b = reach_weights(l0, l1, 0.0, t)
+            assert a + b == pytest.approx(1.0, abs=1e-12)
+            assert a * v0 + b * v1 == pytest.approx(_lin_reach(v0, v1, l0, l1, 0.0, t), rel=1e-12, abs=1e-9)
+    assert reach_weights(0.5, 0.0, 0.0, 1.0) == (0.0, 1.0)
+    assert reach_weights(0.0, 0.5, 0.0, 0.0) == (1.0, 0.0)

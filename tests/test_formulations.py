@@ -118,12 +118,56 @@ def test_fused_kernel_equals_generic_engine(params, nx, scen, grids, hold, soc, 
     if soc == "drift":  # the grid moves: the offsets are not all zero
         assert np.ptp(b.extra["soc_grid_offset"]) > 0.0
     vg = backward_pass(b.prob)
+    # Thermal-DP: the exact kernel, then the separable one (equal here, rounding in float32 included)
+    for separable in ((False, True) if nx == 2 else (True,)):
+        vf = backward_pass_fused(b.prob, skip=False, separable=separable)
+        assert vf.kernel == ("fused-separable" if nx == 2 and separable else "fused")
+        np.testing.assert_array_equal(vg.V, vf.V)
+        np.testing.assert_array_equal(vg.L, vf.L)
+        rg, rf = forward_pass(b.prob, vg, b.x0), forward_pass(b.prob, vf, b.x0)
+        np.testing.assert_array_equal(rg.u_index, rf.u_index)
+        assert rg.cost == rf.cost
+
+
+@pytest.mark.parametrize("interp", ["reach_first", "multilinear"])
+def test_fused_kernel_equals_generic_engine_separable_thermal_dp_on_a_cold_drive(params, interp):
+    """The separable Thermal-DP kernel (levels per SOC node, the cost-to-go interpolated along the coolant
+    first) on a 300-s cold start on the paper's grids: where the terminal set is reachable its value
+    function is the generic engine's to float32 rounding, its levels are equal, and the forward pass takes
+    the same decisions at the same cost. Elsewhere a least-level tie may take another control (the
+    generic engine's levels carry rounding from the coolant weights)."""
+    from optimize.formulations.fused import backward_pass_fused
+    from optimize.dp.engine import backward_pass, forward_pass
+
+    b = build_problem(params, DPScenario(duration_s=300.0, T_cl0=20.0), DPGrids(), 2, interp=interp)
+    vg = backward_pass(b.prob)
     vf = backward_pass_fused(b.prob, skip=False)
-    np.testing.assert_array_equal(vg.V, vf.V)
+    assert vf.kernel == "fused-separable"
     np.testing.assert_array_equal(vg.L, vf.L)
+    feas = vg.L <= b.prob.level_tol
+    assert feas.mean() > 0.3 and (~feas).any()
+    np.testing.assert_allclose(vf.V[feas], vg.V[feas], rtol=1e-6)
     rg, rf = forward_pass(b.prob, vg, b.x0), forward_pass(b.prob, vf, b.x0)
     np.testing.assert_array_equal(rg.u_index, rf.u_index)
-    assert rg.cost == rf.cost
+    assert rf.cost == pytest.approx(rg.cost, rel=1e-9)
+
+
+def test_separable_kernel_falls_back_where_the_level_or_the_cost_to_go_does_not_allow_it(params):
+    """A terminal bound on the coolant (``match``) makes the level depend on the coolant, and an infinite
+    terminal cost makes interpolated values non-finite: both run the exact kernel, as ``.kernel`` says, and
+    agree with the generic engine bit for bit."""
+    from optimize.formulations.fused import backward_pass_fused
+    from optimize.dp.engine import backward_pass
+
+    b = build_problem(params, DPScenario(duration_s=30.0, T_cl0=25.0, terminal="match"), DPGrids(pbat=1000.0), 2)
+    vf = backward_pass_fused(b.prob, skip=False)
+    assert vf.kernel == "fused"
+    np.testing.assert_array_equal(backward_pass(b.prob).V, vf.V)
+    b = build_problem(params, DPScenario(duration_s=30.0, T_cl0=25.0), DPGrids(pbat=1000.0), 2, soc="absolute")
+    p = _with_infinite_nodes(b.prob, 0, 1)
+    vf = backward_pass_fused(p, skip=False)
+    assert vf.kernel == "fused"
+    np.testing.assert_array_equal(backward_pass(p).V, vf.V)
 
 
 @pytest.mark.parametrize("soc,interp", [("drift", "reach_first"), ("absolute", "multilinear")])

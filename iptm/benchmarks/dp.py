@@ -50,7 +50,7 @@ def run(quick: bool = False, halve: bool = False) -> dict:
              "t_total_s": o.t_total, "t_backward_s": o.t_backward, "t_forward_s": o.t_forward,
              "t_first_solve_incl_compile_s": t_warm, "n_evaluations": o.n_evaluations,
              "evals_per_second": o.evals_per_second, "peak_rss_mb_process": rss, "fuel_g": o.sim.fuel_g,
-             "engine": o.extra.get("engine", "generic"),
+             "engine": o.extra.get("kernel", o.extra.get("engine", "generic")),
              "threads": 1 if f == "baseline" else numba.get_num_threads()}
         if f == "thermal_cabin":
             paper = o.sim.summary()  # compared with the converged grid below
@@ -66,6 +66,22 @@ def run(quick: bool = False, halve: bool = False) -> dict:
               f"{r['evals_per_s_if_flop_bound'] / 1e6:.0f} M evals/s at ~30 flops each, "
               f"{r['evals_per_s_if_memory_bound'] / 1e6:.0f} M evals/s if each read its 64 bytes from memory",
               flush=True)
+    # Thermal-DP's separable kernel against the exact fused kernel it replaces, alternated in this process
+    import statistics
+
+    ts = {"fused": [], "fused-exact": []}
+    fuel = {}
+    for _ in range(3):
+        for eng in ts:
+            o = solve_formulation("thermal", ps, scen, grids, engine=eng)
+            ts[eng].append(o.t_backward)
+            fuel[eng] = o.sim.fuel_g
+    out["thermal_kernels"] = {e: {"t_backward_s": v, "median_s": statistics.median(v), "fuel_g": fuel[e]}
+                              for e, v in ts.items()}
+    print(f"thermal backward pass, 3 alternated runs each: separable kernel median "
+          f"{statistics.median(ts['fused']):.3f} s ({', '.join(f'{t:.3f}' for t in ts['fused'])}), exact fused "
+          f"kernel {statistics.median(ts['fused-exact']):.3f} s ({', '.join(f'{t:.3f}' for t in ts['fused-exact'])}); "
+          f"fuel {fuel['fused']:.4f} / {fuel['fused-exact']:.4f} g; load now {os.getloadavg()[0]:.2f}", flush=True)
     # Baseline-DP's default grid (BASELINE_CONVERGED_GRIDS: the paper's steps are not converged for it)
     bg = BASELINE_CONVERGED_GRIDS
     o = solve_formulation("baseline", ps, scen, bg)

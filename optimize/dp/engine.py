@@ -292,13 +292,15 @@ class DPProblem:
 
 @dataclass
 class ValueFunctions:
-    """Output of the backward pass: V (N+1, *grid_shape) float32, optional level L and policy."""
+    """Output of the backward pass: V (N+1, *grid_shape) float32, optional level L and policy; ``kernel``
+    names the backward kernel that produced them."""
 
     V: np.ndarray
     L: np.ndarray | None
     policy: np.ndarray | None
     t_backward: float
     n_evaluations: int
+    kernel: str = "generic"
 
 
 @dataclass
@@ -330,6 +332,7 @@ class DPResult:
     t_backward: float = 0.0
     t_forward: float = 0.0
     n_evaluations: int = 0
+    kernel: str = "generic"
 
     @property
     def solve_time(self) -> float:
@@ -455,7 +458,7 @@ def forward_pass(prob: DPProblem, vf: ValueFunctions, x0, interp: str | None = N
                     terminal_cost=term, cost=cost, predicted_cost=pred, feasible=feasible,
                     terminal_level=float(lvl), steps_completed=int(done), V=vf.V, L=vf.L,
                     policy=vf.policy, t_backward=vf.t_backward, t_forward=t_f,
-                    n_evaluations=vf.n_evaluations)
+                    n_evaluations=vf.n_evaluations, kernel=vf.kernel)
 
 
 def solve(prob: DPProblem, x0, store_policy: bool = False) -> DPResult:

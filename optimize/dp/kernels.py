@@ -226,18 +226,13 @@ def _lin_reach(v0, v1, l0, l1, tol, t):
     the boundary than the boundary costs, and a policy then lets the charge fall towards the boundary and
     pays the most charging to recover (the boundary-line idea of Sundstrom et al. 2010, with the boundary
     located from the signed level)."""
-    if l0 > tol and l1 <= tol:
-        tb = (l0 - tol) / (l0 - l1)
-        if t >= tb:
-            if tb >= 1.0:
-                return v1
-            return v0 + (t - tb) / (1.0 - tb) * (v1 - v0)
-    elif l1 > tol and l0 <= tol:
-        tb = (tol - l0) / (l1 - l0)
-        if t <= tb:
-            if tb <= 0.0:
-                return v0
-            return v0 + t / tb * (v1 - v0)
+    kind, s = _reach_rule(l0, l1, tol, t)
+    if kind == 1:
+        return v0 + s * (v1 - v0)
+    if kind == 2:
+        return v1
+    if kind == 3:
+        return v0
     return (1.0 - t) * v0 + t * v1
 
 
@@ -479,3 +474,37 @@ def interp_points(V, Q, lo, inv_dx, n, uniform, pts, strides, clip, mode):
         else:
             out[j] = np.inf
     return out
+
+
+@njit(inline="always", cache=True)
+def _reach_rule(l0, l1, tol, t):
+    """Where :func:`_lin_reach` reads a cell of levels l0, l1 at fraction t, as (kind, s): kind 0, the plain
+    chord at t; 1, the chord from the reach boundary, ``v0 + s (v1 - v0)``; 2, the node v1; 3, the node v0."""
+    if l0 > tol and l1 <= tol:
+        tb = (l0 - tol) / (l0 - l1)
+        if t >= tb:
+            if tb >= 1.0:
+                return 2, 1.0
+            return 1, (t - tb) / (1.0 - tb)
+    elif l1 > tol and l0 <= tol:
+        tb = (tol - l0) / (l1 - l0)
+        if t <= tb:
+            if tb <= 0.0:
+                return 3, 0.0
+            return 1, t / tb
+    return 0, t
+
+
+@njit(inline="always", cache=True)
+def reach_weights(l0, l1, tol, t):
+    """:func:`_lin_reach` as weights (a, b) of the node values, ``a v0 + b v1`` (equal in exact arithmetic):
+    a kernel whose cell levels are shared by many queries applies them to values interpolated along the
+    other dimensions first."""
+    kind, s = _reach_rule(l0, l1, tol, t)
+    if kind == 1:
+        return 1.0 - s, s
+    if kind == 2:
+        return 0.0, 1.0
+    if kind == 3:
+        return 1.0, 0.0
+    return 1.0 - t, t

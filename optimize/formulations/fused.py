@@ -32,7 +32,7 @@ from optimize.formulations.layout import (_C_CH, _C_CHI, _C_CREL, _C_PEN, _C_SH,
 from optimize.dp.kernels import _interp_slow as _slow  # the engine's exact multilinear interpolation
 from optimize.dp.kernels import _hermite, _interp_cubic_last  # the engine's cubic along the cabin axis
 from optimize.dp.kernels import _interp, _interp_reach, _lin_reach  # the engine's reach-boundary interpolation
-from optimize.dp.kernels import level_choose, level_needs_cost  # the engine's level-set choice rule
+from optimize.dp.kernels import level_choose, level_needs_cost, reach_weights  # the level-set choice rule
 from optimize.dp.engine import ValueFunctions
 from calib.model.equations import cabin_heat_rate, coolant_heat_rate, heater_core_limit
 from optimize.formulations.transition import hold_heat
@@ -521,13 +521,212 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold,
         _extend(VT[k], LT[k], i_lo, i_hi, ns, nt * nc)
 
 
-def backward_pass_fused(prob, skip: bool = True) -> ValueFunctions:
+@njit(parallel=True, cache=True)
+def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, nchunk):
+    """Thermal-DP backward pass when the level depends on SOC alone (a terminal set on SOC only, the default):
+    fills VT[0..N-1] and the levels per SOC node L1T[0..N-1]; returns -1, or the step k whose next cost-to-go
+    holds a non-finite value (then nothing below k is filled and the caller uses :func:`backward2`).
+
+    The next SOC depends on (SOC node, power control), the next coolant on (coolant node, power control),
+    and the level on SOC alone, so:
+
+    * a control's level, feasibility and cell weights along SOC are computed once per (SOC node, power
+      control), not per coolant node; the choice rule (:func:`optimize.dp.kernels.level_better`) then picks,
+      for a whole SOC row, the candidates: the controls reaching the terminal set, or if none does, those
+      of least level. What is left per state is the least cost over the candidates;
+    * per power control, the cost-to-go is interpolated along the coolant once for every SOC node it reads,
+      W[s, j] (the coolant cell and weight depend on the control and the coolant node only), so a
+      state-control pair costs two contiguous reads of W and the weights along SOC
+      (:func:`optimize.dp.kernels.reach_weights`, the reach rule's weights, since the levels of both
+      coolant corners are equal).
+
+    The values are those of :func:`backward2` up to rounding (the interpolation runs coolant first); the
+    levels are the same. Where the least level is tied the rule's cost order is applied exactly, while
+    :func:`backward2` compares levels that carry rounding from the coolant weights: a state from which the
+    terminal set cannot be reached may then take another least-level control (tests/test_formulations.py).
+
+    Indices into the flat work arrays are unsigned: with a signed index numba adds a negative-index
+    check that keeps LLVM from vectorising the inner loops (about four times slower)."""
+    ns, nt = socg.size, tclg.size
+    np_ = big.shape[1]
+    s_lo, s_inv = socg[0], (ns - 1) / (socg[-1] - socg[0])
+    t_lo, t_inv = tclg[0], (nt - 1) / (tclg[-1] - tclg[0])
+    Ts = P[_C_TS]
+    T_amb = P[_C_TAMB]
+    PEN = P[_C_PEN]
+    fclg = P[int(P[_A_FCLG]): int(P[_A_FCLG]) + nt]
+    lossg = P[int(P[_A_LOSSG]): int(P[_A_LOSSG]) + nt]
+    qv = np.empty(nt)
+    TB = np.empty((np_, nt), np.int64)
+    TT = np.empty((np_, nt))
+    CC = np.empty((np_, nt))
+    A = np.empty((ns, np_), np.int64)  # SOC cell of a candidate control, -1 for the others
+    WA = np.empty(np_ * ns)  # weights along SOC, stage cost of the SOC penalty, per (control, SOC node)
+    WB = np.empty(np_ * ns)
+    PP = np.empty(np_ * ns)
+    V64 = np.empty(ns * nt)
+    csz = (nt + nchunk - 1) // nchunk
+    for k in range(N - 1, -1, -1):
+        tab = big[k]
+        L1n = L1T[k + 1]
+        bad = 0
+        for e in range(ns * nt):
+            x = np.float64(VT[k + 1, e])
+            if not np.isfinite(x):
+                bad = 1
+            V64[e] = x
+        if bad:
+            return k
+        s_off = w[k, 5]
+        T_cab = w[k, 1]
+        for j in range(nt):
+            q_lim = heater_core_limit(P[_MS0 + _EPS], P[_C_WBL], P[_MS0 + _CP], P[_MS0 + _RECIRC], tclg[j], T_cab,
+                                      T_amb)
+            q = Q[0]
+            if q > q_lim:
+                q = q_lim
+            if q < 0.0:
+                q = 0.0
+            qv[j] = q
+        for ip in prange(np_):
+            if tab[ip, _T_OK] == 0.0:
+                continue
+            wf = tab[ip, _T_WF]
+            P_e = tab[ip, _T_PE]
+            for j in range(nt):
+                W_f = wf * fclg[j]
+                Q_fuel = P[_MS0 + _LHV] * W_f
+                tn = tclg[j] + Ts * coolant_heat_rate(P[_MS0 + _GAMMA], Q_fuel, P_e, lossg[j], qv[j])[0] / P[_MS0 + _CENG]
+                pt = 0.0
+                if tn < P[_C_TLO]:
+                    pt = (P[_C_TLO] - tn) / P[_C_TH]
+                elif tn > P[_C_THI]:
+                    pt = (tn - P[_C_THI]) / P[_C_TH]
+                CC[ip, j] = W_f * Ts + PEN * pt
+                bb, tt = _loc(tn, t_lo, t_inv, nt)
+                TB[ip, j] = bb
+                TT[ip, j] = tt
+        i_lo, i_hi = _active(P, w[k, 4], s_lo, s_inv, ns, skip)
+        # per SOC row: levels, the least one, and the candidates of the choice rule
+        for i in prange(i_lo, i_hi):
+            lvs = np.full(np_, np.inf)
+            lmin = np.inf
+            anyf = False
+            for ip in range(np_):
+                A[i, ip] = -1
+                if tab[ip, _T_OK] == 0.0:
+                    continue
+                sn = tab[ip, _T_SOC0 + i]
+                if not (sn == sn):
+                    continue
+                pen0 = 0.0
+                if sn < P[_C_SLO]:
+                    pen0 += (P[_C_SLO] - sn) / P[_C_SH]
+                elif sn > P[_C_SHI]:
+                    pen0 += (sn - P[_C_SHI]) / P[_C_SH]
+                a, ta = _loc(sn - s_off, s_lo, s_inv, ns)
+                la = np.float64(L1n[a])
+                lb = np.float64(L1n[a + 1])
+                # the engine's exact interpolation: a corner of weight 0 is not read
+                if ta == 0.0:
+                    lv = la
+                elif ta == 1.0:
+                    lv = lb
+                else:
+                    lv = (1.0 - ta) * la + ta * lb
+                if not (lv < np.inf):
+                    continue
+                lvs[ip] = lv
+                if lv < lmin:
+                    lmin = lv
+                if lv <= level_tol:
+                    anyf = True
+                A[i, ip] = a
+                u = ip * ns + i
+                PP[u] = PEN * pen0
+                if reach:
+                    wa, wb = reach_weights(la, lb, level_tol, ta)
+                else:
+                    wa, wb = 1.0 - ta, ta
+                WA[u] = wa
+                WB[u] = wb
+            for ip in range(np_):
+                if A[i, ip] >= 0 and not (lvs[ip] <= level_tol if anyf else lvs[ip] == lmin):
+                    A[i, ip] = -1
+            L1T[k, i] = lmin
+        nr = i_hi - i_lo
+        # least cost over the candidates; threads own disjoint blocks of coolant nodes
+        for c in prange(nchunk):
+            j0 = c * csz
+            m = min(nt, j0 + csz) - j0
+            if m <= 0:
+                continue
+            best = np.full(m * nr, np.inf)  # [coolant node, SOC row]
+            W = np.empty(m * ns)  # [coolant node, SOC node]: the cost-to-go interpolated along the coolant
+            for ip in range(np_):
+                amin = ns
+                amax = -1
+                for i in range(i_lo, i_hi):
+                    a = A[i, ip]
+                    if a >= 0:
+                        amin = min(amin, a)
+                        amax = max(amax, a)
+                if amax < 0:
+                    continue
+                for jj in range(m):
+                    tt = TT[ip, j0 + jj]
+                    ob = TB[ip, j0 + jj]
+                    ow = jj * ns
+                    for s in range(amin, amax + 2):
+                        o = s * nt + ob
+                        W[np.uint64(ow + s)] = (1.0 - tt) * V64[np.uint64(o)] + tt * V64[np.uint64(o + 1)]
+                # runs of SOC rows whose cell is the row plus a constant: contiguous reads of W
+                i = i_lo
+                while i < i_hi:
+                    a = A[i, ip]
+                    if a < 0:
+                        i += 1
+                        continue
+                    d = a - i
+                    i1 = i + 1
+                    while i1 < i_hi and A[i1, ip] == i1 + d:
+                        i1 += 1
+                    for jj in range(m):
+                        cc = CC[ip, j0 + jj]
+                        ow = jj * ns + d
+                        obst = jj * nr - i_lo
+                        for ii in range(i, i1):
+                            u = np.uint64(ip * ns + ii)
+                            v = cc + PP[u] + (WA[u] * W[np.uint64(ow + ii)] + WB[u] * W[np.uint64(ow + ii + 1)])
+                            ub = np.uint64(obst + ii)
+                            bo = best[ub]
+                            best[ub] = v if v < bo else bo
+                    i = i1
+            for ii in range(nr):
+                for jj in range(m):
+                    VT[k, (i_lo + ii) * nt + j0 + jj] = best[jj * nr + ii]
+        for i in range(ns):
+            src = i_lo if i < i_lo else (i_hi - 1 if i >= i_hi else i)
+            if src != i:
+                L1T[k, i] = L1T[k, src]
+                for e in range(nt):
+                    VT[k, i * nt + e] = VT[k, src * nt + e]
+    return -1
+
+
+def backward_pass_fused(prob, skip: bool = True, separable: bool = True) -> ValueFunctions:
     """Backward pass of a Thermal-DP (2 states) or Thermal-Cabin-DP (3 states) problem built by
     :func:`optimize.formulations.build_problem`; returns the engine's :class:`ValueFunctions`.
 
     ``skip``: SOC nodes whose charge is more than two nodes outside [soc_min, soc_max] at a step are not
-    computed (:func:`_active`); ``False`` computes every node, as the generic engine does."""
+    computed (:func:`_active`); ``False`` computes every node, as the generic engine does.
+    ``separable``: Thermal-DP whose terminal level depends on SOC alone runs :func:`backward2_sep` (the
+    same value function up to rounding where the terminal set is reachable); ``False``, or another
+    terminal set, or a cost-to-go with a non-finite value, runs :func:`backward2` (the generic engine's
+    values and levels bit for bit). ``.kernel`` says which ran."""
     import time
+
+    import numba
 
     from optimize.formulations.layout import _A_BIG, _C_HOLD, _C_NQ
 
@@ -549,9 +748,24 @@ def backward_pass_fused(prob, skip: bool = True) -> ValueFunctions:
     if prob.interp == "cubic_last" and nx != 3:
         raise ValueError(f"interp {prob.interp!r}: the fused kernels offer it for 3 states only")
     reach = prob.interp == "reach_first"
+    kernel = "fused"
     if nx == 2:
-        backward2(prob.N, P, big, prob.w, prob.grids[0], prob.grids[1], Q, VT, LT, float(prob.level_tol), reach,
-                  skip)
+        socg, tclg = prob.grids[0], prob.grids[1]
+        rows = LT[prob.N].reshape(socg.size, tclg.size)
+        done = False
+        if separable and nq == 1 and bool(np.all(rows == rows[:, :1])):
+            L1T = np.empty((prob.N + 1, socg.size), dtype=np.float32)
+            L1T[prob.N] = rows[:, 0]
+            nchunk = min(tclg.size, 2 * numba.get_num_threads())
+            done = backward2_sep(prob.N, P, big, prob.w, socg, tclg, Q, VT, L1T, float(prob.level_tol), reach,
+                                 skip, nchunk) < 0
+            if done:
+                LT[:] = np.repeat(L1T, tclg.size, axis=1)
+                kernel = "fused-separable"
+            else:
+                VT[prob.N] = phi
+        if not done:
+            backward2(prob.N, P, big, prob.w, socg, tclg, Q, VT, LT, float(prob.level_tol), reach, skip)
     elif nx == 3:
         backward3(prob.N, P, big, prob.w, prob.grids[0], prob.grids[1], prob.grids[2], Q, VT, LT,
                   float(prob.level_tol), prob.interp == "cubic_last" and prob.grids[2].size >= 3, hold, reach, skip)
@@ -563,4 +777,4 @@ def backward_pass_fused(prob, skip: bool = True) -> ValueFunctions:
     s_inv = (socg.size - 1) / (socg[-1] - socg[0])
     rows = sum(b - a for a, b in (_active(P, prob.w[k, 4], socg[0], s_inv, socg.size, skip) for k in range(prob.N)))
     return ValueFunctions(V=VT.reshape(gs), L=LT.reshape(gs), policy=None, t_backward=t_b,
-                          n_evaluations=rows * (ns // socg.size) * prob.n_controls)
+                          n_evaluations=rows * (ns // socg.size) * prob.n_controls, kernel=kernel)

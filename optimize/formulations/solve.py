@@ -442,10 +442,10 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
 
 
 def _solve(b: _Built, engine: str):
-    if engine == "fused" and b.prob.n_x >= 2:
+    if engine in ("fused", "fused-exact") and b.prob.n_x >= 2:
         from optimize.formulations.fused import backward_pass_fused
 
-        vf = backward_pass_fused(b.prob)
+        vf = backward_pass_fused(b.prob, separable=engine == "fused")
     else:
         vf = backward_pass(b.prob)
     res = forward_pass(b.prob, vf, b.x0)
@@ -508,7 +508,10 @@ def solve_thermal(params, scenario: DPScenario | None = None, grids=None, *,
                   threads: int | None = None, soc: str = SOC_STATE) -> DPOutcome:
     """Thermal-DP (SOC, T_cl). ``heater`` overrides the scenario's demand (e.g. 0 W); ``warm=True``
     sets f_cl = 1 (with heater 0 W it must reproduce Baseline-DP); ``soc``: the SOC state's coordinate
-    (:func:`build_problem`)."""
+    (:func:`build_problem`). ``engine``: "fused" (default: the separable kernel where the terminal level
+    depends on SOC alone, :func:`optimize.formulations.fused.backward_pass_fused`), "fused-exact" (the
+    fused kernel that gives the generic engine's values bit for bit) or "generic"; ``.extra["kernel"]``
+    names the kernel that ran."""
     scen, grids = scenario or DPScenario(), FormulationGrids.coerce(grids).of("thermal")
     t0 = time.perf_counter()
     b = build_problem(params, scen, grids, 2, heater=heater, warm=warm, soc=soc)
@@ -519,6 +522,7 @@ def solve_thermal(params, scenario: DPScenario | None = None, grids=None, *,
     sim = resimulate(mp_used if warm else params, b.cyc, res.u[:, 0], res.u[:, 1], q, scen, "Thermal-DP")
     out = _outcome("thermal", params, b, res, scen, grids, sim, t0)
     out.extra["engine"] = engine
+    out.extra["kernel"] = res.kernel
     return out
 
 
@@ -547,6 +551,7 @@ def solve_thermal_cabin(params, scenario: DPScenario | None = None, grids=None, 
     sim = resimulate(params, b.cyc, res.u[:, 0], res.u[:, 1], res.u[:, 2], scen, "Thermal-Cabin-DP")
     out = _outcome("thermal_cabin", params, b, res, scen, grids, sim, t0)
     out.extra["engine"] = engine
+    out.extra["kernel"] = res.kernel
     out.extra["interp"] = b.prob.interp
     out.extra["heater_hold_pct"] = 100.0 * float(held.mean())
     out.extra["grid_artefacts"] = trajectory_checks(out)
