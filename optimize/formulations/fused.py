@@ -521,6 +521,87 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold,
         _extend(VT[k], LT[k], i_lo, i_hi, ns, nt * nc)
 
 
+@njit(cache=True)  # a call, not inlined (too many arguments to inline into a parfor); once per SOC row
+def _soc_row(i, P, tab, L1n, s_off, s_lo, s_inv, ns, np_, level_tol, reach, A, WA, WB, PP):
+    """The separable kernels' work on SOC row ``i`` (levels on SOC alone): each power control's level,
+    SOC cell, weights along SOC (the reach rule's where ``reach``) and SOC penalty; the candidates of the
+    choice rule keep their cell in ``A[i, ip]``, the others -1 (the controls reaching the terminal set,
+    or if none does, those of least level). Returns the row's least level."""
+    PEN = P[_C_PEN]
+    lvs = np.full(np_, np.inf)
+    lmin = np.inf
+    anyf = False
+    for ip in range(np_):
+        A[i, ip] = -1
+        if tab[ip, _T_OK] == 0.0:
+            continue
+        sn = tab[ip, _T_SOC0 + i]
+        if not (sn == sn):
+            continue
+        pen0 = 0.0
+        if sn < P[_C_SLO]:
+            pen0 += (P[_C_SLO] - sn) / P[_C_SH]
+        elif sn > P[_C_SHI]:
+            pen0 += (sn - P[_C_SHI]) / P[_C_SH]
+        a, ta = _loc(sn - s_off, s_lo, s_inv, ns)
+        la = np.float64(L1n[a])
+        lb = np.float64(L1n[a + 1])
+        # the engine's exact interpolation: a corner of weight 0 is not read
+        if ta == 0.0:
+            lv = la
+        elif ta == 1.0:
+            lv = lb
+        else:
+            lv = (1.0 - ta) * la + ta * lb
+        if not (lv < np.inf):
+            continue
+        lvs[ip] = lv
+        if lv < lmin:
+            lmin = lv
+        if lv <= level_tol:
+            anyf = True
+        A[i, ip] = a
+        u = ip * ns + i
+        PP[u] = PEN * pen0
+        if reach:
+            wa, wb = reach_weights(la, lb, level_tol, ta)
+        else:
+            wa, wb = 1.0 - ta, ta
+        WA[u] = wa
+        WB[u] = wb
+    for ip in range(np_):
+        if A[i, ip] >= 0 and not (lvs[ip] <= level_tol if anyf else lvs[ip] == lmin):
+            A[i, ip] = -1
+    return lmin
+
+
+@njit(inline="always", cache=True)
+def _runs(A, ip, i_lo, i_hi, r0, r1, rd):
+    """Runs [r0, r1) of the SOC rows where control ``ip`` is a candidate and its SOC cell is the row plus
+    rd (reads of a row-indexed array contiguous over a run); returns (runs, least cell, greatest cell)."""
+    nrun = 0
+    amin = A.shape[0]
+    amax = -1
+    i = i_lo
+    while i < i_hi:
+        a = A[i, ip]
+        if a < 0:
+            i += 1
+            continue
+        d = a - i
+        i1 = i + 1
+        while i1 < i_hi and A[i1, ip] == i1 + d:
+            i1 += 1
+        amin = min(amin, a)
+        amax = max(amax, A[i1 - 1, ip])
+        r0[nrun] = i
+        r1[nrun] = i1
+        rd[nrun] = d
+        nrun += 1
+        i = i1
+    return nrun, amin, amax
+
+
 @njit(parallel=True, cache=True)
 def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, nchunk):
     """Thermal-DP backward pass when the level depends on SOC alone (a terminal set on SOC only, the default):
@@ -607,53 +688,8 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
                 TB[ip, j] = bb
                 TT[ip, j] = tt
         i_lo, i_hi = _active(P, w[k, 4], s_lo, s_inv, ns, skip)
-        # per SOC row: levels, the least one, and the candidates of the choice rule
         for i in prange(i_lo, i_hi):
-            lvs = np.full(np_, np.inf)
-            lmin = np.inf
-            anyf = False
-            for ip in range(np_):
-                A[i, ip] = -1
-                if tab[ip, _T_OK] == 0.0:
-                    continue
-                sn = tab[ip, _T_SOC0 + i]
-                if not (sn == sn):
-                    continue
-                pen0 = 0.0
-                if sn < P[_C_SLO]:
-                    pen0 += (P[_C_SLO] - sn) / P[_C_SH]
-                elif sn > P[_C_SHI]:
-                    pen0 += (sn - P[_C_SHI]) / P[_C_SH]
-                a, ta = _loc(sn - s_off, s_lo, s_inv, ns)
-                la = np.float64(L1n[a])
-                lb = np.float64(L1n[a + 1])
-                # the engine's exact interpolation: a corner of weight 0 is not read
-                if ta == 0.0:
-                    lv = la
-                elif ta == 1.0:
-                    lv = lb
-                else:
-                    lv = (1.0 - ta) * la + ta * lb
-                if not (lv < np.inf):
-                    continue
-                lvs[ip] = lv
-                if lv < lmin:
-                    lmin = lv
-                if lv <= level_tol:
-                    anyf = True
-                A[i, ip] = a
-                u = ip * ns + i
-                PP[u] = PEN * pen0
-                if reach:
-                    wa, wb = reach_weights(la, lb, level_tol, ta)
-                else:
-                    wa, wb = 1.0 - ta, ta
-                WA[u] = wa
-                WB[u] = wb
-            for ip in range(np_):
-                if A[i, ip] >= 0 and not (lvs[ip] <= level_tol if anyf else lvs[ip] == lmin):
-                    A[i, ip] = -1
-            L1T[k, i] = lmin
+            L1T[k, i] = _soc_row(i, P, tab, L1n, s_off, s_lo, s_inv, ns, np_, level_tol, reach, A, WA, WB, PP)
         nr = i_hi - i_lo
         # least cost over the candidates; threads own disjoint blocks of coolant nodes
         for c in prange(nchunk):
@@ -663,15 +699,12 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
                 continue
             best = np.full(m * nr, np.inf)  # [coolant node, SOC row]
             W = np.empty(m * ns)  # [coolant node, SOC node]: the cost-to-go interpolated along the coolant
+            r0 = np.empty(nr, np.int64)
+            r1 = np.empty(nr, np.int64)
+            rd = np.empty(nr, np.int64)
             for ip in range(np_):
-                amin = ns
-                amax = -1
-                for i in range(i_lo, i_hi):
-                    a = A[i, ip]
-                    if a >= 0:
-                        amin = min(amin, a)
-                        amax = max(amax, a)
-                if amax < 0:
+                nrun, amin, amax = _runs(A, ip, i_lo, i_hi, r0, r1, rd)
+                if nrun == 0:
                     continue
                 for jj in range(m):
                     tt = TT[ip, j0 + jj]
@@ -680,28 +713,17 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
                     for s in range(amin, amax + 2):
                         o = s * nt + ob
                         W[np.uint64(ow + s)] = (1.0 - tt) * V64[np.uint64(o)] + tt * V64[np.uint64(o + 1)]
-                # runs of SOC rows whose cell is the row plus a constant: contiguous reads of W
-                i = i_lo
-                while i < i_hi:
-                    a = A[i, ip]
-                    if a < 0:
-                        i += 1
-                        continue
-                    d = a - i
-                    i1 = i + 1
-                    while i1 < i_hi and A[i1, ip] == i1 + d:
-                        i1 += 1
-                    for jj in range(m):
-                        cc = CC[ip, j0 + jj]
-                        ow = jj * ns + d
-                        obst = jj * nr - i_lo
-                        for ii in range(i, i1):
-                            u = np.uint64(ip * ns + ii)
-                            v = cc + PP[u] + (WA[u] * W[np.uint64(ow + ii)] + WB[u] * W[np.uint64(ow + ii + 1)])
-                            ub = np.uint64(obst + ii)
+                for jj in range(m):
+                    cc = CC[ip, j0 + jj]
+                    obst = jj * nr - i_lo
+                    for ru in range(nrun):
+                        ow = jj * ns + rd[ru]
+                        for i in range(r0[ru], r1[ru]):
+                            u = np.uint64(ip * ns + i)
+                            v = cc + PP[u] + (WA[u] * W[np.uint64(ow + i)] + WB[u] * W[np.uint64(ow + i + 1)])
+                            ub = np.uint64(obst + i)
                             bo = best[ub]
                             best[ub] = v if v < bo else bo
-                    i = i1
             for ii in range(nr):
                 for jj in range(m):
                     VT[k, (i_lo + ii) * nt + j0 + jj] = best[jj * nr + ii]
@@ -714,16 +736,227 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
     return -1
 
 
+@njit(parallel=True, cache=True)
+def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, reach, skip, nchunk):
+    """Thermal-Cabin-DP backward pass when the level depends on SOC alone, the counterpart of
+    :func:`backward2_sep` for :func:`backward3` (multilinear or reach interpolation; not the cubic):
+    returns -1, or the step whose next cost-to-go holds a non-finite value.
+
+    Per power control and state (coolant, cabin), each distinct heater column (the heats the core can
+    deliver, the first limited one, hold the bound) is interpolated along cabin and coolant once for every
+    SOC node it reads; a state-control pair then costs two contiguous reads and the weights along SOC.
+    The cost-to-go is kept SOC-innermost ([coolant, cabin, SOC]) so those reads are contiguous."""
+    ns, nt, nc, nq = socg.size, tclg.size, cabg.size, Q.size
+    nq1 = nq + 1 if hold else nq
+    np_ = big.shape[1]
+    s_lo, s_inv = socg[0], (ns - 1) / (socg[-1] - socg[0])
+    t_lo, t_inv = tclg[0], (nt - 1) / (tclg[-1] - tclg[0])
+    c_lo, c_inv = cabg[0], (nc - 1) / (cabg[-1] - cabg[0])
+    Ts = P[_C_TS]
+    T_amb = P[_C_TAMB]
+    PEN = P[_C_PEN]
+    fclg = P[int(P[_A_FCLG]): int(P[_A_FCLG]) + nt]
+    lossg = P[int(P[_A_LOSSG]): int(P[_A_LOSSG]) + nt]
+    ng = nt * nc
+    qlim = np.empty((nt, nc))
+    nunl = np.empty((nt, nc), np.int64)
+    pcu = np.empty((nc, nq1))
+    cu = np.empty((nc, nq1), np.int64)
+    tu = np.empty((nc, nq1))
+    nh = nc if hold else 0
+    qh = np.empty(nc)
+    hsk = np.ones((nt, nc), np.bool_)
+    TB = np.empty((np_, nt, nq + nh), np.int64)
+    TT = np.empty((np_, nt, nq + nh))
+    PT = np.empty((np_, nt, nq + nh))
+    QFUEL = np.empty((np_, nt))
+    C0 = np.empty((np_, nt))
+    VS = np.empty(ng * ns)  # the cost-to-go, [coolant, cabin, SOC]
+    SV = np.empty((nc * nq1, nt * ns))  # cabin-interpolated slices, [coolant, SOC] per (cabin node, column)
+    A = np.empty((ns, np_), np.int64)
+    WA = np.empty(np_ * ns)
+    WB = np.empty(np_ * ns)
+    PP = np.empty(np_ * ns)
+    gsz = (ng + nchunk - 1) // nchunk
+    for k in range(N - 1, -1, -1):
+        tab = big[k]
+        L1n = L1T[k + 1]
+        bad = 0
+        for s in prange(ns):
+            for g in range(ng):
+                x = np.float64(VT[k + 1, s * ng + g])
+                if not np.isfinite(x):
+                    bad = 1
+                VS[g * ns + s] = x
+        if bad:
+            return k
+        s_off = w[k, 5]
+        lb = w[k, 2]
+        off = 0.0
+        off_n = 0.0
+        if P[_C_CREL] != 0.0:
+            off = w[k, 3]
+            off_n = lb
+        for m in range(nc):
+            T_m = cabg[m] + off
+            for j in range(nt):
+                ql = heater_core_limit(P[_MS0 + _EPS], P[_C_WBL], P[_MS0 + _CP], P[_MS0 + _RECIRC], tclg[j], T_m,
+                                       T_amb)
+                qlim[j, m] = ql
+                cnt = 0
+                for iq in range(nq):
+                    if not (Q[iq] > ql):
+                        cnt += 1
+                nunl[j, m] = cnt
+            if hold:
+                qh[m] = hold_heat(P, T_m, lb)
+                for j in range(nt):
+                    ql = qlim[j, m]
+                    q = qh[m]
+                    sk = q > ql or q < 0.0
+                    for iq in range(nq):
+                        d = Q[iq]
+                        if d > ql:
+                            d = ql
+                        if d < 0.0:
+                            d = 0.0
+                        if d == q:
+                            sk = True
+                    hsk[j, m] = sk
+            for iq in range(nq1):
+                q = Q[iq] if iq < nq else qh[m]
+                tc = T_m + Ts * cabin_heat_rate(P[_MS0 + _UACAB], P[_MS0 + _QSUN], T_m, T_amb, q)[0] / P[_MS0 + _CCAB]
+                pc = 0.0
+                if tc < lb:
+                    pc = (lb - tc) / P[_C_CH]
+                elif tc > P[_C_CHI]:
+                    pc = (tc - P[_C_CHI]) / P[_C_CH]
+                pcu[m, iq] = pc
+                c, tt = _loc(tc - off_n, c_lo, c_inv, nc)
+                cu[m, iq] = c
+                tu[m, iq] = tt
+        for r in prange(nc * nq1):
+            m = r // nq1
+            iq = r - m * nq1
+            c = cu[m, iq]
+            t2 = tu[m, iq]
+            for t in range(nt):
+                o0 = (t * nc + c) * ns
+                for s in range(ns):
+                    SV[r, t * ns + s] = (1.0 - t2) * VS[np.uint64(o0 + s)] + t2 * VS[np.uint64(o0 + ns + s)]
+        for ip in prange(np_):
+            if tab[ip, _T_OK] == 0.0:
+                continue
+            wf = tab[ip, _T_WF]
+            P_e = tab[ip, _T_PE]
+            for j in range(nt):
+                W_f = wf * fclg[j]
+                Q_fuel = P[_MS0 + _LHV] * W_f
+                QFUEL[ip, j] = Q_fuel
+                C0[ip, j] = W_f * Ts
+                for c in range(nq + nh):
+                    q = Q[c] if c < nq else qh[c - nq]
+                    tn = tclg[j] + Ts * coolant_heat_rate(P[_MS0 + _GAMMA], Q_fuel, P_e, lossg[j], q)[0] / P[_MS0 + _CENG]
+                    pt = 0.0
+                    if tn < P[_C_TLO]:
+                        pt = (P[_C_TLO] - tn) / P[_C_TH]
+                    elif tn > P[_C_THI]:
+                        pt = (tn - P[_C_THI]) / P[_C_TH]
+                    PT[ip, j, c] = pt
+                    bb, tt = _loc(tn, t_lo, t_inv, nt)
+                    TB[ip, j, c] = bb
+                    TT[ip, j, c] = tt
+        i_lo, i_hi = _active(P, w[k, 4], s_lo, s_inv, ns, skip)
+        for i in prange(i_lo, i_hi):
+            L1T[k, i] = _soc_row(i, P, tab, L1n, s_off, s_lo, s_inv, ns, np_, level_tol, reach, A, WA, WB, PP)
+        nr = i_hi - i_lo
+        for ch in prange(nchunk):
+            g0 = ch * gsz
+            g1 = min(ng, g0 + gsz)
+            if g1 <= g0:
+                continue
+            best = np.full((g1 - g0) * nr, np.inf)  # [state (coolant, cabin), SOC row]
+            W = np.empty(ns)
+            r0 = np.empty(nr, np.int64)  # runs of rows whose SOC cell is the row plus a constant
+            r1 = np.empty(nr, np.int64)
+            rd = np.empty(nr, np.int64)
+            for ip in range(np_):
+                nrun, amin, amax = _runs(A, ip, i_lo, i_hi, r0, r1, rd)
+                if nrun == 0:
+                    continue
+                for g in range(g0, g1):
+                    j = g // nc
+                    m = g - j * nc
+                    ob = (g - g0) * nr - i_lo
+                    nu_ = nunl[j, m]
+                    ncol = nu_ + (1 if nu_ < nq else 0) + (0 if hsk[j, m] else 1)
+                    for col in range(ncol):
+                        if col < nu_ or (col == ncol - 1 and not hsk[j, m]):
+                            iq = col if col < nu_ else nq
+                            cq = col if col < nu_ else nq + m
+                            rr = m * nq1 + iq
+                            tt = TT[ip, j, cq]
+                            o0 = TB[ip, j, cq] * ns
+                            for s in range(amin, amax + 2):
+                                W[s] = (1.0 - tt) * SV[rr, np.uint64(o0 + s)] + tt * SV[rr, np.uint64(o0 + ns + s)]
+                            add = C0[ip, j] + PEN * (PT[ip, j, cq] + pcu[m, iq])
+                        else:
+                            # the first heater-limited control: the core's limit heat, both next temperatures
+                            # depend on the state
+                            q = qlim[j, m]
+                            T_m = cabg[m] + off
+                            tn = tclg[j] + Ts * coolant_heat_rate(P[_MS0 + _GAMMA], QFUEL[ip, j], tab[ip, _T_PE],
+                                                                  lossg[j], q)[0] / P[_MS0 + _CENG]
+                            pen = 0.0
+                            if tn < P[_C_TLO]:
+                                pen += (P[_C_TLO] - tn) / P[_C_TH]
+                            elif tn > P[_C_THI]:
+                                pen += (tn - P[_C_THI]) / P[_C_TH]
+                            tc = T_m + Ts * cabin_heat_rate(P[_MS0 + _UACAB], P[_MS0 + _QSUN], T_m, P[_C_TAMB],
+                                                            q)[0] / P[_MS0 + _CCAB]
+                            if tc < lb:
+                                pen += (lb - tc) / P[_C_CH]
+                            elif tc > P[_C_CHI]:
+                                pen += (tc - P[_C_CHI]) / P[_C_CH]
+                            bb, tt = _loc(tn, t_lo, t_inv, nt)
+                            c, t2 = _loc(tc - off_n, c_lo, c_inv, nc)
+                            o0 = (bb * nc + c) * ns
+                            o1 = o0 + nc * ns
+                            for s in range(amin, amax + 2):
+                                W[s] = ((1.0 - tt) * ((1.0 - t2) * VS[np.uint64(o0 + s)] + t2 * VS[np.uint64(o0 + ns + s)])
+                                        + tt * ((1.0 - t2) * VS[np.uint64(o1 + s)] + t2 * VS[np.uint64(o1 + ns + s)]))
+                            add = C0[ip, j] + PEN * pen
+                        for ru in range(nrun):
+                            d = rd[ru]
+                            for i in range(r0[ru], r1[ru]):
+                                u = np.uint64(ip * ns + i)
+                                v = add + PP[u] + (WA[u] * W[np.uint64(i + d)] + WB[u] * W[np.uint64(i + d + 1)])
+                                ub = np.uint64(ob + i)
+                                bo = best[ub]
+                                best[ub] = v if v < bo else bo
+            for ii in range(nr):
+                for g in range(g0, g1):
+                    VT[k, (i_lo + ii) * ng + g] = best[(g - g0) * nr + ii]
+        for i in range(ns):
+            src = i_lo if i < i_lo else (i_hi - 1 if i >= i_hi else i)
+            if src != i:
+                L1T[k, i] = L1T[k, src]
+                for e in range(ng):
+                    VT[k, i * ng + e] = VT[k, src * ng + e]
+    return -1
+
+
 def backward_pass_fused(prob, skip: bool = True, separable: bool = True) -> ValueFunctions:
     """Backward pass of a Thermal-DP (2 states) or Thermal-Cabin-DP (3 states) problem built by
     :func:`optimize.formulations.build_problem`; returns the engine's :class:`ValueFunctions`.
 
     ``skip``: SOC nodes whose charge is more than two nodes outside [soc_min, soc_max] at a step are not
     computed (:func:`_active`); ``False`` computes every node, as the generic engine does.
-    ``separable``: Thermal-DP whose terminal level depends on SOC alone runs :func:`backward2_sep` (the
-    same value function up to rounding where the terminal set is reachable); ``False``, or another
-    terminal set, or a cost-to-go with a non-finite value, runs :func:`backward2` (the generic engine's
-    values and levels bit for bit). ``.kernel`` says which ran."""
+    ``separable``: a terminal level that depends on SOC alone runs :func:`backward2_sep` or
+    :func:`backward3_sep` (the same value function up to rounding where the terminal set is reachable);
+    ``False``, or another terminal set, or the cubic cost-to-go, or a cost-to-go with a non-finite value,
+    runs :func:`backward2` or :func:`backward3` (the generic engine's values and levels bit for bit).
+    ``.kernel`` says which ran."""
     import time
 
     import numba
@@ -767,8 +1000,24 @@ def backward_pass_fused(prob, skip: bool = True, separable: bool = True) -> Valu
         if not done:
             backward2(prob.N, P, big, prob.w, socg, tclg, Q, VT, LT, float(prob.level_tol), reach, skip)
     elif nx == 3:
-        backward3(prob.N, P, big, prob.w, prob.grids[0], prob.grids[1], prob.grids[2], Q, VT, LT,
-                  float(prob.level_tol), prob.interp == "cubic_last" and prob.grids[2].size >= 3, hold, reach, skip)
+        socg, tclg, cabg = prob.grids
+        rows = LT[prob.N].reshape(socg.size, -1)
+        cubic = prob.interp == "cubic_last" and cabg.size >= 3
+        done = False
+        if separable and not cubic and bool(np.all(rows == rows[:, :1])):
+            L1T = np.empty((prob.N + 1, socg.size), dtype=np.float32)
+            L1T[prob.N] = rows[:, 0]
+            nchunk = min(tclg.size * cabg.size, 4 * numba.get_num_threads())
+            done = backward3_sep(prob.N, P, big, prob.w, socg, tclg, cabg, Q, VT, L1T, float(prob.level_tol), hold,
+                                 reach, skip, nchunk) < 0
+            if done:
+                LT[:] = np.repeat(L1T, tclg.size * cabg.size, axis=1)
+                kernel = "fused-separable"
+            else:
+                VT[prob.N] = phi
+        if not done:
+            backward3(prob.N, P, big, prob.w, socg, tclg, cabg, Q, VT, LT, float(prob.level_tol), cubic, hold, reach,
+                      skip)
     else:
         raise ValueError("fused kernels cover 2 and 3 states")
     t_b = time.perf_counter() - t0
