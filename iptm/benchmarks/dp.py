@@ -66,22 +66,26 @@ def run(quick: bool = False, halve: bool = False) -> dict:
               f"{r['evals_per_s_if_flop_bound'] / 1e6:.0f} M evals/s at ~30 flops each, "
               f"{r['evals_per_s_if_memory_bound'] / 1e6:.0f} M evals/s if each read its 64 bytes from memory",
               flush=True)
-    # Thermal-DP's separable kernel against the exact fused kernel it replaces, alternated in this process
+    # the separable kernels (the default) against the exact fused kernels, alternated in this process:
+    # Thermal-DP three times each, Thermal-Cabin-DP on the paper grid once each (the exact one is slow)
     import statistics
 
-    ts = {"fused": [], "fused-exact": []}
-    fuel = {}
-    for _ in range(3):
-        for eng in ts:
-            o = solve_formulation("thermal", ps, scen, grids, engine=eng)
-            ts[eng].append(o.t_backward)
-            fuel[eng] = o.sim.fuel_g
-    out["thermal_kernels"] = {e: {"t_backward_s": v, "median_s": statistics.median(v), "fuel_g": fuel[e]}
-                              for e, v in ts.items()}
-    print(f"thermal backward pass, 3 alternated runs each: separable kernel median "
-          f"{statistics.median(ts['fused']):.3f} s ({', '.join(f'{t:.3f}' for t in ts['fused'])}), exact fused "
-          f"kernel {statistics.median(ts['fused-exact']):.3f} s ({', '.join(f'{t:.3f}' for t in ts['fused-exact'])}); "
-          f"fuel {fuel['fused']:.4f} / {fuel['fused-exact']:.4f} g; load now {os.getloadavg()[0]:.2f}", flush=True)
+    for f, reps in (("thermal", 1 if quick else 3), ("thermal_cabin", 1)):
+        ts = {"fused": [], "fused-exact": []}
+        fuel = {}
+        for _ in range(reps):
+            for eng in ts:
+                o = solve_formulation(f, ps, scen, grids, engine=eng)
+                ts[eng].append(o.t_backward)
+                fuel[eng] = (o.sim.fuel_g, o.extra.get("kernel"))
+        out[f + "_kernels"] = {e: {"kernel": fuel[e][1], "t_backward_s": v, "median_s": statistics.median(v),
+                                   "fuel_g": fuel[e][0]} for e, v in ts.items()}
+        print(f"{f} backward pass, {reps} alternated run(s) each: {fuel['fused'][1]} kernel median "
+              f"{statistics.median(ts['fused']):.3f} s ({', '.join(f'{t:.3f}' for t in ts['fused'])}), exact fused "
+              f"kernel {statistics.median(ts['fused-exact']):.3f} s "
+              f"({', '.join(f'{t:.3f}' for t in ts['fused-exact'])}), "
+              f"{statistics.median(ts['fused-exact']) / statistics.median(ts['fused']):.1f} times; fuel "
+              f"{fuel['fused'][0]:.4f} / {fuel['fused-exact'][0]:.4f} g; load now {os.getloadavg()[0]:.2f}", flush=True)
     # Baseline-DP's default grid (BASELINE_CONVERGED_GRIDS: the paper's steps are not converged for it)
     bg = BASELINE_CONVERGED_GRIDS
     o = solve_formulation("baseline", ps, scen, bg)

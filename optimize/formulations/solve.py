@@ -530,7 +530,8 @@ def solve_thermal_cabin(params, scenario: DPScenario | None = None, grids=None, 
                         engine: str = "fused", threads: int | None = None,
                         interp: str = CABIN_INTERP, cabin: str = CABIN_STATE,
                         soc: str = SOC_STATE, hold: bool | None = None) -> DPOutcome:
-    """Thermal-Cabin-DP (SOC, T_cl, T_cab; Q_heat a control). ``engine``: "fused" (default) or "generic".
+    """Thermal-Cabin-DP (SOC, T_cl, T_cab; Q_heat a control). ``engine``: "fused" (default; separable where
+    it applies), "fused-exact" or "generic" (:func:`solve_thermal`).
     ``interp``: how both passes interpolate the cost-to-go along the cabin axis
     (:class:`optimize.dp.engine.DPProblem`; default :data:`CABIN_INTERP`); ``cabin``: the cabin state's
     coordinate (:func:`build_problem`; default :data:`CABIN_STATE`); ``soc``: the SOC state's coordinate
