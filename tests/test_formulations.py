@@ -779,3 +779,37 @@ def test_problem_layout_gives_the_kernels_the_grids_ends_and_steps_and_the_outco
     out = solve_thermal(params, scen, COARSE3, threads=1)
     assert out.t_backward > 0 and out.n_evaluations > 1000
     assert out.evals_per_second == out.n_evaluations / out.t_backward
+
+
+@pytest.mark.parametrize("nx", [2, 3])
+def test_fused_kernel_separable_hands_a_non_finite_cost_to_go_back(params, nx):
+    """A +inf in the next cost-to-go (levels finite and on SOC alone) stops the separable kernels at that
+    step, which return it so that the exact kernel redoes the pass; with a finite one they run to k = 0."""
+    import numba
+
+    from optimize.formulations.fused import backward2_sep, backward3_sep
+    from optimize.formulations.layout import _A_BIG
+
+    g = DPGrids(soc=0.02, tcl=4.0, pbat=2500.0, qheat=200.0)
+    b = build_problem(params, DPScenario(duration_s=5.0, T_cl0=28.0), g, nx, cabin="bound")
+    p = b.prob
+    assert nx == 2 or b.extra["heater_hold"]
+    phi, level = p.terminal_arrays()
+    ns = p.grids[0].size
+    o, n = int(p.params[_A_BIG]), int(p.params[_A_BIG + 1])
+    big = p.params[o: o + n].reshape(p.N, *p.table_shape)
+    Q = np.ascontiguousarray(p.controls[:, 2][np.isfinite(p.controls[:, 2])][: (1 if nx == 2 else None)])
+    Q = np.unique(Q) if nx == 3 else Q
+    for bad, want in ((False, -1), (True, p.N - 1)):
+        VT = np.zeros((p.N + 1, p.n_states), np.float32)
+        VT[p.N] = phi
+        if bad:
+            VT[p.N, p.n_states // 2] = np.inf
+        L1T = np.zeros((p.N + 1, ns), np.float32)
+        L1T[p.N] = level.reshape(ns, -1)[:, 0]
+        nch = 2 * numba.get_num_threads()
+        if nx == 2:
+            got = backward2_sep(p.N, p.params, big, p.w, p.grids[0], p.grids[1], Q, VT, L1T, 0.0, True, False, nch)
+        else:
+            got = backward3_sep(p.N, p.params, big, p.w, *p.grids, Q, VT, L1T, 0.0, True, True, False, nch)
+        assert got == want

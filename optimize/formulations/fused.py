@@ -645,17 +645,18 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
     WA = np.empty(np_ * ns)  # weights along SOC, stage cost of the SOC penalty, per (control, SOC node)
     WB = np.empty(np_ * ns)
     PP = np.empty(np_ * ns)
-    V64 = np.empty(ns * nt)
+    V64 = np.empty(ns * nt)  # the cost-to-go, [coolant, SOC]: SOC innermost for contiguous reads
     csz = (nt + nchunk - 1) // nchunk
     for k in range(N - 1, -1, -1):
         tab = big[k]
         L1n = L1T[k + 1]
         bad = 0
-        for e in range(ns * nt):
-            x = np.float64(VT[k + 1, e])
-            if not np.isfinite(x):
-                bad = 1
-            V64[e] = x
+        for i in prange(ns):
+            for j in range(nt):
+                x = np.float64(VT[k + 1, i * nt + j])
+                if not np.isfinite(x):
+                    bad += 1  # a reduction: a plain assignment inside prange would be private to its thread
+                V64[j * ns + i] = x
         if bad:
             return k
         s_off = w[k, 5]
@@ -710,9 +711,9 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
                     tt = TT[ip, j0 + jj]
                     ob = TB[ip, j0 + jj]
                     ow = jj * ns
+                    o = ob * ns
                     for s in range(amin, amax + 2):
-                        o = s * nt + ob
-                        W[np.uint64(ow + s)] = (1.0 - tt) * V64[np.uint64(o)] + tt * V64[np.uint64(o + 1)]
+                        W[np.uint64(ow + s)] = (1.0 - tt) * V64[np.uint64(o + s)] + tt * V64[np.uint64(o + ns + s)]
                 for jj in range(m):
                     cc = CC[ip, j0 + jj]
                     obst = jj * nr - i_lo
@@ -786,7 +787,7 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
             for g in range(ng):
                 x = np.float64(VT[k + 1, s * ng + g])
                 if not np.isfinite(x):
-                    bad = 1
+                    bad += 1  # a reduction: a plain assignment inside prange would be private to its thread
                 VS[g * ns + s] = x
         if bad:
             return k
