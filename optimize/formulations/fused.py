@@ -113,6 +113,167 @@ def _at3(ib, tb, a, b, c, ta, tt, t2):
     tb[2] = t2
 
 
+@njit(inline="always", cache=True)
+def _excess(x, lo, hi, step):
+    """How far x lies outside [lo, hi], in grid steps (0 inside): what the state-constraint penalty charges."""
+    if x < lo:
+        return (lo - x) / step
+    if x > hi:
+        return (x - hi) / step
+    return 0.0
+
+
+@njit(inline="always", cache=True)
+def _soc_cell(P, tab, ip, i, s_off, s_lo, s_inv, ns):
+    """Power control ``ip`` from SOC node ``i``: (allowed, SOC penalty in grid steps, next SOC's cell and
+    fraction); not allowed where the control is off at this step or the battery cannot deliver it."""
+    if tab[ip, _T_OK] == 0.0:
+        return False, 0.0, 0, 0.0
+    sn = tab[ip, _T_SOC0 + i]
+    if not (sn == sn):
+        return False, 0.0, 0, 0.0
+    a, ta = _loc(sn - s_off, s_lo, s_inv, ns)
+    return True, _excess(sn, P[_C_SLO], P[_C_SHI], P[_C_SH]), a, ta
+
+
+@njit(cache=True)
+def _heater_demand(P, tclg, T_cab, q0, qv):
+    """Thermal-DP's heat per coolant node: the demand ``q0`` within the heater core's limit (and >= 0)."""
+    for j in range(tclg.size):
+        q_lim = heater_core_limit(P[_MS0 + _EPS], P[_C_WBL], P[_MS0 + _CP], P[_MS0 + _RECIRC], tclg[j], T_cab,
+                                  P[_C_TAMB])
+        q = q0
+        if q > q_lim:
+            q = q_lim
+        if q < 0.0:
+            q = 0.0
+        qv[j] = q
+
+
+@njit(cache=True)  # a call, not inlined: once per power control and step
+def _coolant_columns2(ip, P, tab, tclg, fclg, lossg, qv, TB, TT, PT, C0):
+    """Thermal-DP, power control ``ip``: per coolant node the next coolant's cell and fraction, its penalty
+    (grid steps outside the coolant box) and the step's fuel (g); independent of SOC."""
+    if tab[ip, _T_OK] == 0.0:
+        return
+    nt = tclg.size
+    t_lo, t_inv = tclg[0], (nt - 1) / (tclg[-1] - tclg[0])
+    Ts = P[_C_TS]
+    wf = tab[ip, _T_WF]
+    P_e = tab[ip, _T_PE]
+    for j in range(nt):
+        W_f = wf * fclg[j]
+        Q_fuel = P[_MS0 + _LHV] * W_f
+        tn = tclg[j] + Ts * coolant_heat_rate(P[_MS0 + _GAMMA], Q_fuel, P_e, lossg[j], qv[j])[0] / P[_MS0 + _CENG]
+        PT[ip, j] = _excess(tn, P[_C_TLO], P[_C_THI], P[_C_TH])
+        C0[ip, j] = W_f * Ts
+        bb, tt = _loc(tn, t_lo, t_inv, nt)
+        TB[ip, j] = bb
+        TT[ip, j] = tt
+
+
+@njit(cache=True)  # a call, not inlined: once per power control and step
+def _coolant_columns(ip, P, tab, tclg, fclg, lossg, Q, qh, nh, TB, TT, PT, QFUEL, C0):
+    """Thermal-Cabin-DP, power control ``ip``: per coolant node the fuel heat and fuel (g), and per heat
+    column (the heater grid's, then the hold heat of each cabin node) the next coolant's cell, fraction
+    and penalty."""
+    if tab[ip, _T_OK] == 0.0:
+        return
+    nt, nq = tclg.size, Q.size
+    t_lo, t_inv = tclg[0], (nt - 1) / (tclg[-1] - tclg[0])
+    Ts = P[_C_TS]
+    wf = tab[ip, _T_WF]
+    P_e = tab[ip, _T_PE]
+    for j in range(nt):
+        W_f = wf * fclg[j]
+        Q_fuel = P[_MS0 + _LHV] * W_f
+        QFUEL[ip, j] = Q_fuel
+        C0[ip, j] = W_f * Ts
+        for c in range(nq + nh):
+            q = Q[c] if c < nq else qh[c - nq]
+            tn = tclg[j] + Ts * coolant_heat_rate(P[_MS0 + _GAMMA], Q_fuel, P_e, lossg[j], q)[0] / P[_MS0 + _CENG]
+            PT[ip, j, c] = _excess(tn, P[_C_TLO], P[_C_THI], P[_C_TH])
+            bb, tt = _loc(tn, t_lo, t_inv, nt)
+            TB[ip, j, c] = bb
+            TT[ip, j, c] = tt
+
+
+@njit(cache=True)  # a call, not inlined: once per step
+def _cabin_columns(P, cabg, tclg, Q, off, off_n, lb, hold, qlim, nunl, qh, hsk, pcu, cu, tu):
+    """Thermal-Cabin-DP's cabin side of a step (cabin node m is the temperature cabg[m] + off, the next one is
+    located at tc - off_n): per (coolant, cabin) node the heater core's limit and how many grid heats it
+    delivers in full; per cabin node the hold heat and, per (coolant, cabin) node, whether it repeats a grid
+    control; per (cabin node, heat column) the next cabin's cell, fraction and penalty."""
+    nt, nc, nq = tclg.size, cabg.size, Q.size
+    nq1 = nq + 1 if hold else nq
+    c_lo, c_inv = cabg[0], (nc - 1) / (cabg[-1] - cabg[0])
+    Ts = P[_C_TS]
+    T_amb = P[_C_TAMB]
+    for m in range(nc):
+        T_m = cabg[m] + off
+        for j in range(nt):
+            ql = heater_core_limit(P[_MS0 + _EPS], P[_C_WBL], P[_MS0 + _CP], P[_MS0 + _RECIRC], tclg[j], T_m, T_amb)
+            qlim[j, m] = ql
+            cnt = 0
+            for iq in range(nq):
+                if not (Q[iq] > ql):
+                    cnt += 1
+            nunl[j, m] = cnt
+        if hold:
+            qh[m] = hold_heat(P, T_m, lb)
+            for j in range(nt):
+                ql = qlim[j, m]
+                q = qh[m]
+                sk = q > ql or q < 0.0  # delivers what the first limited (or zero) grid control does
+                for iq in range(nq):
+                    d = Q[iq]
+                    if d > ql:
+                        d = ql
+                    if d < 0.0:
+                        d = 0.0
+                    if d == q:
+                        sk = True
+                hsk[j, m] = sk
+        for iq in range(nq1):
+            q = Q[iq] if iq < nq else qh[m]
+            tc = T_m + Ts * cabin_heat_rate(P[_MS0 + _UACAB], P[_MS0 + _QSUN], T_m, T_amb, q)[0] / P[_MS0 + _CCAB]
+            pcu[m, iq] = _excess(tc, lb, P[_C_CHI], P[_C_CH])
+            c, tt = _loc(tc - off_n, c_lo, c_inv, nc)
+            cu[m, iq] = c
+            tu[m, iq] = tt
+
+
+@njit(cache=True)
+def _cabin_work(np_, nt, nc, nq, nq1, nh):
+    """Thermal-Cabin-DP's per-step work arrays: heater-core limit and the number of grid heats it delivers in
+    full per (coolant, cabin) node; the cabin penalty, cell and fraction per (cabin node, heat column); the
+    hold heat per cabin node and whether it repeats a grid control; per (power control, coolant node,
+    column: the heater grid's nq, then the hold heat of each cabin node) the next coolant's cell, fraction
+    and penalty; the fuel heat and fuel per (power control, coolant node)."""
+    return (np.empty((nt, nc)), np.empty((nt, nc), np.int64), np.empty((nc, nq1)), np.empty((nc, nq1), np.int64),
+            np.empty((nc, nq1)), np.empty(nc), np.ones((nt, nc), np.bool_), np.empty((np_, nt, nq + nh), np.int64),
+            np.empty((np_, nt, nq + nh)), np.empty((np_, nt, nq + nh)), np.empty((np_, nt)), np.empty((np_, nt)))
+
+
+@njit(inline="always", cache=True)
+def _cabin_offsets(P, wk):
+    """Step k's comfort bound at k + 1, and the offsets of cabin node m's temperature (cabg[m] + off) and of
+    the next one's (located at tc - off_n): the bounds themselves with the cabin relative to its bound."""
+    lb = wk[2]
+    if P[_C_CREL] != 0.0:
+        return lb, wk[3], lb
+    return lb, 0.0, 0.0
+
+
+@njit(inline="always", cache=True)
+def _limited_next(P, P_e, q, Q_fuel, T_cl, loss, T_m, lb):
+    """Next coolant and cabin temperatures of a heat ``q`` limited by the core, and their penalties (steps)."""
+    Ts = P[_C_TS]
+    tn = T_cl + Ts * coolant_heat_rate(P[_MS0 + _GAMMA], Q_fuel, P_e, loss, q)[0] / P[_MS0 + _CENG]
+    tc = T_m + Ts * cabin_heat_rate(P[_MS0 + _UACAB], P[_MS0 + _QSUN], T_m, P[_C_TAMB], q)[0] / P[_MS0 + _CCAB]
+    return tn, tc, _excess(tn, P[_C_TLO], P[_C_THI], P[_C_TH]), _excess(tc, lb, P[_C_CHI], P[_C_CH])
+
+
 @njit(parallel=True, cache=True)
 def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol, reach, skip):
     """Thermal-DP backward pass (states SOC x T_cl, one heater demand Q[0]); fills VT, LT[0..N-1].
@@ -120,9 +281,6 @@ def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol, reach, skip):
     ns, nt = socg.size, tclg.size
     np_ = big.shape[1]
     s_lo, s_inv = socg[0], (ns - 1) / (socg[-1] - socg[0])
-    t_lo, t_inv = tclg[0], (nt - 1) / (tclg[-1] - tclg[0])
-    Ts = P[_C_TS]
-    T_amb = P[_C_TAMB]
     PEN = P[_C_PEN]
     fclg = P[int(P[_A_FCLG]): int(P[_A_FCLG]) + nt]
     lossg = P[int(P[_A_LOSSG]): int(P[_A_LOSSG]) + nt]
@@ -138,35 +296,10 @@ def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol, reach, skip):
         Ln = LT[k + 1]
         s_off = w[k, 5]  # the SOC grid's offset at k + 1 (the tables hold the charge)
         T_cab = w[k, 1]
-        for j in range(nt):
-            q_lim = heater_core_limit(P[_MS0 + _EPS], P[_C_WBL], P[_MS0 + _CP], P[_MS0 + _RECIRC], tclg[j], T_cab,
-                                      T_amb)
-            q = Q[0]
-            if q > q_lim:
-                q = q_lim
-            if q < 0.0:
-                q = 0.0
-            qv[j] = q
+        _heater_demand(P, tclg, T_cab, Q[0], qv)
         # next coolant state per (power control, T_cl node): independent of SOC
         for ip in prange(np_):
-            if tab[ip, _T_OK] == 0.0:
-                continue
-            wf = tab[ip, _T_WF]
-            P_e = tab[ip, _T_PE]
-            for j in range(nt):
-                W_f = wf * fclg[j]
-                Q_fuel = P[_MS0 + _LHV] * W_f
-                tn = tclg[j] + Ts * coolant_heat_rate(P[_MS0 + _GAMMA], Q_fuel, P_e, lossg[j], qv[j])[0] / P[_MS0 + _CENG]
-                pt = 0.0
-                if tn < P[_C_TLO]:
-                    pt = (P[_C_TLO] - tn) / P[_C_TH]
-                elif tn > P[_C_THI]:
-                    pt = (tn - P[_C_THI]) / P[_C_TH]
-                PT[ip, j] = pt
-                C0[ip, j] = W_f * Ts
-                bb, tt = _loc(tn, t_lo, t_inv, nt)
-                TB[ip, j] = bb
-                TT[ip, j] = tt
+            _coolant_columns2(ip, P, tab, tclg, fclg, lossg, qv, TB, TT, PT, C0)
         i_lo, i_hi = _active(P, w[k, 4], s_lo, s_inv, ns, skip)
         for ii in prange(i_hi - i_lo):
             i = i_lo + ii
@@ -177,17 +310,9 @@ def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol, reach, skip):
             ib = np.empty(2, np.int64)
             tb = np.empty(2)
             for ip in range(np_):
-                if tab[ip, _T_OK] == 0.0:
+                ok, pen0, a, ta = _soc_cell(P, tab, ip, i, s_off, s_lo, s_inv, ns)
+                if not ok:
                     continue
-                sn = tab[ip, _T_SOC0 + i]
-                if not (sn == sn):
-                    continue
-                pen0 = 0.0
-                if sn < P[_C_SLO]:
-                    pen0 += (P[_C_SLO] - sn) / P[_C_SH]
-                elif sn > P[_C_SHI]:
-                    pen0 += (sn - P[_C_SHI]) / P[_C_SH]
-                a, ta = _loc(sn - s_off, s_lo, s_inv, ns)
                 oa = a * nt
                 for j in range(nt):
                     tt = TT[ip, j]
@@ -241,18 +366,10 @@ def _limited(P, tab, ip, a, ta, sidx, c0, pen0, q, Q_fuel, T_cl, loss, T_m, lb, 
              c_inv, nc, s0, s1, strides, nn, unif, Vn, Ln, ib, tb, cubic, reach, level_tol, best, Lmin, Lsel, feas):
     """Evaluate the first heater-limited control (heat ``q``, the core limit) at state ``sidx`` by full
     trilinear interpolation and apply the engine's choice rule to best/Lmin/Lsel/feas."""
-    Ts = P[_C_TS]
-    tn = T_cl + Ts * coolant_heat_rate(P[_MS0 + _GAMMA], Q_fuel, tab[ip, _T_PE], loss, q)[0] / P[_MS0 + _CENG]
+    tn, tc, pt, pc = _limited_next(P, tab[ip, _T_PE], q, Q_fuel, T_cl, loss, T_m, lb)
     pen = pen0
-    if tn < P[_C_TLO]:
-        pen += (P[_C_TLO] - tn) / P[_C_TH]
-    elif tn > P[_C_THI]:
-        pen += (tn - P[_C_THI]) / P[_C_TH]
-    tc = T_m + Ts * cabin_heat_rate(P[_MS0 + _UACAB], P[_MS0 + _QSUN], T_m, P[_C_TAMB], q)[0] / P[_MS0 + _CCAB]
-    if tc < lb:
-        pen += (lb - tc) / P[_C_CH]
-    elif tc > P[_C_CHI]:
-        pen += (tc - P[_C_CHI]) / P[_C_CH]
+    pen += pt
+    pen += pc
     bb, tt = _loc(tn, t_lo, t_inv, nt)
     c, t2 = _loc(tc - off_n, c_lo, c_inv, nc)
     _at3(ib, tb, a, bb, c, ta, tt, t2)
@@ -300,8 +417,6 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold,
     s_lo, s_inv = socg[0], (ns - 1) / (socg[-1] - socg[0])
     t_lo, t_inv = tclg[0], (nt - 1) / (tclg[-1] - tclg[0])
     c_lo, c_inv = cabg[0], (nc - 1) / (cabg[-1] - cabg[0])
-    Ts = P[_C_TS]
-    T_amb = P[_C_TAMB]
     PEN = P[_C_PEN]
     fclg = P[int(P[_A_FCLG]): int(P[_A_FCLG]) + nt]
     lossg = P[int(P[_A_LOSSG]): int(P[_A_LOSSG]) + nt]
@@ -311,73 +426,17 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold,
     nn = np.array([ns, nt, nc], np.int64)
     unif = np.ones(3, np.bool_)
     nplane = ns * nt
-    qlim = np.empty((nt, nc))
-    nunl = np.empty((nt, nc), np.int64)  # number of Q values not limited at (j, m)
-    pcu = np.empty((nc, nq1))
-    cu = np.empty((nc, nq1), np.int64)
-    tu = np.empty((nc, nq1))
     SV = np.empty((nc * nq1, nplane))
     SL = np.empty((nc * nq1, nplane))
     nh = nc if hold else 0
-    qh = np.empty(nc)  # hold heat per cabin node
-    hsk = np.ones((nt, nc), np.bool_)  # the hold control repeats a grid control (or is off)
-    # next coolant per (power control, T_cl node, column): the heater grid's nq columns, then the hold
-    # control's heat of each cabin node (column nq + m)
-    TB = np.empty((np_, nt, nq + nh), np.int64)
-    TT = np.empty((np_, nt, nq + nh))
-    PT = np.empty((np_, nt, nq + nh))
-    QFUEL = np.empty((np_, nt))
-    C0 = np.empty((np_, nt))
+    qlim, nunl, pcu, cu, tu, qh, hsk, TB, TT, PT, QFUEL, C0 = _cabin_work(np_, nt, nc, nq, nq1, nh)
     for k in range(N - 1, -1, -1):
         tab = big[k]
         Vn = VT[k + 1]
         Ln = LT[k + 1]
         s_off = w[k, 5]  # the SOC grid's offset at k + 1 (the tables hold the charge)
-        lb = w[k, 2]
-        # cabin node m is the temperature cabg[m] + off; the next one is located at tc - off_n
-        off = 0.0
-        off_n = 0.0
-        if P[_C_CREL] != 0.0:
-            off = w[k, 3]
-            off_n = lb
-        for m in range(nc):
-            T_m = cabg[m] + off
-            for j in range(nt):
-                ql = heater_core_limit(P[_MS0 + _EPS], P[_C_WBL], P[_MS0 + _CP], P[_MS0 + _RECIRC], tclg[j], T_m,
-                                       T_amb)
-                qlim[j, m] = ql
-                cnt = 0
-                for iq in range(nq):
-                    if not (Q[iq] > ql):
-                        cnt += 1
-                nunl[j, m] = cnt
-            if hold:
-                qh[m] = hold_heat(P, T_m, lb)
-                for j in range(nt):
-                    ql = qlim[j, m]
-                    q = qh[m]
-                    sk = q > ql or q < 0.0  # delivers what the first limited (or zero) grid control does
-                    for iq in range(nq):
-                        d = Q[iq]
-                        if d > ql:
-                            d = ql
-                        if d < 0.0:
-                            d = 0.0
-                        if d == q:
-                            sk = True
-                    hsk[j, m] = sk
-            for iq in range(nq1):
-                q = Q[iq] if iq < nq else qh[m]
-                tc = T_m + Ts * cabin_heat_rate(P[_MS0 + _UACAB], P[_MS0 + _QSUN], T_m, T_amb, q)[0] / P[_MS0 + _CCAB]
-                pc = 0.0
-                if tc < lb:
-                    pc = (lb - tc) / P[_C_CH]
-                elif tc > P[_C_CHI]:
-                    pc = (tc - P[_C_CHI]) / P[_C_CH]
-                pcu[m, iq] = pc
-                c, tt = _loc(tc - off_n, c_lo, c_inv, nc)
-                cu[m, iq] = c
-                tu[m, iq] = tt
+        lb, off, off_n = _cabin_offsets(P, w[k])
+        _cabin_columns(P, cabg, tclg, Q, off, off_n, lb, hold, qlim, nunl, qh, hsk, pcu, cu, tu)
         for r in prange(nc * nq1):
             m = r // nq1
             iq = r - m * nq1
@@ -391,27 +450,7 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold,
                     SV[r, e] = (1.0 - t2) * Vn[o] + t2 * Vn[o + 1]
                 SL[r, e] = (1.0 - t2) * Ln[o] + t2 * Ln[o + 1]
         for ip in prange(np_):
-            if tab[ip, _T_OK] == 0.0:
-                continue
-            wf = tab[ip, _T_WF]
-            P_e = tab[ip, _T_PE]
-            for j in range(nt):
-                W_f = wf * fclg[j]
-                Q_fuel = P[_MS0 + _LHV] * W_f
-                QFUEL[ip, j] = Q_fuel
-                C0[ip, j] = W_f * Ts
-                for c in range(nq + nh):
-                    q = Q[c] if c < nq else qh[c - nq]
-                    tn = tclg[j] + Ts * coolant_heat_rate(P[_MS0 + _GAMMA], Q_fuel, P_e, lossg[j], q)[0] / P[_MS0 + _CENG]
-                    pt = 0.0
-                    if tn < P[_C_TLO]:
-                        pt = (P[_C_TLO] - tn) / P[_C_TH]
-                    elif tn > P[_C_THI]:
-                        pt = (tn - P[_C_THI]) / P[_C_TH]
-                    PT[ip, j, c] = pt
-                    bb, tt = _loc(tn, t_lo, t_inv, nt)
-                    TB[ip, j, c] = bb
-                    TT[ip, j, c] = tt
+            _coolant_columns(ip, P, tab, tclg, fclg, lossg, Q, qh, nh, TB, TT, PT, QFUEL, C0)
         i_lo, i_hi = _active(P, w[k, 4], s_lo, s_inv, ns, skip)
         for ii in prange(i_hi - i_lo):
             i = i_lo + ii
@@ -422,17 +461,9 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold,
             ib = np.empty(3, np.int64)
             tb = np.empty(3)
             for ip in range(np_):
-                if tab[ip, _T_OK] == 0.0:
+                ok, pen0, a, ta = _soc_cell(P, tab, ip, i, s_off, s_lo, s_inv, ns)
+                if not ok:
                     continue
-                sn = tab[ip, _T_SOC0 + i]
-                if not (sn == sn):
-                    continue
-                pen0 = 0.0
-                if sn < P[_C_SLO]:
-                    pen0 += (P[_C_SLO] - sn) / P[_C_SH]
-                elif sn > P[_C_SHI]:
-                    pen0 += (sn - P[_C_SHI]) / P[_C_SH]
-                a, ta = _loc(sn - s_off, s_lo, s_inv, ns)
                 oa = a * nt
                 for j in range(nt):
                     c0 = C0[ip, j]
@@ -521,6 +552,32 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold,
         _extend(VT[k], LT[k], i_lo, i_hi, ns, nt * nc)
 
 
+@njit(cache=True)  # serial: once per step, a copy
+def _soc_innermost(Vrow, ns, out):
+    """The next cost-to-go ``Vrow`` (SOC outermost, as stored) into ``out`` with SOC innermost, in float64;
+    False if a value is not finite (the separable kernels then hand the pass to the exact ones)."""
+    ng = Vrow.size // ns
+    ok = True
+    for i in range(ns):
+        for g in range(ng):
+            x = np.float64(Vrow[i * ng + g])
+            if not np.isfinite(x):
+                ok = False
+            out[g * ns + i] = x
+    return ok
+
+
+@njit(inline="always", cache=True)
+def _extend1(V, L1, i_lo, i_hi, ns, row):
+    """:func:`_extend` for the separable kernels, whose levels have one value per SOC node."""
+    for i in range(ns):
+        src = i_lo if i < i_lo else (i_hi - 1 if i >= i_hi else i)
+        if src != i:
+            L1[i] = L1[src]
+            for e in range(row):
+                V[i * row + e] = V[src * row + e]
+
+
 @njit(cache=True)  # a call, not inlined (too many arguments to inline into a parfor); once per SOC row
 def _soc_row(i, P, tab, L1n, s_off, s_lo, s_inv, ns, np_, level_tol, reach, A, WA, WB, PP):
     """The separable kernels' work on SOC row ``i`` (levels on SOC alone): each power control's level,
@@ -533,17 +590,9 @@ def _soc_row(i, P, tab, L1n, s_off, s_lo, s_inv, ns, np_, level_tol, reach, A, W
     anyf = False
     for ip in range(np_):
         A[i, ip] = -1
-        if tab[ip, _T_OK] == 0.0:
+        ok, pen0, a, ta = _soc_cell(P, tab, ip, i, s_off, s_lo, s_inv, ns)
+        if not ok:
             continue
-        sn = tab[ip, _T_SOC0 + i]
-        if not (sn == sn):
-            continue
-        pen0 = 0.0
-        if sn < P[_C_SLO]:
-            pen0 += (P[_C_SLO] - sn) / P[_C_SH]
-        elif sn > P[_C_SHI]:
-            pen0 += (sn - P[_C_SHI]) / P[_C_SH]
-        a, ta = _loc(sn - s_off, s_lo, s_inv, ns)
         la = np.float64(L1n[a])
         lb = np.float64(L1n[a + 1])
         # the engine's exact interpolation: a corner of weight 0 is not read
@@ -631,16 +680,14 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
     ns, nt = socg.size, tclg.size
     np_ = big.shape[1]
     s_lo, s_inv = socg[0], (ns - 1) / (socg[-1] - socg[0])
-    t_lo, t_inv = tclg[0], (nt - 1) / (tclg[-1] - tclg[0])
-    Ts = P[_C_TS]
-    T_amb = P[_C_TAMB]
     PEN = P[_C_PEN]
     fclg = P[int(P[_A_FCLG]): int(P[_A_FCLG]) + nt]
     lossg = P[int(P[_A_LOSSG]): int(P[_A_LOSSG]) + nt]
     qv = np.empty(nt)
     TB = np.empty((np_, nt), np.int64)
     TT = np.empty((np_, nt))
-    CC = np.empty((np_, nt))
+    PT = np.empty((np_, nt))
+    C0 = np.empty((np_, nt))
     A = np.empty((ns, np_), np.int64)  # SOC cell of a candidate control, -1 for the others
     WA = np.empty(np_ * ns)  # weights along SOC, stage cost of the SOC penalty, per (control, SOC node)
     WB = np.empty(np_ * ns)
@@ -650,44 +697,13 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
     for k in range(N - 1, -1, -1):
         tab = big[k]
         L1n = L1T[k + 1]
-        bad = 0
-        for i in prange(ns):
-            for j in range(nt):
-                x = np.float64(VT[k + 1, i * nt + j])
-                if not np.isfinite(x):
-                    bad += 1  # a reduction: a plain assignment inside prange would be private to its thread
-                V64[j * ns + i] = x
-        if bad:
+        if not _soc_innermost(VT[k + 1], ns, V64):
             return k
         s_off = w[k, 5]
         T_cab = w[k, 1]
-        for j in range(nt):
-            q_lim = heater_core_limit(P[_MS0 + _EPS], P[_C_WBL], P[_MS0 + _CP], P[_MS0 + _RECIRC], tclg[j], T_cab,
-                                      T_amb)
-            q = Q[0]
-            if q > q_lim:
-                q = q_lim
-            if q < 0.0:
-                q = 0.0
-            qv[j] = q
+        _heater_demand(P, tclg, T_cab, Q[0], qv)
         for ip in prange(np_):
-            if tab[ip, _T_OK] == 0.0:
-                continue
-            wf = tab[ip, _T_WF]
-            P_e = tab[ip, _T_PE]
-            for j in range(nt):
-                W_f = wf * fclg[j]
-                Q_fuel = P[_MS0 + _LHV] * W_f
-                tn = tclg[j] + Ts * coolant_heat_rate(P[_MS0 + _GAMMA], Q_fuel, P_e, lossg[j], qv[j])[0] / P[_MS0 + _CENG]
-                pt = 0.0
-                if tn < P[_C_TLO]:
-                    pt = (P[_C_TLO] - tn) / P[_C_TH]
-                elif tn > P[_C_THI]:
-                    pt = (tn - P[_C_THI]) / P[_C_TH]
-                CC[ip, j] = W_f * Ts + PEN * pt
-                bb, tt = _loc(tn, t_lo, t_inv, nt)
-                TB[ip, j] = bb
-                TT[ip, j] = tt
+            _coolant_columns2(ip, P, tab, tclg, fclg, lossg, qv, TB, TT, PT, C0)
         i_lo, i_hi = _active(P, w[k, 4], s_lo, s_inv, ns, skip)
         for i in prange(i_lo, i_hi):
             L1T[k, i] = _soc_row(i, P, tab, L1n, s_off, s_lo, s_inv, ns, np_, level_tol, reach, A, WA, WB, PP)
@@ -715,7 +731,7 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
                     for s in range(amin, amax + 2):
                         W[np.uint64(ow + s)] = (1.0 - tt) * V64[np.uint64(o + s)] + tt * V64[np.uint64(o + ns + s)]
                 for jj in range(m):
-                    cc = CC[ip, j0 + jj]
+                    cc = C0[ip, j0 + jj] + PEN * PT[ip, j0 + jj]
                     obst = jj * nr - i_lo
                     for ru in range(nrun):
                         ow = jj * ns + rd[ru]
@@ -728,12 +744,7 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
             for ii in range(nr):
                 for jj in range(m):
                     VT[k, (i_lo + ii) * nt + j0 + jj] = best[jj * nr + ii]
-        for i in range(ns):
-            src = i_lo if i < i_lo else (i_hi - 1 if i >= i_hi else i)
-            if src != i:
-                L1T[k, i] = L1T[k, src]
-                for e in range(nt):
-                    VT[k, i * nt + e] = VT[k, src * nt + e]
+        _extend1(VT[k], L1T[k], i_lo, i_hi, ns, nt)
     return -1
 
 
@@ -753,25 +764,12 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
     s_lo, s_inv = socg[0], (ns - 1) / (socg[-1] - socg[0])
     t_lo, t_inv = tclg[0], (nt - 1) / (tclg[-1] - tclg[0])
     c_lo, c_inv = cabg[0], (nc - 1) / (cabg[-1] - cabg[0])
-    Ts = P[_C_TS]
-    T_amb = P[_C_TAMB]
     PEN = P[_C_PEN]
     fclg = P[int(P[_A_FCLG]): int(P[_A_FCLG]) + nt]
     lossg = P[int(P[_A_LOSSG]): int(P[_A_LOSSG]) + nt]
     ng = nt * nc
-    qlim = np.empty((nt, nc))
-    nunl = np.empty((nt, nc), np.int64)
-    pcu = np.empty((nc, nq1))
-    cu = np.empty((nc, nq1), np.int64)
-    tu = np.empty((nc, nq1))
     nh = nc if hold else 0
-    qh = np.empty(nc)
-    hsk = np.ones((nt, nc), np.bool_)
-    TB = np.empty((np_, nt, nq + nh), np.int64)
-    TT = np.empty((np_, nt, nq + nh))
-    PT = np.empty((np_, nt, nq + nh))
-    QFUEL = np.empty((np_, nt))
-    C0 = np.empty((np_, nt))
+    qlim, nunl, pcu, cu, tu, qh, hsk, TB, TT, PT, QFUEL, C0 = _cabin_work(np_, nt, nc, nq, nq1, nh)
     VS = np.empty(ng * ns)  # the cost-to-go, [coolant, cabin, SOC]
     SV = np.empty((nc * nq1, nt * ns))  # cabin-interpolated slices, [coolant, SOC] per (cabin node, column)
     A = np.empty((ns, np_), np.int64)
@@ -782,60 +780,11 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
     for k in range(N - 1, -1, -1):
         tab = big[k]
         L1n = L1T[k + 1]
-        bad = 0
-        for s in prange(ns):
-            for g in range(ng):
-                x = np.float64(VT[k + 1, s * ng + g])
-                if not np.isfinite(x):
-                    bad += 1  # a reduction: a plain assignment inside prange would be private to its thread
-                VS[g * ns + s] = x
-        if bad:
+        if not _soc_innermost(VT[k + 1], ns, VS):
             return k
         s_off = w[k, 5]
-        lb = w[k, 2]
-        off = 0.0
-        off_n = 0.0
-        if P[_C_CREL] != 0.0:
-            off = w[k, 3]
-            off_n = lb
-        for m in range(nc):
-            T_m = cabg[m] + off
-            for j in range(nt):
-                ql = heater_core_limit(P[_MS0 + _EPS], P[_C_WBL], P[_MS0 + _CP], P[_MS0 + _RECIRC], tclg[j], T_m,
-                                       T_amb)
-                qlim[j, m] = ql
-                cnt = 0
-                for iq in range(nq):
-                    if not (Q[iq] > ql):
-                        cnt += 1
-                nunl[j, m] = cnt
-            if hold:
-                qh[m] = hold_heat(P, T_m, lb)
-                for j in range(nt):
-                    ql = qlim[j, m]
-                    q = qh[m]
-                    sk = q > ql or q < 0.0
-                    for iq in range(nq):
-                        d = Q[iq]
-                        if d > ql:
-                            d = ql
-                        if d < 0.0:
-                            d = 0.0
-                        if d == q:
-                            sk = True
-                    hsk[j, m] = sk
-            for iq in range(nq1):
-                q = Q[iq] if iq < nq else qh[m]
-                tc = T_m + Ts * cabin_heat_rate(P[_MS0 + _UACAB], P[_MS0 + _QSUN], T_m, T_amb, q)[0] / P[_MS0 + _CCAB]
-                pc = 0.0
-                if tc < lb:
-                    pc = (lb - tc) / P[_C_CH]
-                elif tc > P[_C_CHI]:
-                    pc = (tc - P[_C_CHI]) / P[_C_CH]
-                pcu[m, iq] = pc
-                c, tt = _loc(tc - off_n, c_lo, c_inv, nc)
-                cu[m, iq] = c
-                tu[m, iq] = tt
+        lb, off, off_n = _cabin_offsets(P, w[k])
+        _cabin_columns(P, cabg, tclg, Q, off, off_n, lb, hold, qlim, nunl, qh, hsk, pcu, cu, tu)
         for r in prange(nc * nq1):
             m = r // nq1
             iq = r - m * nq1
@@ -846,27 +795,7 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
                 for s in range(ns):
                     SV[r, t * ns + s] = (1.0 - t2) * VS[np.uint64(o0 + s)] + t2 * VS[np.uint64(o0 + ns + s)]
         for ip in prange(np_):
-            if tab[ip, _T_OK] == 0.0:
-                continue
-            wf = tab[ip, _T_WF]
-            P_e = tab[ip, _T_PE]
-            for j in range(nt):
-                W_f = wf * fclg[j]
-                Q_fuel = P[_MS0 + _LHV] * W_f
-                QFUEL[ip, j] = Q_fuel
-                C0[ip, j] = W_f * Ts
-                for c in range(nq + nh):
-                    q = Q[c] if c < nq else qh[c - nq]
-                    tn = tclg[j] + Ts * coolant_heat_rate(P[_MS0 + _GAMMA], Q_fuel, P_e, lossg[j], q)[0] / P[_MS0 + _CENG]
-                    pt = 0.0
-                    if tn < P[_C_TLO]:
-                        pt = (P[_C_TLO] - tn) / P[_C_TH]
-                    elif tn > P[_C_THI]:
-                        pt = (tn - P[_C_THI]) / P[_C_TH]
-                    PT[ip, j, c] = pt
-                    bb, tt = _loc(tn, t_lo, t_inv, nt)
-                    TB[ip, j, c] = bb
-                    TT[ip, j, c] = tt
+            _coolant_columns(ip, P, tab, tclg, fclg, lossg, Q, qh, nh, TB, TT, PT, QFUEL, C0)
         i_lo, i_hi = _active(P, w[k, 4], s_lo, s_inv, ns, skip)
         for i in prange(i_lo, i_hi):
             L1T[k, i] = _soc_row(i, P, tab, L1n, s_off, s_lo, s_inv, ns, np_, level_tol, reach, A, WA, WB, PP)
@@ -904,21 +833,9 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
                         else:
                             # the first heater-limited control: the core's limit heat, both next temperatures
                             # depend on the state
-                            q = qlim[j, m]
-                            T_m = cabg[m] + off
-                            tn = tclg[j] + Ts * coolant_heat_rate(P[_MS0 + _GAMMA], QFUEL[ip, j], tab[ip, _T_PE],
-                                                                  lossg[j], q)[0] / P[_MS0 + _CENG]
-                            pen = 0.0
-                            if tn < P[_C_TLO]:
-                                pen += (P[_C_TLO] - tn) / P[_C_TH]
-                            elif tn > P[_C_THI]:
-                                pen += (tn - P[_C_THI]) / P[_C_TH]
-                            tc = T_m + Ts * cabin_heat_rate(P[_MS0 + _UACAB], P[_MS0 + _QSUN], T_m, P[_C_TAMB],
-                                                            q)[0] / P[_MS0 + _CCAB]
-                            if tc < lb:
-                                pen += (lb - tc) / P[_C_CH]
-                            elif tc > P[_C_CHI]:
-                                pen += (tc - P[_C_CHI]) / P[_C_CH]
+                            tn, tc, pt, pc = _limited_next(P, tab[ip, _T_PE], qlim[j, m], QFUEL[ip, j], tclg[j],
+                                                           lossg[j], cabg[m] + off, lb)
+                            pen = pt + pc
                             bb, tt = _loc(tn, t_lo, t_inv, nt)
                             c, t2 = _loc(tc - off_n, c_lo, c_inv, nc)
                             o0 = (bb * nc + c) * ns
@@ -938,12 +855,7 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
             for ii in range(nr):
                 for g in range(g0, g1):
                     VT[k, (i_lo + ii) * ng + g] = best[(g - g0) * nr + ii]
-        for i in range(ns):
-            src = i_lo if i < i_lo else (i_hi - 1 if i >= i_hi else i)
-            if src != i:
-                L1T[k, i] = L1T[k, src]
-                for e in range(ng):
-                    VT[k, i * ng + e] = VT[k, src * ng + e]
+        _extend1(VT[k], L1T[k], i_lo, i_hi, ns, ng)
     return -1
 
 
