@@ -813,3 +813,10 @@ def test_fused_kernel_separable_hands_a_non_finite_cost_to_go_back(params, nx):
         else:
             got = backward3_sep(p.N, p.params, big, p.w, *p.grids, Q, VT, L1T, 0.0, True, True, False, nch)
         assert got == want
+
+
+def test_an_unknown_engine_is_refused_by_name(params):
+    from calib.errors import IptmError
+
+    with pytest.raises(IptmError, match="engine 'fast': choose one of fused, fused-exact, generic"):
+        solve_thermal(params, DPScenario(duration_s=5.0), engine="fast")

@@ -63,10 +63,10 @@ Common choices
       grid convergence"); ``soc="absolute"`` and ``interp="multilinear"`` give the fixed grid and chord.
     * Thermal-DP and Thermal-Cabin-DP use fused backward kernels (:mod:`optimize.formulations.fused`) by default and
       the engine's forward pass; they give the same value functions and trajectory as the generic engine
-      (``engine="generic"``), cross-checked in ``tests/test_formulations.py``. Thermal-DP with a terminal
-      set on SOC alone runs a separable kernel (levels per SOC node, the cost-to-go interpolated along the
-      coolant once per control): the same trajectory, values equal to rounding where the terminal set is
-      reachable (``engine="fused-exact"``: the bit-identical kernel).
+      (``engine="generic"``), cross-checked in ``tests/test_formulations.py``. With a terminal set on SOC
+      alone both run separable kernels (levels per SOC node, the cost-to-go interpolated along coolant and
+      cabin once per control): the same levels, decisions and cost, a value function nowhere above the
+      engine's (``engine="fused-exact"``: the bit-identical kernels; docs/optimization.md s.5).
     * State constraints (SOC, T_cl and T_cab boxes, the cabin lower-bound trajectory) are a documented
       penalty, :data:`PENALTY_G_PER_STEP` g of fuel per grid step of violation, with the engine's
       ``clip=True`` lookup, not +inf: with +inf, a grid node that cannot avoid leaving the box (e.g. SOC

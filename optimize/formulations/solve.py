@@ -441,7 +441,13 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
     return _Built(prob, np.array(x0), cyc, extra, mp)
 
 
+#: Backward kernels of Thermal-DP and Thermal-Cabin-DP (Baseline-DP always runs the generic engine).
+ENGINES = ("fused", "fused-exact", "generic")
+
+
 def _solve(b: _Built, engine: str):
+    if engine not in ENGINES:
+        raise ScenarioError(f"engine {engine!r}: choose one of {', '.join(ENGINES)}")
     if engine in ("fused", "fused-exact") and b.prob.n_x >= 2:
         from optimize.formulations.fused import backward_pass_fused
 
