@@ -35,7 +35,7 @@ from optimize.dp.kernels import _interp, _interp_reach, _lin_reach  # the engine
 from optimize.dp.kernels import level_choose, level_needs_cost, reach_weights  # the level-set choice rule
 from optimize.dp.engine import ValueFunctions
 from calib.model.equations import cabin_heat_rate, coolant_heat_rate, heater_core_limit
-from optimize.formulations.transition import hold_heat
+from optimize.formulations.transition import _delivered_heat, hold_heat
 
 _SNAP = 1e-9
 
@@ -140,14 +140,7 @@ def _soc_cell(P, tab, ip, i, s_off, s_lo, s_inv, ns):
 def _heater_demand(P, tclg, T_cab, q0, qv):
     """Thermal-DP's heat per coolant node: the demand ``q0`` within the heater core's limit (and >= 0)."""
     for j in range(tclg.size):
-        q_lim = heater_core_limit(P[_MS0 + _EPS], P[_C_WBL], P[_MS0 + _CP], P[_MS0 + _RECIRC], tclg[j], T_cab,
-                                  P[_C_TAMB])
-        q = q0
-        if q > q_lim:
-            q = q_lim
-        if q < 0.0:
-            q = 0.0
-        qv[j] = q
+        qv[j] = _delivered_heat(P, tclg[j], T_cab, q0, 0.0)  # a grid command: the target is not read
 
 
 @njit(cache=True)  # a call, not inlined: once per power control and step
@@ -651,6 +644,22 @@ def _runs(A, ip, i_lo, i_hi, r0, r1, rd):
     return nrun, amin, amax
 
 
+@njit(inline="always", cache=True)
+def _min_runs(best, ob, W, ow, add, ip, ns, PP, WA, WB, r0, r1, rd, nrun):
+    """The separable kernels' inner loop: for the SOC rows of control ``ip``'s runs, the pair's cost (``add``
+    plus the row's SOC penalty plus the weighted reads of W, the cost-to-go interpolated along the other
+    states, at offset ``ow``) into the running minimum ``best[ob + row]``. Unsigned indices: a signed one
+    makes numba add a negative-index check that keeps LLVM from vectorising the loop."""
+    for ru in range(nrun):
+        d = rd[ru]
+        for i in range(r0[ru], r1[ru]):
+            u = np.uint64(ip * ns + i)
+            v = add + PP[u] + (WA[u] * W[np.uint64(ow + i + d)] + WB[u] * W[np.uint64(ow + i + d + 1)])
+            ub = np.uint64(ob + i)
+            bo = best[ub]
+            best[ub] = v if v < bo else bo
+
+
 @njit(parallel=True, cache=True)
 def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, nchunk):
     """Thermal-DP backward pass when the level depends on SOC alone (a terminal set on SOC only, the default):
@@ -675,8 +684,7 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
     :func:`backward2` compares levels that carry rounding from the coolant weights: a state from which the
     terminal set cannot be reached may then take another least-level control (tests/test_formulations.py).
 
-    Indices into the flat work arrays are unsigned: with a signed index numba adds a negative-index
-    check that keeps LLVM from vectorising the inner loops (about four times slower)."""
+    Indices into the flat work arrays are unsigned (:func:`_min_runs`)."""
     ns, nt = socg.size, tclg.size
     np_ = big.shape[1]
     s_lo, s_inv = socg[0], (ns - 1) / (socg[-1] - socg[0])
@@ -731,16 +739,8 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
                     for s in range(amin, amax + 2):
                         W[np.uint64(ow + s)] = (1.0 - tt) * V64[np.uint64(o + s)] + tt * V64[np.uint64(o + ns + s)]
                 for jj in range(m):
-                    cc = C0[ip, j0 + jj] + PEN * PT[ip, j0 + jj]
-                    obst = jj * nr - i_lo
-                    for ru in range(nrun):
-                        ow = jj * ns + rd[ru]
-                        for i in range(r0[ru], r1[ru]):
-                            u = np.uint64(ip * ns + i)
-                            v = cc + PP[u] + (WA[u] * W[np.uint64(ow + i)] + WB[u] * W[np.uint64(ow + i + 1)])
-                            ub = np.uint64(obst + i)
-                            bo = best[ub]
-                            best[ub] = v if v < bo else bo
+                    _min_runs(best, jj * nr - i_lo, W, jj * ns, C0[ip, j0 + jj] + PEN * PT[ip, j0 + jj], ip, ns, PP,
+                              WA, WB, r0, r1, rd, nrun)
             for ii in range(nr):
                 for jj in range(m):
                     VT[k, (i_lo + ii) * nt + j0 + jj] = best[jj * nr + ii]
@@ -844,14 +844,7 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
                                 W[s] = ((1.0 - tt) * ((1.0 - t2) * VS[np.uint64(o0 + s)] + t2 * VS[np.uint64(o0 + ns + s)])
                                         + tt * ((1.0 - t2) * VS[np.uint64(o1 + s)] + t2 * VS[np.uint64(o1 + ns + s)]))
                             add = C0[ip, j] + PEN * pen
-                        for ru in range(nrun):
-                            d = rd[ru]
-                            for i in range(r0[ru], r1[ru]):
-                                u = np.uint64(ip * ns + i)
-                                v = add + PP[u] + (WA[u] * W[np.uint64(i + d)] + WB[u] * W[np.uint64(i + d + 1)])
-                                ub = np.uint64(ob + i)
-                                bo = best[ub]
-                                best[ub] = v if v < bo else bo
+                        _min_runs(best, ob, W, 0, add, ip, ns, PP, WA, WB, r0, r1, rd, nrun)
             for ii in range(nr):
                 for g in range(g0, g1):
                     VT[k, (i_lo + ii) * ng + g] = best[(g - g0) * nr + ii]
@@ -894,45 +887,29 @@ def backward_pass_fused(prob, skip: bool = True, separable: bool = True) -> Valu
     if prob.interp == "cubic_last" and nx != 3:
         raise ValueError(f"interp {prob.interp!r}: the fused kernels offer it for 3 states only")
     reach = prob.interp == "reach_first"
-    kernel = "fused"
-    if nx == 2:
-        socg, tclg = prob.grids[0], prob.grids[1]
-        rows = LT[prob.N].reshape(socg.size, tclg.size)
-        done = False
-        if separable and nq == 1 and bool(np.all(rows == rows[:, :1])):
-            L1T = np.empty((prob.N + 1, socg.size), dtype=np.float32)
-            L1T[prob.N] = rows[:, 0]
-            nchunk = min(tclg.size, 2 * numba.get_num_threads())
-            done = backward2_sep(prob.N, P, big, prob.w, socg, tclg, Q, VT, L1T, float(prob.level_tol), reach,
-                                 skip, nchunk) < 0
-            if done:
-                LT[:] = np.repeat(L1T, tclg.size, axis=1)
-                kernel = "fused-separable"
-            else:
-                VT[prob.N] = phi
-        if not done:
-            backward2(prob.N, P, big, prob.w, socg, tclg, Q, VT, LT, float(prob.level_tol), reach, skip)
-    elif nx == 3:
-        socg, tclg, cabg = prob.grids
-        rows = LT[prob.N].reshape(socg.size, -1)
-        cubic = prob.interp == "cubic_last" and cabg.size >= 3
-        done = False
-        if separable and not cubic and bool(np.all(rows == rows[:, :1])):
-            L1T = np.empty((prob.N + 1, socg.size), dtype=np.float32)
-            L1T[prob.N] = rows[:, 0]
-            nchunk = min(tclg.size * cabg.size, 4 * numba.get_num_threads())
-            done = backward3_sep(prob.N, P, big, prob.w, socg, tclg, cabg, Q, VT, L1T, float(prob.level_tol), hold,
-                                 reach, skip, nchunk) < 0
-            if done:
-                LT[:] = np.repeat(L1T, tclg.size * cabg.size, axis=1)
-                kernel = "fused-separable"
-            else:
-                VT[prob.N] = phi
-        if not done:
-            backward3(prob.N, P, big, prob.w, socg, tclg, cabg, Q, VT, LT, float(prob.level_tol), cubic, hold, reach,
-                      skip)
-    else:
+    if nx not in (2, 3):
         raise ValueError("fused kernels cover 2 and 3 states")
+    g = prob.grids
+    cubic = nx == 3 and prob.interp == "cubic_last" and g[2].size >= 3
+    rows = LT[prob.N].reshape(g[0].size, -1)
+    kernel = "fused"
+    if separable and not cubic and (nx == 3 or nq == 1) and bool(np.all(rows == rows[:, :1])):
+        L1T = np.empty((prob.N + 1, g[0].size), dtype=np.float32)
+        L1T[prob.N] = rows[:, 0]
+        tol = float(prob.level_tol)
+        if nx == 2:
+            k = backward2_sep(prob.N, P, big, prob.w, g[0], g[1], Q, VT, L1T, tol, reach, skip,
+                              min(g[1].size, 2 * numba.get_num_threads()))
+        else:
+            k = backward3_sep(prob.N, P, big, prob.w, g[0], g[1], g[2], Q, VT, L1T, tol, hold, reach, skip,
+                              min(rows.shape[1], 4 * numba.get_num_threads()))
+        if k < 0:  # else a non-finite cost-to-go at step k: the exact kernel redoes the pass (V_N is untouched)
+            LT[:] = np.repeat(L1T, rows.shape[1], axis=1)
+            kernel = "fused-separable"
+    if kernel == "fused" and nx == 2:
+        backward2(prob.N, P, big, prob.w, g[0], g[1], Q, VT, LT, float(prob.level_tol), reach, skip)
+    elif kernel == "fused":
+        backward3(prob.N, P, big, prob.w, g[0], g[1], g[2], Q, VT, LT, float(prob.level_tol), cubic, hold, reach, skip)
     t_b = time.perf_counter() - t0
     gs = (prob.N + 1,) + prob.grid_shape
     socg = prob.grids[0]
