@@ -571,18 +571,17 @@ def _extend1(V, L1, i_lo, i_hi, ns, row):
                 V[i * row + e] = V[src * row + e]
 
 
-@njit(cache=True)  # a call, not inlined (too many arguments to inline into a parfor); once per SOC row
-def _soc_row(i, P, tab, L1n, s_off, s_lo, s_inv, ns, np_, level_tol, reach, A, WA, WB, PP):
-    """The separable kernels' work on SOC row ``i`` (levels on SOC alone): each power control's level,
-    SOC cell, weights along SOC (the reach rule's where ``reach``) and SOC penalty; the candidates of the
-    choice rule keep their cell in ``A[i, ip]``, the others -1 (the controls reaching the terminal set,
-    or if none does, those of least level). Returns the row's least level."""
+@njit(cache=True)  # a call, not inlined (too many arguments to inline into a parfor); once per power control
+def _soc_col(ip, P, tab, L1n, s_off, s_lo, s_inv, ns, i_lo, i_hi, level_tol, reach, LV, AC, WA, WB, PP):
+    """The separable kernels' SOC side of power control ``ip`` (levels on SOC alone) on the SOC rows
+    [i_lo, i_hi), at ``ip * ns + row`` (control-major, so this loop runs along contiguous memory): its level
+    (+inf where the control is not allowed), the next SOC's cell (-1 where not allowed), the weights along
+    SOC (the reach rule's where ``reach``) and the SOC penalty's stage cost."""
     PEN = P[_C_PEN]
-    lvs = np.full(np_, np.inf)
-    lmin = np.inf
-    anyf = False
-    for ip in range(np_):
-        A[i, ip] = -1
+    for i in range(i_lo, i_hi):
+        u = ip * ns + i
+        LV[u] = np.inf
+        AC[u] = -1
         ok, pen0, a, ta = _soc_cell(P, tab, ip, i, s_off, s_lo, s_inv, ns)
         if not ok:
             continue
@@ -597,13 +596,8 @@ def _soc_row(i, P, tab, L1n, s_off, s_lo, s_inv, ns, np_, level_tol, reach, A, W
             lv = (1.0 - ta) * la + ta * lb
         if not (lv < np.inf):
             continue
-        lvs[ip] = lv
-        if lv < lmin:
-            lmin = lv
-        if lv <= level_tol:
-            anyf = True
-        A[i, ip] = a
-        u = ip * ns + i
+        LV[u] = lv
+        AC[u] = a
         PP[u] = PEN * pen0
         if reach:
             wa, wb = reach_weights(la, lb, level_tol, ta)
@@ -611,31 +605,53 @@ def _soc_row(i, P, tab, L1n, s_off, s_lo, s_inv, ns, np_, level_tol, reach, A, W
             wa, wb = 1.0 - ta, ta
         WA[u] = wa
         WB[u] = wb
-    for ip in range(np_):
-        if A[i, ip] >= 0 and not (lvs[ip] <= level_tol if anyf else lvs[ip] == lmin):
-            A[i, ip] = -1
-    return lmin
 
 
 @njit(inline="always", cache=True)
-def _runs(A, ip, i_lo, i_hi, r0, r1, rd):
-    """Runs [r0, r1) of the SOC rows where control ``ip`` is a candidate and its SOC cell is the row plus
-    rd (reads of a row-indexed array contiguous over a run); returns (runs, least cell, greatest cell)."""
+def _choose_rows(LV, AC, ns, np_, i_lo, i_hi, level_tol, LMIN, L1k):
+    """The choice rule (:func:`optimize.dp.kernels.level_better`) on each SOC row [i_lo, i_hi): the row's
+    level is the least over its power controls (into ``L1k``); the candidates are the controls reaching the
+    terminal set or, if none does, those of least level. The others get cell -1 in ``AC``."""
+    for i in range(i_lo, i_hi):
+        LMIN[i] = np.inf
+    for ip in range(np_):
+        o = ip * ns
+        for i in range(i_lo, i_hi):
+            lv = LV[o + i]
+            if lv < LMIN[i]:
+                LMIN[i] = lv
+    for i in range(i_lo, i_hi):
+        L1k[i] = LMIN[i]
+        if LMIN[i] <= level_tol:  # some control reaches the set: its bound is the tolerance
+            LMIN[i] = level_tol
+    for ip in range(np_):
+        o = ip * ns
+        for i in range(i_lo, i_hi):
+            if not (LV[o + i] <= LMIN[i]):  # an infinite level keeps its cell -1 (it has no other)
+                AC[o + i] = -1
+
+
+@njit(inline="always", cache=True)
+def _runs(AC, ip, ns, i_lo, i_hi, r0, r1, rd):
+    """Runs [r0, r1) of the SOC rows where control ``ip`` is a candidate (cell >= 0 in the control-major
+    ``AC``) and its SOC cell is the row plus rd (reads of a row-indexed array contiguous over a run);
+    returns (runs, least cell, greatest cell)."""
     nrun = 0
-    amin = A.shape[0]
+    amin = ns
     amax = -1
+    o = ip * ns
     i = i_lo
     while i < i_hi:
-        a = A[i, ip]
+        a = AC[o + i]
         if a < 0:
             i += 1
             continue
         d = a - i
         i1 = i + 1
-        while i1 < i_hi and A[i1, ip] == i1 + d:
+        while i1 < i_hi and AC[o + i1] == i1 + d:
             i1 += 1
         amin = min(amin, a)
-        amax = max(amax, A[i1 - 1, ip])
+        amax = max(amax, AC[o + i1 - 1])
         r0[nrun] = i
         r1[nrun] = i1
         rd[nrun] = d
@@ -670,6 +686,46 @@ def _min_runs(best, ob, W, ow, add, ip, ns, PP, WA, WB, r0, r1, rd, nrun):
             ub = np.uint64(ob + i)
             bo = best[ub]
             best[ub] = v if v < bo else bo
+
+
+@njit(inline="always", cache=True)
+def _min_runs2(best, ob, W, ow0, ow1, a0, a1, ip, ns, PP, WA, WB, r0, r1, rd, nrun):
+    """:func:`_min_runs` for two columns of W at once (offsets ``ow0``, ``ow1``, stage costs ``a0``, ``a1``),
+    taken into the minimum in that order, so the result is that of two calls: a row's weights, SOC penalty
+    and running minimum are read once for both (the loop is bound by its reads)."""
+    for ru in range(nrun):
+        d = rd[ru]
+        for i in range(r0[ru], r1[ru]):
+            u = np.uint64(ip * ns + i)
+            x = np.uint64(i + d)
+            v0 = a0 + PP[u] + (WA[u] * W[np.uint64(ow0) + x] + WB[u] * W[np.uint64(ow0) + x + np.uint64(1)])
+            v1 = a1 + PP[u] + (WA[u] * W[np.uint64(ow1) + x] + WB[u] * W[np.uint64(ow1) + x + np.uint64(1)])
+            ub = np.uint64(ob + i)
+            bo = best[ub]
+            bo = v0 if v0 < bo else bo
+            best[ub] = v1 if v1 < bo else bo
+
+
+@njit(inline="always", cache=True)
+def _min_runs_pair(best, ob0, ob1, W, ow0, ow1, a0, a1, ip, ns, PP, WA, WB, r0, r1, rd, nrun):
+    """:func:`_min_runs` for two states of the same SOC rows at once (running minima at ``ob0`` and
+    ``ob1``, columns of W at ``ow0`` and ``ow1``): a row's weights and SOC penalty are read once for both."""
+    for ru in range(nrun):
+        d = rd[ru]
+        for i in range(r0[ru], r1[ru]):
+            u = np.uint64(ip * ns + i)
+            x = np.uint64(i + d)
+            wa = WA[u]
+            wb = WB[u]
+            pp = PP[u]
+            v0 = a0 + pp + (wa * W[np.uint64(ow0) + x] + wb * W[np.uint64(ow0) + x + np.uint64(1)])
+            v1 = a1 + pp + (wa * W[np.uint64(ow1) + x] + wb * W[np.uint64(ow1) + x + np.uint64(1)])
+            u0 = np.uint64(ob0 + i)
+            u1 = np.uint64(ob1 + i)
+            b0 = best[u0]
+            best[u0] = v0 if v0 < b0 else b0
+            b1 = best[u1]
+            best[u1] = v1 if v1 < b1 else b1
 
 
 @njit(parallel=True, cache=True)
@@ -708,7 +764,10 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
     TT = np.empty((np_, nt))
     PT = np.empty((np_, nt))
     C0 = np.empty((np_, nt))
-    A = np.empty((ns, np_), np.int64)  # SOC cell of a candidate control, -1 for the others
+    # per (power control, SOC node), control-major: level, SOC cell (-1: not a candidate)
+    LV = np.empty(np_ * ns)
+    AC = np.empty(np_ * ns, np.int64)
+    LMIN = np.empty(ns)
     WA = np.empty(np_ * ns)  # weights along SOC, stage cost of the SOC penalty, per (control, SOC node)
     WB = np.empty(np_ * ns)
     PP = np.empty(np_ * ns)
@@ -725,8 +784,9 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
         for ip in prange(np_):
             _coolant_columns2(ip, P, tab, tclg, fclg, lossg, qv, TB, TT, PT, C0)
         i_lo, i_hi = _active(P, w[k, 4], s_lo, s_inv, ns, skip)
-        for i in prange(i_lo, i_hi):
-            L1T[k, i] = _soc_row(i, P, tab, L1n, s_off, s_lo, s_inv, ns, np_, level_tol, reach, A, WA, WB, PP)
+        for ip in prange(np_):
+            _soc_col(ip, P, tab, L1n, s_off, s_lo, s_inv, ns, i_lo, i_hi, level_tol, reach, LV, AC, WA, WB, PP)
+        _choose_rows(LV, AC, ns, np_, i_lo, i_hi, level_tol, LMIN, L1T[k])
         nr = i_hi - i_lo
         # least cost over the candidates; threads own disjoint blocks of coolant nodes
         for c in prange(nchunk):
@@ -740,7 +800,7 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
             r1 = np.empty(nr, np.int64)
             rd = np.empty(nr, np.int64)
             for ip in range(np_):
-                nrun, amin, amax = _runs(A, ip, i_lo, i_hi, r0, r1, rd)
+                nrun, amin, amax = _runs(AC, ip, ns, i_lo, i_hi, r0, r1, rd)
                 if nrun == 0:
                     continue
                 for jj in range(m):
@@ -749,7 +809,12 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
                     ow = jj * ns
                     o = ob * ns
                     _lerp_into(W, ow, V64, o, o + ns, amin, amax + 2, tt)
-                for jj in range(m):
+                m2 = m - m % 2
+                for jj in range(0, m2, 2):
+                    _min_runs_pair(best, jj * nr - i_lo, (jj + 1) * nr - i_lo, W, jj * ns, (jj + 1) * ns,
+                                   C0[ip, j0 + jj] + PEN * PT[ip, j0 + jj],
+                                   C0[ip, j0 + jj + 1] + PEN * PT[ip, j0 + jj + 1], ip, ns, PP, WA, WB, r0, r1, rd, nrun)
+                for jj in range(m2, m):
                     _min_runs(best, jj * nr - i_lo, W, jj * ns, C0[ip, j0 + jj] + PEN * PT[ip, j0 + jj], ip, ns, PP,
                               WA, WB, r0, r1, rd, nrun)
             for ii in range(nr):
@@ -783,7 +848,10 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
     qlim, nunl, pcu, cu, tu, qh, hsk, TB, TT, PT, QFUEL, C0 = _cabin_work(np_, nt, nc, nq, nq1, nh)
     VS = np.empty(ng * ns)  # the cost-to-go, [coolant, cabin, SOC]
     SV = np.empty((nc * nq1, nt * ns))  # cabin-interpolated slices, [coolant, SOC] per (cabin node, column)
-    A = np.empty((ns, np_), np.int64)
+    # per (power control, SOC node), control-major: level, SOC cell (-1: not a candidate)
+    LV = np.empty(np_ * ns)
+    AC = np.empty(np_ * ns, np.int64)
+    LMIN = np.empty(ns)
     WA = np.empty(np_ * ns)
     WB = np.empty(np_ * ns)
     PP = np.empty(np_ * ns)
@@ -807,8 +875,9 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
         for ip in prange(np_):
             _coolant_columns(ip, P, tab, tclg, fclg, lossg, Q, qh, nh, TB, TT, PT, QFUEL, C0)
         i_lo, i_hi = _active(P, w[k, 4], s_lo, s_inv, ns, skip)
-        for i in prange(i_lo, i_hi):
-            L1T[k, i] = _soc_row(i, P, tab, L1n, s_off, s_lo, s_inv, ns, np_, level_tol, reach, A, WA, WB, PP)
+        for ip in prange(np_):
+            _soc_col(ip, P, tab, L1n, s_off, s_lo, s_inv, ns, i_lo, i_hi, level_tol, reach, LV, AC, WA, WB, PP)
+        _choose_rows(LV, AC, ns, np_, i_lo, i_hi, level_tol, LMIN, L1T[k])
         nr = i_hi - i_lo
         for ch in prange(nchunk):
             g0 = ch * gsz
@@ -816,12 +885,14 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
             if g1 <= g0:
                 continue
             best = np.full((g1 - g0) * nr, np.inf)  # [state (coolant, cabin), SOC row]
-            W = np.empty(ns)
+            W = np.empty((nq + 2) * ns)  # per heat column, the cost-to-go interpolated along cabin and coolant
+            OW = np.empty(nq + 2, np.int64)  # a column's offset in W
+            ADD = np.empty(nq + 2)  # a column's stage cost (fuel and penalties)
             r0 = np.empty(nr, np.int64)  # runs of rows whose SOC cell is the row plus a constant
             r1 = np.empty(nr, np.int64)
             rd = np.empty(nr, np.int64)
             for ip in range(np_):
-                nrun, amin, amax = _runs(A, ip, i_lo, i_hi, r0, r1, rd)
+                nrun, amin, amax = _runs(AC, ip, ns, i_lo, i_hi, r0, r1, rd)
                 if nrun == 0:
                     continue
                 for g in range(g0, g1):
@@ -831,14 +902,15 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
                     nu_ = nunl[j, m]
                     ncol = nu_ + (1 if nu_ < nq else 0) + (0 if hsk[j, m] else 1)
                     for col in range(ncol):
+                        OW[col] = col * ns
                         if col < nu_ or (col == ncol - 1 and not hsk[j, m]):
                             iq = col if col < nu_ else nq
                             cq = col if col < nu_ else nq + m
                             rr = m * nq1 + iq
                             tt = TT[ip, j, cq]
                             o0 = TB[ip, j, cq] * ns
-                            _lerp_into(W, 0, SV[rr], o0, o0 + ns, amin, amax + 2, tt)
-                            add = C0[ip, j] + PEN * (PT[ip, j, cq] + pcu[m, iq])
+                            _lerp_into(W, col * ns, SV[rr], o0, o0 + ns, amin, amax + 2, tt)
+                            ADD[col] = C0[ip, j] + PEN * (PT[ip, j, cq] + pcu[m, iq])
                         else:
                             # the first heater-limited control: the core's limit heat, both next temperatures
                             # depend on the state
@@ -849,12 +921,18 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
                             c, t2 = _loc(tc - off_n, c_lo, c_inv, nc)
                             o0 = (bb * nc + c) * ns
                             o1 = o0 + nc * ns
-                            u0, u1, un = np.uint64(o0), np.uint64(o1), np.uint64(ns)
+                            u0, u1, un, uw = np.uint64(o0), np.uint64(o1), np.uint64(ns), np.uint64(col * ns)
                             for s in range(np.uint64(amin), np.uint64(amax + 2)):
-                                W[s] = ((1.0 - tt) * ((1.0 - t2) * VS[u0 + s] + t2 * VS[u0 + un + s])
+                                W[uw + s] = ((1.0 - tt) * ((1.0 - t2) * VS[u0 + s] + t2 * VS[u0 + un + s])
                                         + tt * ((1.0 - t2) * VS[u1 + s] + t2 * VS[u1 + un + s]))
-                            add = C0[ip, j] + PEN * pen
-                        _min_runs(best, ob, W, 0, add, ip, ns, PP, WA, WB, r0, r1, rd, nrun)
+                            ADD[col] = C0[ip, j] + PEN * pen
+                    # the columns into the running minimum in their order, two at a time
+                    c2 = ncol - ncol % 2
+                    for col in range(0, c2, 2):
+                        _min_runs2(best, ob, W, OW[col], OW[col + 1], ADD[col], ADD[col + 1], ip, ns, PP, WA, WB,
+                                   r0, r1, rd, nrun)
+                    for col in range(c2, ncol):
+                        _min_runs(best, ob, W, OW[col], ADD[col], ip, ns, PP, WA, WB, r0, r1, rd, nrun)
             for ii in range(nr):
                 for g in range(g0, g1):
                     VT[k, (i_lo + ii) * ng + g] = best[(g - g0) * nr + ii]
