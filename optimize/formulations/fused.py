@@ -781,10 +781,9 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
         s_off = w[k, 5]
         T_cab = w[k, 1]
         _heater_demand(P, tclg, T_cab, Q[0], qv)
-        for ip in prange(np_):
-            _coolant_columns2(ip, P, tab, tclg, fclg, lossg, qv, TB, TT, PT, C0)
         i_lo, i_hi = _active(P, w[k, 4], s_lo, s_inv, ns, skip)
-        for ip in prange(np_):
+        for ip in prange(np_):  # one parallel region for both sides of a control: a region costs a wake-up
+            _coolant_columns2(ip, P, tab, tclg, fclg, lossg, qv, TB, TT, PT, C0)
             _soc_col(ip, P, tab, L1n, s_off, s_lo, s_inv, ns, i_lo, i_hi, level_tol, reach, LV, AC, WA, WB, PP)
         _choose_rows(LV, AC, ns, np_, i_lo, i_hi, level_tol, LMIN, L1T[k])
         nr = i_hi - i_lo
@@ -872,10 +871,9 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
             for t in range(nt):
                 o0 = (t * nc + c) * ns
                 _lerp_into(SV[r], t * ns, VS, o0, o0 + ns, 0, ns, t2)
-        for ip in prange(np_):
-            _coolant_columns(ip, P, tab, tclg, fclg, lossg, Q, qh, nh, TB, TT, PT, QFUEL, C0)
         i_lo, i_hi = _active(P, w[k, 4], s_lo, s_inv, ns, skip)
-        for ip in prange(np_):
+        for ip in prange(np_):  # one parallel region for both sides of a control
+            _coolant_columns(ip, P, tab, tclg, fclg, lossg, Q, qh, nh, TB, TT, PT, QFUEL, C0)
             _soc_col(ip, P, tab, L1n, s_off, s_lo, s_inv, ns, i_lo, i_hi, level_tol, reach, LV, AC, WA, WB, PP)
         _choose_rows(LV, AC, ns, np_, i_lo, i_hi, level_tol, LMIN, L1T[k])
         nr = i_hi - i_lo
