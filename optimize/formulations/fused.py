@@ -698,8 +698,11 @@ def _min_runs2(best, ob, W, ow0, ow1, a0, a1, ip, ns, PP, WA, WB, r0, r1, rd, nr
         for i in range(r0[ru], r1[ru]):
             u = np.uint64(ip * ns + i)
             x = np.uint64(i + d)
-            v0 = a0 + PP[u] + (WA[u] * W[np.uint64(ow0) + x] + WB[u] * W[np.uint64(ow0) + x + np.uint64(1)])
-            v1 = a1 + PP[u] + (WA[u] * W[np.uint64(ow1) + x] + WB[u] * W[np.uint64(ow1) + x + np.uint64(1)])
+            wa = WA[u]
+            wb = WB[u]
+            pp = PP[u]
+            v0 = a0 + pp + (wa * W[np.uint64(ow0) + x] + wb * W[np.uint64(ow0) + x + np.uint64(1)])
+            v1 = a1 + pp + (wa * W[np.uint64(ow1) + x] + wb * W[np.uint64(ow1) + x + np.uint64(1)])
             ub = np.uint64(ob + i)
             bo = best[ub]
             bo = v0 if v0 < bo else bo
@@ -884,7 +887,6 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
                 continue
             best = np.full((g1 - g0) * nr, np.inf)  # [state (coolant, cabin), SOC row]
             W = np.empty((nq + 2) * ns)  # per heat column, the cost-to-go interpolated along cabin and coolant
-            OW = np.empty(nq + 2, np.int64)  # a column's offset in W
             ADD = np.empty(nq + 2)  # a column's stage cost (fuel and penalties)
             r0 = np.empty(nr, np.int64)  # runs of rows whose SOC cell is the row plus a constant
             r1 = np.empty(nr, np.int64)
@@ -900,7 +902,6 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
                     nu_ = nunl[j, m]
                     ncol = nu_ + (1 if nu_ < nq else 0) + (0 if hsk[j, m] else 1)
                     for col in range(ncol):
-                        OW[col] = col * ns
                         if col < nu_ or (col == ncol - 1 and not hsk[j, m]):
                             iq = col if col < nu_ else nq
                             cq = col if col < nu_ else nq + m
@@ -927,10 +928,10 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
                     # the columns into the running minimum in their order, two at a time
                     c2 = ncol - ncol % 2
                     for col in range(0, c2, 2):
-                        _min_runs2(best, ob, W, OW[col], OW[col + 1], ADD[col], ADD[col + 1], ip, ns, PP, WA, WB,
+                        _min_runs2(best, ob, W, col * ns, (col + 1) * ns, ADD[col], ADD[col + 1], ip, ns, PP, WA, WB,
                                    r0, r1, rd, nrun)
                     for col in range(c2, ncol):
-                        _min_runs(best, ob, W, OW[col], ADD[col], ip, ns, PP, WA, WB, r0, r1, rd, nrun)
+                        _min_runs(best, ob, W, col * ns, ADD[col], ip, ns, PP, WA, WB, r0, r1, rd, nrun)
             for ii in range(nr):
                 for g in range(g0, g1):
                     VT[k, (i_lo + ii) * ng + g] = best[(g - g0) * nr + ii]
