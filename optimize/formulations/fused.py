@@ -689,30 +689,11 @@ def _min_runs(best, ob, W, ow, add, ip, ns, PP, WA, WB, r0, r1, rd, nrun):
 
 
 @njit(inline="always", cache=True)
-def _min_runs2(best, ob, W, ow0, ow1, a0, a1, ip, ns, PP, WA, WB, r0, r1, rd, nrun):
-    """:func:`_min_runs` for two columns of W at once (offsets ``ow0``, ``ow1``, stage costs ``a0``, ``a1``),
-    taken into the minimum in that order, so the result is that of two calls: a row's weights, SOC penalty
-    and running minimum are read once for both (the loop is bound by its reads)."""
-    for ru in range(nrun):
-        d = rd[ru]
-        for i in range(r0[ru], r1[ru]):
-            u = np.uint64(ip * ns + i)
-            x = np.uint64(i + d)
-            wa = WA[u]
-            wb = WB[u]
-            pp = PP[u]
-            v0 = a0 + pp + (wa * W[np.uint64(ow0) + x] + wb * W[np.uint64(ow0) + x + np.uint64(1)])
-            v1 = a1 + pp + (wa * W[np.uint64(ow1) + x] + wb * W[np.uint64(ow1) + x + np.uint64(1)])
-            ub = np.uint64(ob + i)
-            bo = best[ub]
-            bo = v0 if v0 < bo else bo
-            best[ub] = v1 if v1 < bo else bo
-
-
-@njit(inline="always", cache=True)
 def _min_runs_pair(best, ob0, ob1, W, ow0, ow1, a0, a1, ip, ns, PP, WA, WB, r0, r1, rd, nrun):
-    """:func:`_min_runs` for two states of the same SOC rows at once (running minima at ``ob0`` and
-    ``ob1``, columns of W at ``ow0`` and ``ow1``): a row's weights and SOC penalty are read once for both."""
+    """:func:`_min_runs` for two columns of W at once (offsets ``ow0``, ``ow1``, stage costs ``a0``, ``a1``) into
+    the running minima at ``ob0`` and ``ob1``: two coolant states of Thermal-DP, or two heater columns of the
+    same state (``ob0 == ob1``: taken in that order, so the result is that of two calls). A row's weights and
+    SOC penalty are read once for both (the loop is bound by its reads)."""
     for ru in range(nrun):
         d = rd[ru]
         for i in range(r0[ru], r1[ru]):
@@ -928,8 +909,8 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
                     # the columns into the running minimum in their order, two at a time
                     c2 = ncol - ncol % 2
                     for col in range(0, c2, 2):
-                        _min_runs2(best, ob, W, col * ns, (col + 1) * ns, ADD[col], ADD[col + 1], ip, ns, PP, WA, WB,
-                                   r0, r1, rd, nrun)
+                        _min_runs_pair(best, ob, ob, W, col * ns, (col + 1) * ns, ADD[col], ADD[col + 1], ip, ns, PP,
+                                       WA, WB, r0, r1, rd, nrun)
                     for col in range(c2, ncol):
                         _min_runs(best, ob, W, col * ns, ADD[col], ip, ns, PP, WA, WB, r0, r1, rd, nrun)
             for ii in range(nr):
