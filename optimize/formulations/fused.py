@@ -143,10 +143,27 @@ def _heater_demand(P, tclg, T_cab, q0, qv):
         qv[j] = _delivered_heat(P, tclg[j], T_cab, q0, 0.0)  # a grid command: the target is not read
 
 
+@njit(inline="always", cache=True)
+def _loc_sel(x, lo, inv, top, n2):
+    """:func:`_loc` with selects instead of branches (``top`` = n - 1, ``n2`` = n - 2), for loops that LLVM
+    is to vectorise: the same cell and fraction."""
+    r = (x - lo) * inv
+    ri = np.floor(r + 0.5)
+    r = ri if abs(r - ri) < _SNAP else r
+    r = r if r >= 0.0 else 0.0
+    r = top if r > top else r
+    i = np.int64(r)
+    i = n2 if i > n2 else i
+    return i, r - i
+
+
 @njit(cache=True)  # a call, not inlined: once per power control and step
 def _coolant_columns2(ip, P, tab, tclg, fclg, lossg, qv, TB, TT, PT, C0):
     """Thermal-DP, power control ``ip``: per coolant node the next coolant's cell and fraction, its penalty
-    (grid steps outside the coolant box) and the step's fuel (g); independent of SOC."""
+    (grid steps outside the coolant box) and the step's fuel (g); independent of SOC.
+
+    Three short loops on unsigned indices, the next coolant passed through ``TT``: in one loop, the runtime
+    checks that its eight arrays do not overlap were too many for LLVM to vectorise it (2.5 times slower)."""
     if tab[ip, _T_OK] == 0.0:
         return
     nt = tclg.size
@@ -154,15 +171,21 @@ def _coolant_columns2(ip, P, tab, tclg, fclg, lossg, qv, TB, TT, PT, C0):
     Ts = P[_C_TS]
     wf = tab[ip, _T_WF]
     P_e = tab[ip, _T_PE]
-    for j in range(nt):
-        W_f = wf * fclg[j]
-        Q_fuel = P[_MS0 + _LHV] * W_f
-        tn = tclg[j] + Ts * coolant_heat_rate(P[_MS0 + _GAMMA], Q_fuel, P_e, lossg[j], qv[j])[0] / P[_MS0 + _CENG]
-        PT[ip, j] = _excess(tn, P[_C_TLO], P[_C_THI], P[_C_TH])
-        C0[ip, j] = W_f * Ts
-        bb, tt = _loc(tn, t_lo, t_inv, nt)
-        TB[ip, j] = bb
-        TT[ip, j] = tt
+    lhv, gam, ceng = P[_MS0 + _LHV], P[_MS0 + _GAMMA], P[_MS0 + _CENG]
+    tlo, thi, th = P[_C_TLO], P[_C_THI], P[_C_TH]
+    top = float(nt - 1)
+    TBr, TTr, PTr, C0r = TB[ip], TT[ip], PT[ip], C0[ip]
+    un = np.uint64(nt)
+    for j in range(un):
+        C0r[j] = wf * fclg[j] * Ts
+    for j in range(un):
+        TTr[j] = tclg[j] + Ts * coolant_heat_rate(gam, lhv * (wf * fclg[j]), P_e, lossg[j], qv[j])[0] / ceng
+    for j in range(un):
+        tn = TTr[j]
+        PTr[j] = _excess(tn, tlo, thi, th)
+        bb, tt = _loc_sel(tn, t_lo, t_inv, top, nt - 2)
+        TBr[j] = bb
+        TTr[j] = tt
 
 
 @njit(cache=True)  # a call, not inlined: once per power control and step
@@ -561,14 +584,13 @@ def _soc_innermost(Vrow, ns, out):
 
 
 @njit(inline="always", cache=True)
-def _extend1(V, L1, i_lo, i_hi, ns, row):
-    """:func:`_extend` for the separable kernels, whose levels have one value per SOC node."""
+def _extend_rows(X, i_lo, i_hi, ns, row):
+    """Skipped SOC nodes take the values of the nearest computed one (``X``: rows of ``row`` values)."""
     for i in range(ns):
         src = i_lo if i < i_lo else (i_hi - 1 if i >= i_hi else i)
         if src != i:
-            L1[i] = L1[src]
             for e in range(row):
-                V[i * row + e] = V[src * row + e]
+                X[i * row + e] = X[src * row + e]
 
 
 @njit(cache=True)  # a call, not inlined (too many arguments to inline into a parfor); once per power control
@@ -576,59 +598,70 @@ def _soc_col(ip, P, tab, L1n, s_off, s_lo, s_inv, ns, i_lo, i_hi, level_tol, rea
     """The separable kernels' SOC side of power control ``ip`` (levels on SOC alone) on the SOC rows
     [i_lo, i_hi), at ``ip * ns + row`` (control-major, so this loop runs along contiguous memory): its level
     (+inf where the control is not allowed), the next SOC's cell (-1 where not allowed), the weights along
-    SOC (the reach rule's where ``reach``) and the SOC penalty's stage cost."""
-    PEN = P[_C_PEN]
-    for i in range(i_lo, i_hi):
-        u = ip * ns + i
-        LV[u] = np.inf
-        AC[u] = -1
-        ok, pen0, a, ta = _soc_cell(P, tab, ip, i, s_off, s_lo, s_inv, ns)
-        if not ok:
-            continue
-        la = np.float64(L1n[a])
-        lb = np.float64(L1n[a + 1])
+    SOC (the reach rule's where ``reach``) and the SOC penalty's stage cost.
+
+    :func:`_soc_cell` and :func:`_loc` written out with selects instead of branches, on unsigned indices, so
+    that LLVM vectorises the loop (3.6 times faster alone); the weights and penalty of a row whose cell is -1
+    are written too and never read."""
+    o = np.uint64(ip * ns)
+    u_lo, u_hi = np.uint64(i_lo), np.uint64(i_hi)
+    if tab[ip, _T_OK] == 0.0:
+        for i in range(u_lo, u_hi):
+            LV[o + i] = np.inf
+            AC[o + i] = -1
+        return
+    PEN, lo, hi, sh = P[_C_PEN], P[_C_SLO], P[_C_SHI], P[_C_SH]
+    top = float(ns - 1)
+    for i in range(u_lo, u_hi):
+        sn = tab[ip, np.uint64(_T_SOC0) + i]
+        r = (sn - s_off - s_lo) * s_inv  # :func:`_loc`: snap, clip (a NaN to 0; it is not allowed below)
+        ri = np.floor(r + 0.5)
+        r = ri if abs(r - ri) < _SNAP else r
+        r = r if r >= 0.0 else 0.0
+        r = top if r > top else r
+        a = np.int64(r)
+        a = ns - 2 if a > ns - 2 else a
+        ta = r - a
+        la = np.float64(L1n[np.uint64(a)])
+        lb = np.float64(L1n[np.uint64(a + 1)])
         # the engine's exact interpolation: a corner of weight 0 is not read
-        if ta == 0.0:
-            lv = la
-        elif ta == 1.0:
-            lv = lb
-        else:
-            lv = (1.0 - ta) * la + ta * lb
-        if not (lv < np.inf):
-            continue
-        LV[u] = lv
-        AC[u] = a
-        PP[u] = PEN * pen0
+        lv = la if ta == 0.0 else (lb if ta == 1.0 else (1.0 - ta) * la + ta * lb)
+        ok = (sn == sn) and lv < np.inf  # a NaN charge: the battery cannot deliver the control
+        LV[o + i] = lv if ok else np.inf
+        AC[o + i] = a if ok else -1
+        PP[o + i] = PEN * _excess(sn, lo, hi, sh)
         if reach:
             wa, wb = reach_weights(la, lb, level_tol, ta)
         else:
             wa, wb = 1.0 - ta, ta
-        WA[u] = wa
-        WB[u] = wb
+        WA[o + i] = wa
+        WB[o + i] = wb
 
 
 @njit(inline="always", cache=True)
 def _choose_rows(LV, AC, ns, np_, i_lo, i_hi, level_tol, LMIN, L1k):
     """The choice rule (:func:`optimize.dp.kernels.level_better`) on each SOC row [i_lo, i_hi): the row's
     level is the least over its power controls (into ``L1k``); the candidates are the controls reaching the
-    terminal set or, if none does, those of least level. The others get cell -1 in ``AC``."""
-    for i in range(i_lo, i_hi):
+    terminal set or, if none does, those of least level. The others get cell -1 in ``AC``. Unsigned
+    indices (:func:`_min_runs`): both passes vectorise."""
+    u_lo, u_hi = np.uint64(i_lo), np.uint64(i_hi)
+    for i in range(u_lo, u_hi):
         LMIN[i] = np.inf
     for ip in range(np_):
-        o = ip * ns
-        for i in range(i_lo, i_hi):
+        o = np.uint64(ip * ns)
+        for i in range(u_lo, u_hi):
             lv = LV[o + i]
-            if lv < LMIN[i]:
-                LMIN[i] = lv
-    for i in range(i_lo, i_hi):
+            lm = LMIN[i]
+            LMIN[i] = lv if lv < lm else lm
+    for i in range(u_lo, u_hi):
         L1k[i] = LMIN[i]
         if LMIN[i] <= level_tol:  # some control reaches the set: its bound is the tolerance
             LMIN[i] = level_tol
     for ip in range(np_):
-        o = ip * ns
-        for i in range(i_lo, i_hi):
-            if not (LV[o + i] <= LMIN[i]):  # an infinite level keeps its cell -1 (it has no other)
-                AC[o + i] = -1
+        o = np.uint64(ip * ns)
+        for i in range(u_lo, u_hi):
+            a = AC[o + i]
+            AC[o + i] = a if LV[o + i] <= LMIN[i] else -1  # an infinite level keeps its cell -1 (it has no other)
 
 
 @njit(inline="always", cache=True)
@@ -658,6 +691,17 @@ def _runs(AC, ip, ns, i_lo, i_hi, r0, r1, rd):
         nrun += 1
         i = i1
     return nrun, amin, amax
+
+
+@njit(cache=True)  # serial: once per step
+def _all_runs(AC, np_, ns, i_lo, i_hi, R0, R1, RD, RN):
+    """:func:`_runs` of every power control, once per step (the chunks of a step all read them): control
+    ``ip``'s runs in ``R0[ip]``, ``R1[ip]``, ``RD[ip]``; ``RN[ip]`` holds (runs, least cell, greatest cell)."""
+    for ip in range(np_):
+        nrun, amin, amax = _runs(AC, ip, ns, i_lo, i_hi, R0[ip], R1[ip], RD[ip])
+        RN[ip, 0] = nrun
+        RN[ip, 1] = amin
+        RN[ip, 2] = amax
 
 
 @njit(inline="always", cache=True)
@@ -736,7 +780,12 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
     :func:`backward2` compares levels that carry rounding from the coolant weights: a state from which the
     terminal set cannot be reached may then take another least-level control (tests/test_formulations.py).
 
-    Indices into the flat work arrays are unsigned (:func:`_min_runs`)."""
+    Indices into the flat work arrays are unsigned (:func:`_min_runs`).
+
+    A step has one parallel region (a region costs a wake-up of the threads): while the threads take the
+    least costs of step k, they also prepare step k - 1 (its coolant columns and SOC side, which do not
+    depend on the cost-to-go; the SOC side reads the levels of step k, chosen before the region) into the
+    other of two buffers."""
     ns, nt = socg.size, tclg.size
     np_ = big.shape[1]
     s_lo, s_inv = socg[0], (ns - 1) / (socg[-1] - socg[0])
@@ -744,66 +793,85 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
     fclg = P[int(P[_A_FCLG]): int(P[_A_FCLG]) + nt]
     lossg = P[int(P[_A_LOSSG]): int(P[_A_LOSSG]) + nt]
     qv = np.empty(nt)
-    TB = np.empty((np_, nt), np.int64)
-    TT = np.empty((np_, nt))
-    PT = np.empty((np_, nt))
-    C0 = np.empty((np_, nt))
-    # per (power control, SOC node), control-major: level, SOC cell (-1: not a candidate)
-    LV = np.empty(np_ * ns)
-    AC = np.empty(np_ * ns, np.int64)
+    # two buffers (step k's, step k - 1's) of the coolant columns per (power control, coolant node) ...
+    TB = np.empty((2, np_, nt), np.int64)
+    TT = np.empty((2, np_, nt))
+    PT = np.empty((2, np_, nt))
+    C0 = np.empty((2, np_, nt))
+    # ... and of the SOC side per (power control, SOC node), control-major: level, SOC cell (-1: not a
+    # candidate), weights along SOC, stage cost of the SOC penalty
+    LV = np.empty((2, np_ * ns))
+    AC = np.empty((2, np_ * ns), np.int64)
+    WA = np.empty((2, np_ * ns))
+    WB = np.empty((2, np_ * ns))
+    PP = np.empty((2, np_ * ns))
     LMIN = np.empty(ns)
-    WA = np.empty(np_ * ns)  # weights along SOC, stage cost of the SOC penalty, per (control, SOC node)
-    WB = np.empty(np_ * ns)
-    PP = np.empty(np_ * ns)
     V64 = np.empty(ns * nt)  # the cost-to-go, [coolant, SOC]: SOC innermost for contiguous reads
+    R0 = np.empty((np_, ns), np.int64)  # per control, runs of rows whose SOC cell is the row plus a constant
+    R1 = np.empty((np_, ns), np.int64)
+    RD = np.empty((np_, ns), np.int64)
+    RN = np.empty((np_, 3), np.int64)
     csz = (nt + nchunk - 1) // nchunk
+    psz = (np_ + nchunk - 1) // nchunk  # power controls prepared per task
+    BEST = np.empty((nchunk, csz * ns))  # per task: [coolant node, SOC row]
+    WK = np.empty((nchunk, csz * ns))  # per task: [coolant node, SOC node], the cost-to-go interpolated along the coolant
+    # step N - 1's preparation
+    _heater_demand(P, tclg, w[N - 1, 1], Q[0], qv)
+    p_lo, p_hi = _active(P, w[N - 1, 4], s_lo, s_inv, ns, skip)
+    cur = (N - 1) % 2
+    for ip in prange(np_):
+        _coolant_columns2(ip, P, big[N - 1], tclg, fclg, lossg, qv, TB[cur], TT[cur], PT[cur], C0[cur])
+        _soc_col(ip, P, big[N - 1], L1T[N], w[N - 1, 5], s_lo, s_inv, ns, p_lo, p_hi, level_tol, reach, LV[cur],
+                 AC[cur], WA[cur], WB[cur], PP[cur])
     for k in range(N - 1, -1, -1):
-        tab = big[k]
-        L1n = L1T[k + 1]
+        cur = k % 2
+        nxt = 1 - cur
         if not _soc_innermost(VT[k + 1], ns, V64):
             return k
-        s_off = w[k, 5]
-        T_cab = w[k, 1]
-        _heater_demand(P, tclg, T_cab, Q[0], qv)
-        i_lo, i_hi = _active(P, w[k, 4], s_lo, s_inv, ns, skip)
-        for ip in prange(np_):  # one parallel region for both sides of a control: a region costs a wake-up
-            _coolant_columns2(ip, P, tab, tclg, fclg, lossg, qv, TB, TT, PT, C0)
-            _soc_col(ip, P, tab, L1n, s_off, s_lo, s_inv, ns, i_lo, i_hi, level_tol, reach, LV, AC, WA, WB, PP)
-        _choose_rows(LV, AC, ns, np_, i_lo, i_hi, level_tol, LMIN, L1T[k])
+        i_lo, i_hi = p_lo, p_hi
+        _choose_rows(LV[cur], AC[cur], ns, np_, i_lo, i_hi, level_tol, LMIN, L1T[k])
+        _extend_rows(L1T[k], i_lo, i_hi, ns, 1)  # step k - 1's SOC side reads these levels
+        _all_runs(AC[cur], np_, ns, i_lo, i_hi, R0, R1, RD, RN)
         nr = i_hi - i_lo
-        # least cost over the candidates; threads own disjoint blocks of coolant nodes
+        if k > 0:
+            _heater_demand(P, tclg, w[k - 1, 1], Q[0], qv)
+            p_lo, p_hi = _active(P, w[k - 1, 4], s_lo, s_inv, ns, skip)
+        TBc, TTc, PTc, C0c = TB[cur], TT[cur], PT[cur], C0[cur]
+        WAc, WBc, PPc = WA[cur], WB[cur], PP[cur]
+        # least cost over the candidates; tasks own disjoint blocks of coolant nodes
         for c in prange(nchunk):
             j0 = c * csz
             m = min(nt, j0 + csz) - j0
-            if m <= 0:
-                continue
-            best = np.full(m * nr, np.inf)  # [coolant node, SOC row]
-            W = np.empty(m * ns)  # [coolant node, SOC node]: the cost-to-go interpolated along the coolant
-            r0 = np.empty(nr, np.int64)
-            r1 = np.empty(nr, np.int64)
-            rd = np.empty(nr, np.int64)
-            for ip in range(np_):
-                nrun, amin, amax = _runs(AC, ip, ns, i_lo, i_hi, r0, r1, rd)
-                if nrun == 0:
-                    continue
-                for jj in range(m):
-                    tt = TT[ip, j0 + jj]
-                    ob = TB[ip, j0 + jj]
-                    ow = jj * ns
-                    o = ob * ns
-                    _lerp_into(W, ow, V64, o, o + ns, amin, amax + 2, tt)
-                m2 = m - m % 2
-                for jj in range(0, m2, 2):
-                    _min_runs_pair(best, jj * nr - i_lo, (jj + 1) * nr - i_lo, W, jj * ns, (jj + 1) * ns,
-                                   C0[ip, j0 + jj] + PEN * PT[ip, j0 + jj],
-                                   C0[ip, j0 + jj + 1] + PEN * PT[ip, j0 + jj + 1], ip, ns, PP, WA, WB, r0, r1, rd, nrun)
-                for jj in range(m2, m):
-                    _min_runs(best, jj * nr - i_lo, W, jj * ns, C0[ip, j0 + jj] + PEN * PT[ip, j0 + jj], ip, ns, PP,
-                              WA, WB, r0, r1, rd, nrun)
-            for ii in range(nr):
-                for jj in range(m):
-                    VT[k, (i_lo + ii) * nt + j0 + jj] = best[jj * nr + ii]
-        _extend1(VT[k], L1T[k], i_lo, i_hi, ns, nt)
+            if m > 0:
+                best = BEST[c]
+                best[:m * nr] = np.inf
+                W = WK[c]
+                for ip in range(np_):
+                    nrun, amin, amax = RN[ip, 0], RN[ip, 1], RN[ip, 2]
+                    if nrun == 0:
+                        continue
+                    r0, r1, rd = R0[ip], R1[ip], RD[ip]
+                    for jj in range(m):
+                        o = TBc[ip, j0 + jj] * ns
+                        _lerp_into(W, jj * ns, V64, o, o + ns, amin, amax + 2, TTc[ip, j0 + jj])
+                    m2 = m - m % 2
+                    for jj in range(0, m2, 2):
+                        _min_runs_pair(best, jj * nr - i_lo, (jj + 1) * nr - i_lo, W, jj * ns, (jj + 1) * ns,
+                                       C0c[ip, j0 + jj] + PEN * PTc[ip, j0 + jj],
+                                       C0c[ip, j0 + jj + 1] + PEN * PTc[ip, j0 + jj + 1], ip, ns, PPc, WAc, WBc, r0,
+                                       r1, rd, nrun)
+                    for jj in range(m2, m):
+                        _min_runs(best, jj * nr - i_lo, W, jj * ns, C0c[ip, j0 + jj] + PEN * PTc[ip, j0 + jj], ip, ns,
+                                  PPc, WAc, WBc, r0, r1, rd, nrun)
+                for ii in range(nr):
+                    for jj in range(m):
+                        VT[k, (i_lo + ii) * nt + j0 + jj] = best[jj * nr + ii]
+            if k > 0:  # step k - 1's preparation, this task's share of the power controls
+                for ip in range(c * psz, min(np_, (c + 1) * psz)):
+                    _coolant_columns2(ip, P, big[k - 1], tclg, fclg, lossg, qv, TB[nxt], TT[nxt], PT[nxt], C0[nxt])
+                    _soc_col(ip, P, big[k - 1], L1T[k], w[k - 1, 5], s_lo, s_inv, ns, p_lo, p_hi, level_tol, reach,
+                             LV[nxt], AC[nxt], WA[nxt], WB[nxt], PP[nxt])
+        _extend_rows(VT[k], i_lo, i_hi, ns, nt)
     return -1
 
 
@@ -838,6 +906,10 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
     WA = np.empty(np_ * ns)
     WB = np.empty(np_ * ns)
     PP = np.empty(np_ * ns)
+    R0 = np.empty((np_, ns), np.int64)  # per control, runs of rows whose SOC cell is the row plus a constant
+    R1 = np.empty((np_, ns), np.int64)
+    RD = np.empty((np_, ns), np.int64)
+    RN = np.empty((np_, 3), np.int64)
     gsz = (ng + nchunk - 1) // nchunk
     for k in range(N - 1, -1, -1):
         tab = big[k]
@@ -860,6 +932,7 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
             _coolant_columns(ip, P, tab, tclg, fclg, lossg, Q, qh, nh, TB, TT, PT, QFUEL, C0)
             _soc_col(ip, P, tab, L1n, s_off, s_lo, s_inv, ns, i_lo, i_hi, level_tol, reach, LV, AC, WA, WB, PP)
         _choose_rows(LV, AC, ns, np_, i_lo, i_hi, level_tol, LMIN, L1T[k])
+        _all_runs(AC, np_, ns, i_lo, i_hi, R0, R1, RD, RN)
         nr = i_hi - i_lo
         for ch in prange(nchunk):
             g0 = ch * gsz
@@ -869,13 +942,11 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
             best = np.full((g1 - g0) * nr, np.inf)  # [state (coolant, cabin), SOC row]
             W = np.empty((nq + 2) * ns)  # per heat column, the cost-to-go interpolated along cabin and coolant
             ADD = np.empty(nq + 2)  # a column's stage cost (fuel and penalties)
-            r0 = np.empty(nr, np.int64)  # runs of rows whose SOC cell is the row plus a constant
-            r1 = np.empty(nr, np.int64)
-            rd = np.empty(nr, np.int64)
             for ip in range(np_):
-                nrun, amin, amax = _runs(AC, ip, ns, i_lo, i_hi, r0, r1, rd)
+                nrun, amin, amax = RN[ip, 0], RN[ip, 1], RN[ip, 2]
                 if nrun == 0:
                     continue
+                r0, r1, rd = R0[ip], R1[ip], RD[ip]
                 for g in range(g0, g1):
                     j = g // nc
                     m = g - j * nc
@@ -916,7 +987,8 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
             for ii in range(nr):
                 for g in range(g0, g1):
                     VT[k, (i_lo + ii) * ng + g] = best[(g - g0) * nr + ii]
-        _extend1(VT[k], L1T[k], i_lo, i_hi, ns, ng)
+        _extend_rows(VT[k], i_lo, i_hi, ns, ng)
+        _extend_rows(L1T[k], i_lo, i_hi, ns, 1)
     return -1
 
 
