@@ -19,7 +19,7 @@ import calib  # noqa: F401  (first: it keys numba's kernel cache by the source v
 from .dp import DPProblem, DPResult, ValueFunctions, backward_pass, cartesian, forward_pass, solve
 from .formulations import (FORMULATIONS, DPGrids, DPOutcome, DPScenario, parse_grid_spec, solve_baseline,
                            solve_formulation, solve_thermal, solve_thermal_cabin)
-from .tuning import TunedRule, tune_rule_based
+from .tuning import TunedRule, tune_rule_based, tune_rule_on_drives
 from .casestudy import CaseStudy, run_case_study
 from .convergence import convergence_study, format_convergence
 from .sweep import Study, load_study, run_study
@@ -28,6 +28,6 @@ __all__ = [
     "DPProblem", "DPResult", "ValueFunctions", "cartesian", "solve", "backward_pass", "forward_pass",
     "DPScenario", "DPGrids", "DPOutcome", "parse_grid_spec", "FORMULATIONS",
     "solve_baseline", "solve_thermal", "solve_thermal_cabin", "solve_formulation",
-    "TunedRule", "tune_rule_based", "CaseStudy", "run_case_study", "convergence_study", "format_convergence",
+    "TunedRule", "tune_rule_based", "tune_rule_on_drives", "CaseStudy", "run_case_study", "convergence_study", "format_convergence",
     "Study", "load_study", "run_study",
 ]

@@ -26,12 +26,40 @@ SEARCH_GRID = {
 
 @dataclass
 class TunedRule:
-    """The tuned thresholds, the simulation they give, and the search table."""
+    """The tuned thresholds, the simulation they give (``results``: one per drive tuned on, ``result`` the
+    first), and the search's counts."""
 
     rule: RuleParams
     result: SimResult
     n_tried: int
     n_feasible: int
+    results: tuple = ()
+
+
+def _search(params, cycles, *, T_amb, soc0, T_cl0, T_cab0, Q_heat, soc_tol, grid, T_bat) -> TunedRule:
+    """Exhaustive search over ``grid``: the least total fuel over ``cycles`` s.t. ``SOC_N >= SOC_0 - soc_tol``
+    on every one (ties: the higher total final SOC); if none is, the highest least final SOC, flagged by
+    ``n_feasible == 0``."""
+    base = RuleParams(Q_heat_W=Q_heat, soc_low=max(0.4, soc0 - 0.1))
+    best, best_key, fallback, fb_key, n_ok, n = None, None, None, None, 0, 0
+    for P_on, ratio, P_min, k_soc, off in itertools.product(*grid.values()):
+        rp = replace(base, P_on_W=P_on, P_off_W=ratio * P_on, P_e_min_W=P_min, k_soc_W=k_soc,
+                     soc_target=soc0 + off)
+        res = [simulate(params, c, T_amb=T_amb, soc0=soc0, T_cl0=T_cl0, T_cab0=T_cab0, Q_heat=Q_heat,
+                        rule_params=rp, T_bat=T_bat) for c in cycles]
+        n += 1
+        low = min(r.soc[-1] for r in res)
+        if low >= soc0 - soc_tol:
+            n_ok += 1
+            key = (sum(r.fuel_g for r in res), -sum(r.soc[-1] for r in res))
+            if best_key is None or key < best_key:
+                best, best_key = (rp, res), key
+        elif fb_key is None or low > fb_key:
+            fallback, fb_key = (rp, res), low
+    rp, res = best if best is not None else fallback
+    for r in res:
+        r.info["controller"] = "rule-based (tuned) " + ", ".join(f"{k}={v:g}" for k, v in rp.to_dict().items())
+    return TunedRule(rp, res[0], n, n_ok, tuple(res))
 
 
 def tune_rule_based(params, cycle, *, T_amb, soc0, T_cl0, T_cab0, Q_heat, soc_tol=0.0, grid=None,
@@ -41,24 +69,19 @@ def tune_rule_based(params, cycle, *, T_amb, soc0, T_cl0, T_cab0, Q_heat, soc_to
     If no combination is charge sustaining, the one with the highest final SOC is returned and flagged
     by ``n_feasible == 0``.
     """
-    grid = grid or SEARCH_GRID
-    base = RuleParams(Q_heat_W=Q_heat, soc_low=max(0.4, soc0 - 0.1))
-    best, best_key, fallback, n_ok, n = None, None, None, 0, 0
-    for P_on, ratio, P_min, k_soc, off in itertools.product(*grid.values()):
-        rp = replace(base, P_on_W=P_on, P_off_W=ratio * P_on, P_e_min_W=P_min, k_soc_W=k_soc,
-                     soc_target=soc0 + off)
-        res = simulate(params, cycle, T_amb=T_amb, soc0=soc0, T_cl0=T_cl0, T_cab0=T_cab0, Q_heat=Q_heat,
-                       rule_params=rp, T_bat=T_bat)
-        n += 1
-        ok = res.soc[-1] >= soc0 - soc_tol
-        if ok:
-            n_ok += 1
-            key = (res.fuel_g, -res.soc[-1])
-            if best_key is None or key < best_key:
-                best, best_key = (rp, res), key
-        elif fallback is None or res.soc[-1] > fallback[1].soc[-1]:
-            fallback = (rp, res)
-    rp, res = best if best is not None else fallback
-    res.info["controller"] = "rule-based (tuned) " + ", ".join(
-        f"{k}={v:g}" for k, v in rp.to_dict().items())
-    return TunedRule(rp, res, n, n_ok)
+    return _search(params, [cycle], T_amb=T_amb, soc0=soc0, T_cl0=T_cl0, T_cab0=T_cab0, Q_heat=Q_heat,
+                   soc_tol=soc_tol, grid=grid or SEARCH_GRID, T_bat=T_bat)
+
+
+def tune_rule_on_drives(params, cycles, *, T_amb, soc0, T_cl0, T_cab0, Q_heat, soc_tol=0.0, grid=None,
+                        T_bat=None) -> TunedRule:
+    """One set of thresholds for several drives: the least total fuel over ``cycles`` s.t. every drive
+    ends with ``SOC_N >= SOC_0 - soc_tol``, from the same search. Tuned on past drives and used on new ones,
+    it is a rule an engineer could deploy: it does not know the drive it runs (:func:`tune_rule_based`
+    does, through its tuning)."""
+    if not cycles:
+        from calib.errors import IptmError
+
+        raise IptmError("tune_rule_on_drives: no drives to tune on")
+    return _search(params, list(cycles), T_amb=T_amb, soc0=soc0, T_cl0=T_cl0, T_cab0=T_cab0, Q_heat=Q_heat,
+                   soc_tol=soc_tol, grid=grid or SEARCH_GRID, T_bat=T_bat)

@@ -128,17 +128,21 @@ def test_cmap_trips_are_cut_by_the_fixed_rule(tmp_path):
 def test_goals_count_the_runs_that_meet_each_goal():
     from optimize.causal.compare import CausalComparison
 
-    def r(strategy, gap, vs_rule, dsoc):
+    def r(strategy, gap, vs_rule, dsoc, vs_train=1.0):
         return {"cycle": "x", "T_amb": 0.0, "strategy": strategy, "fuel_g": 1.0, "fuel_corrected_g": 1.0,
                 "credit_g": 0.0, "soc_final": 0.6 + dsoc, "T_cl_final": 80.0, "gap_to_dp_pct": gap,
-                "vs_rule_pct": vs_rule, "dsoc": dsoc}
+                "vs_rule_pct": vs_rule, "vs_rule_train_pct": vs_train, "dsoc": dsoc}
 
-    rows = [r("dp_thermal", 0.0, 1.0, 0.0), r("sdp", 3.0, 0.5, 0.01), r("sdp", 3.01, 0.0, -0.0101),
-            r("ecms", 1.0, 2.0, 0.001), r("ecms", -1.0, 0.1, -0.002), r("rule_tuned", 1.0, 0.0, 0.0),
-            r("sdp_own", 4.0, -1.0, -0.02)]
+    rows = [r("dp_thermal", 0.0, 1.0, 0.0), r("sdp", 3.0, 0.5, 0.01), r("sdp", 3.01, 0.0, -0.0101, 0.0),
+            r("ecms", 1.0, 2.0, 0.001), r("ecms", -1.0, 0.1, -0.002, -0.5), r("rule_tuned", 1.0, 0.0, 0.0),
+            r("sdp_own", 4.0, -1.0, -0.02), r("rule_train", 5.0, -2.0, 0.003, 0.0)]
     cmp = CausalComparison(rows, markov=None, validation=[])
     g = cmp.goals()
-    assert set(g) == {"sdp", "ecms", "sdp_own"}  # the DP and the rule are references, not judged
+    # the DP and the rule tuned on the drive are references, not judged; the rule tuned on the training
+    # cycles does not know the drive, so it is judged as the causal controllers are
+    assert set(g) == {"sdp", "ecms", "sdp_own", "rule_train"}
+    assert (g["sdp"]["better_than_rule_train"], g["ecms"]["better_than_rule_train"]) == (1, 1)
+    assert (g["rule_train"]["within_3pct"], g["rule_train"]["better_than_rule"]) == (0, 0)
     assert (g["sdp_own"]["within_3pct"], g["sdp_own"]["charge_sustaining"]) == (0, 0)
     assert (g["sdp"]["runs"], g["sdp"]["within_3pct"], g["sdp"]["better_than_rule"], g["sdp"]["charge_sustaining"]) \
         == (2, 1, 1, 1)  # 3 % and 0.01 themselves meet the goal; a saving of 0 % does not
@@ -147,6 +151,7 @@ def test_goals_count_the_runs_that_meet_each_goal():
     assert g["sdp"]["dsoc_range"] == (-0.0101, 0.01) and g["sdp"]["max_gap_to_dp_pct"] == 3.01
     txt = cmp.format()
     assert "sdp: within 3 % of DP on 1/2 runs" in txt and "better than tuned rule-based on 2/2 (met)" in txt
+    assert "than the rule tuned on the training cycles on 1/2" in txt
 
 
 def test_a_drive_the_chain_learns_from_cannot_also_test_it():

@@ -1,4 +1,5 @@
-"""Benchmark: causal strategies (SDP, ECMS) on held-out drives against Thermal-DP and tuned rule-based,
+"""Benchmark: causal strategies (SDP, ECMS, the rule tuned on the training cycles) on held-out drives against
+Thermal-DP and the rule-based controller tuned for each drive,
 with the demand chain's validation, the policy build time and the controller step time."""
 from __future__ import annotations
 
@@ -82,4 +83,5 @@ def run(quick: bool = False, valuation: str = "corrected", drives: str = "held-o
             "continuation_credit_per_gram": {str(k): v for k, v in cont.items()}, "validation": cmp.validation,
             "validation_own": cmp.validation_own, "step": steps,
             "build": {str(T): p.info for T, p in cmp.policies.items()},
+            "rules_train": {str(T): r for T, r in cmp.rules_train.items()},
             "mean_abs_gap_pct": float(np.mean([abs(r["gap_to_dp_pct"]) for r in cmp.rows]))}

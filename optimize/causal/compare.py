@@ -7,7 +7,10 @@ held-out cycle (:data:`HELD_OUT`) the table compares, in corrected fuel
 the changes of SOC, coolant and cabin heat), the SDP and ECMS controllers with Thermal-DP
 (:func:`optimize.solve_thermal`, which knows the whole drive) and the rule-based controller tuned for
 that very drive (:func:`optimize.tune_rule_based`). The rule-based baseline thus also knows the drive
-(through its tuning); the causal controllers use fixed settings for every drive.
+(through its tuning); the causal controllers use fixed settings for every drive. A second rule-based row,
+``rule_train``, has its thresholds tuned once per ambient on the training cycles
+(:func:`optimize.tune_rule_on_drives`): a rule that does not know the drive either, the baseline an
+engineer could deploy.
 
 ``valuation="continuation"`` compares instead on the continuation-corrected fuel
 (:func:`calib.model.continuation.continuation_corrected`: fuel plus the continuation value of the final
@@ -66,8 +69,9 @@ def drives_of(sets, what: str = "drive set") -> tuple:
 
 #: The settings ``scripts/causal_select.py`` chooses (the chain's ``alpha``, the rest :class:`SDPConfig` fields).
 SELECTED = ("alpha", "w_soc_g_per_s", "soc_bias", "regen_fraction", "regen_slope_per_mps")
-#: The causal strategies of a comparison (``sdp_own``: the SDP on a chain that also learnt ``learn_from``).
-CAUSAL = ("sdp", "ecms", "sdp_own")
+#: The causal strategies of a comparison (``sdp_own``: the SDP on a chain that also learnt ``learn_from``;
+#: ``rule_train``: the rule-based controller tuned on the training cycles).
+CAUSAL = ("sdp", "ecms", "sdp_own", "rule_train")
 AMBIENTS = (-10.0, 0.0)
 GOAL_GAP_PCT = 3.0
 SOC_TOL = 0.01
@@ -88,6 +92,7 @@ class CausalComparison:
     soc_band: float = SOC_TOL
     learn_from: tuple = ()
     validation_own: list = field(default_factory=list)  # the ``learn_from`` chain against the held-out drives
+    rules_train: dict = field(default_factory=dict)  # per ambient, the thresholds of ``rule_train``
 
     def table(self) -> pd.DataFrame:
         return pd.DataFrame(self.rows)
@@ -102,6 +107,7 @@ class CausalComparison:
             out[s] = {"runs": int(len(g)), "max_gap_to_dp_pct": float(g.gap_to_dp_pct.max()),
                       "within_3pct": int(within.sum()), "within_3pct_all": bool(within.all()),
                       "better_than_rule": int(better.sum()), "better_than_rule_all": bool(better.all()),
+                      "better_than_rule_train": int((g.vs_rule_train_pct > 0).sum()),
                       "charge_sustaining": int(sustaining.sum()), "charge_sustaining_all": bool(sustaining.all()),
                       "dsoc_range": (float(g.dsoc.min()), float(g.dsoc.max()))}
         return out
@@ -109,7 +115,7 @@ class CausalComparison:
     def format(self) -> str:
         df = self.table()
         cols = ["cycle", "T_amb", "strategy", "fuel_g", "fuel_corrected_g", "credit_g", "soc_final", "T_cl_final",
-                "gap_to_dp_pct", "vs_rule_pct"]
+                "gap_to_dp_pct", "vs_rule_pct", "vs_rule_train_pct"]
         with pd.option_context("display.width", 200, "display.max_columns", 20):
             txt = df[cols].to_string(index=False, float_format=lambda v: f"{v:.3f}" if abs(v) < 2 else f"{v:.2f}")
         what = ("continuation-corrected (fuel + C(x_N) - C(x_0), Thermal-DP with the 'continued' terminal, "
@@ -121,7 +127,8 @@ class CausalComparison:
             lines.append(f"{s}: within {GOAL_GAP_PCT:g} % of DP on {g['within_3pct']}/{n} runs (max gap "
                          f"{g['max_gap_to_dp_pct']:.2f} %: goal {'met' if g['within_3pct_all'] else 'NOT met'}); "
                          f"better than tuned rule-based on {g['better_than_rule']}/{n} "
-                         f"({'met' if g['better_than_rule_all'] else 'NOT met'}); charge sustaining "
+                         f"({'met' if g['better_than_rule_all'] else 'NOT met'}), than the rule tuned on the "
+                         f"training cycles on {g['better_than_rule_train']}/{n}; charge sustaining "
                          f"(|dSOC| <= {SOC_TOL}) on {g['charge_sustaining']}/{n} "
                          f"({'met' if g['charge_sustaining_all'] else 'NOT met'}; dSOC {g['dsoc_range'][0]:+.4f} to "
                          f"{g['dsoc_range'][1]:+.4f})")
@@ -138,14 +145,17 @@ def _corrected(sim, scen, valuation) -> tuple:
     return sim.summary()["fuel_corrected_g"], np.nan
 
 
-def _row(cycle, T_amb, strategy, sim, dp_corr, rule_corr, t_s, corr, residual=np.nan):
+def _row(cycle, T_amb, strategy, sim, dp_corr, rule_corr, t_s, corr, residual=np.nan, rule_train_corr=np.nan):
+    """A table row: ``vs_rule_pct`` / ``vs_rule_train_pct``, the saving against the rule tuned on this drive /
+    on the training cycles (> 0: less corrected fuel)."""
     s = sim.summary()
     return {"cycle": cycle, "T_amb": T_amb, "strategy": strategy, "fuel_g": s["fuel_g"], "fuel_corrected_g": corr,
             "credit_g": s["fuel_g"] - corr, "residual_g": residual,
             "soc_final": s["soc_final"], "dsoc": s["soc_final"] - s["soc_initial"],
             "T_cl_final": s["T_cl_final_degC"], "T_cab_final": s["T_cab_final_degC"],
             "gap_to_dp_pct": 100.0 * (corr / dp_corr - 1.0) if dp_corr else np.nan,
-            "vs_rule_pct": 100.0 * (1.0 - corr / rule_corr) if rule_corr else np.nan, "time_s": t_s}
+            "vs_rule_pct": 100.0 * (1.0 - corr / rule_corr) if rule_corr else np.nan,
+            "vs_rule_train_pct": 100.0 * (1.0 - corr / rule_train_corr) if rule_train_corr else np.nan, "time_s": t_s}
 
 
 def own_chain(params, sources, settings: dict | None = None) -> tuple[DemandMarkov, dict]:
@@ -179,7 +189,7 @@ def compare_causal(params, *, train=TRAIN_CYCLES, train_logs=(), held_out=HELD_O
     from calib.model.simulate import simulate
     from optimize.formulations.scenario import DPScenario
     from optimize.formulations.solve import solve_thermal
-    from optimize.tuning import tune_rule_based
+    from optimize.tuning import tune_rule_based, tune_rule_on_drives
 
     say = print if progress else (lambda *a, **k: None)
     overlap = (set(train) | set(learn_from)) & set(held_out)
@@ -202,7 +212,7 @@ def compare_causal(params, *, train=TRAIN_CYCLES, train_logs=(), held_out=HELD_O
     own, own_cfg = (own_chain(params, list(train) + list(train_logs) + list(learn_from), own_settings)
                     if learn_from else (None, {}))
     validation, validation_own = [], []
-    rows, policies, timings = [], {}, {}
+    rows, policies, timings, rules_train = [], {}, {}, {}
     for T_amb in ambients:
         validation += [{**r, "T_amb": T_amb} for r in markov.validate(params, held_out, T_amb=T_amb)]
         if own is not None:
@@ -215,6 +225,13 @@ def compare_causal(params, *, train=TRAIN_CYCLES, train_logs=(), held_out=HELD_O
             flush=True)
         pol_own = build_policy(params, own, replace(cfg, **own_cfg), threads=threads) if own is not None else None
         ep = replace(ecms or ECMSParams(), Q_heat_W=base.Q_heat, soc_target=base.soc0)
+        t0 = time.perf_counter()
+        rt = tune_rule_on_drives(params, [replace(base, cycle=c).load_cycle() for c in train], T_amb=T_amb,
+                                 soc0=base.soc0, T_cl0=base.T_cl0, T_cab0=base.T_cab0, Q_heat=base.Q_heat)
+        timings[f"rule_train_tune_s@{T_amb:g}"] = time.perf_counter() - t0
+        rules_train[T_amb] = rt.rule.to_dict() | {"n_feasible": rt.n_feasible}
+        say(f"rule-based tuned on {', '.join(train)} at {T_amb:g} degC: {rt.rule.to_dict()} "
+            f"({rt.n_feasible}/{rt.n_tried} settings charge sustaining on all)", flush=True)
         for cyc in held_out:
             scen = replace(base, cycle=cyc, T_amb=T_amb)
             t0 = time.perf_counter()
@@ -227,8 +244,14 @@ def compare_causal(params, *, train=TRAIN_CYCLES, train_logs=(), held_out=HELD_O
             dp_corr, dp_res = _corrected(dp.sim, scen, valuation)
             rule_corr, rule_res = _corrected(tr.result, scen, valuation)
             kw = dict(T_amb=T_amb, soc0=scen.soc0, T_cl0=scen.T_cl0, T_cab0=scen.T_cab0, Q_heat=scen.Q_heat)
-            rows.append(_row(cyc, T_amb, "dp_thermal", dp.sim, dp_corr, rule_corr, t_dp, dp_corr, dp_res))
-            rows.append(_row(cyc, T_amb, "rule_tuned", tr.result, dp_corr, rule_corr, t_rule, rule_corr, rule_res))
+            t0 = time.perf_counter()
+            rts = simulate(params, scen.load_cycle(), rule_params=rt.rule, **kw)
+            t_rt = time.perf_counter() - t0
+            rt_corr, rt_res = _corrected(rts, scen, valuation)
+            ref = (dp_corr, rule_corr)
+            rows.append(_row(cyc, T_amb, "dp_thermal", dp.sim, *ref, t_dp, dp_corr, dp_res, rt_corr))
+            rows.append(_row(cyc, T_amb, "rule_tuned", tr.result, *ref, t_rule, rule_corr, rule_res, rt_corr))
+            rows.append(_row(cyc, T_amb, "rule_train", rts, *ref, t_rt, rt_corr, rt_res, rt_corr))
             ctrls = [("sdp", SDPController(mp, pol, T_amb)), ("ecms", ECMSController(mp, ep, T_amb))]
             if pol_own is not None:
                 ctrls.append(("sdp_own", SDPController(mp, pol_own, T_amb)))
@@ -236,13 +259,13 @@ def compare_causal(params, *, train=TRAIN_CYCLES, train_logs=(), held_out=HELD_O
                 t0 = time.perf_counter()
                 sim = simulate(params, scen.load_cycle(), ctrl, **kw)
                 t_s = time.perf_counter() - t0
-                rows.append(_row(cyc, T_amb, name, sim, dp_corr, rule_corr, t_s, *_corrected(sim, scen, valuation)))
-            say(f"  {cyc} at {T_amb:g} degC: DP {dp_corr:.2f} g, rule {rule_corr:.2f} g, "
+                rows.append(_row(cyc, T_amb, name, sim, *ref, t_s, *_corrected(sim, scen, valuation), rt_corr))
+            say(f"  {cyc} at {T_amb:g} degC: DP {dp_corr:.2f} g, rule {rule_corr:.2f} g, rule (training) {rt_corr:.2f} g, "
                 + ", ".join(f"{n} {r['fuel_corrected_g']:.2f} g" for (n, _), r in zip(ctrls, rows[-len(ctrls):]))
                 + " (corrected)", flush=True)
     return CausalComparison(rows, markov, validation, policies, timings, valuation,
                             base.cont_soc_band if valuation == "continuation" else SOC_TOL, tuple(learn_from),
-                            validation_own)
+                            validation_own, rules_train)
 
 
 def step_timing(params, controller, cycle="artemis_urban", T_amb=-10.0, reps: int = 3) -> dict:
