@@ -1,5 +1,5 @@
 """README figures that cannot drift: the blocks between ``<!-- figures:NAME -->`` and ``<!-- /figures:NAME -->``
-in README.md are rendered from the benchmarks' JSON (``iptm bench SUITE --json``), committed under
+in README.md (and docs/optimization.md's) are rendered from the benchmarks' JSON (``iptm bench SUITE --json``), committed under
 reports/figures/, from the mutation report reports/mutation.json (written by scripts/mutation.py, which
 ``run`` does not re-run: it takes hours) and from the causal comparisons' reports/causal-SET-VALUATION.json
 (``iptm bench causal``; not re-run either).
@@ -24,6 +24,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 README = ROOT / "README.md"
+DOCS = ROOT / "docs" / "optimization.md"
 JSON_DIR = ROOT / "reports" / "figures"
 SUITES = ("sim",)
 MUTATION_JSON = ROOT / "reports" / "mutation.json"
@@ -81,7 +82,7 @@ def _causal(d: dict) -> str:
                 f"SDP, chain also learnt {len(c['learn_from'])} earlier trips"
                 + (", settings chosen again" if c.get("own_settings") else ""))
             n = g["runs"]
-            bt = "" if s == "rule_train" else (f"{g['better_than_rule_train']}/{n}" if "better_than_rule_train" in g
+            bt = "(itself)" if s == "rule_train" else (f"{g['better_than_rule_train']}/{n}" if "better_than_rule_train" in g
                                                else "not run")
             rows.append(f"| {drives} | {valuation} | {name} | {g['within_3pct']}/{n} | {g['better_than_rule']}/{n} | "
                         f"{bt} | {g['charge_sustaining']}/{n} | {g['max_gap_to_dp_pct']:+.2f} % | "
@@ -89,7 +90,34 @@ def _causal(d: dict) -> str:
     return "\n".join(rows)
 
 
+def _causal_rule_train(d: dict) -> str:
+    """Per drive, the rule tuned on the training cycles against Thermal-DP and the rule tuned on the drive,
+    and the causal controllers' savings against it (docs/optimization.md s.7)."""
+    out = []
+    for valuation in CAUSAL_VALUATIONS:
+        out += ["", f"{valuation.capitalize()} valuation:", "",
+                "| drives | drive | ambient | Thermal-DP g | rule tuned on the drive g | rule tuned on the training "
+                "cycles g (gap to DP, vs the drive's rule) | its SOC_N | SDP vs it | ECMS vs it |",
+                "|---|---|---|---|---|---|---|---|---|"]
+        for (drives, v), c in d["causal"].items():
+            if v != valuation:
+                continue
+            rows = c.get("table") or []
+            by = {(r["cycle"], r["T_amb"], r["strategy"]): r for r in rows}
+            for (cyc, T, strat), r in by.items():
+                if strat != "rule_train":
+                    continue
+                dp, rule = by[(cyc, T, "dp_thermal")], by[(cyc, T, "rule_tuned")]
+                sdp, ecms = by.get((cyc, T, "sdp")), by.get((cyc, T, "ecms"))
+                out.append(f"| {drives} | {cyc} | {T:g} | {dp['fuel_corrected_g']:.2f} | {rule['fuel_corrected_g']:.2f} | "
+                           f"{r['fuel_corrected_g']:.2f} ({r['gap_to_dp_pct']:+.2f} %, {r['vs_rule_pct']:+.2f} %) | "
+                           f"{r['soc_final']:.4f} | {sdp['vs_rule_train_pct']:+.2f} % | {ecms['vs_rule_train_pct']:+.2f} % |")
+    return "\n".join(out[1:])
+
+
 RENDER = {"epa": _epa, "sim-speed": _sim_speed, "mutation": _mutation, "causal": _causal}
+#: Blocks of docs/optimization.md rendered the same way.
+DOC_RENDER = {"causal-rule-train": _causal_rule_train}
 
 
 # --------------------------------------------------------------------------------------------------- README blocks
@@ -109,7 +137,7 @@ def load() -> dict:
             if p.exists():
                 c = json.loads(p.read_text())["causal"]
                 causal[(drives, v)] = {"goals": c["goals"], "learn_from": c.get("learn_from", []),
-                                       "own_settings": c.get("own_settings")}
+                                       "own_settings": c.get("own_settings"), "table": c.get("table", [])}
     if causal:
         d["causal"] = causal
     if MUTATION_JSON.exists():
@@ -122,28 +150,29 @@ def blocks(text: str) -> dict:
     return {m["name"]: m["body"] for m in BLOCK.finditer(text)}
 
 
-def rendered(data: dict, body: str, name: str) -> str:
+def rendered(data: dict, body: str, name: str, render: dict = RENDER) -> str:
     """A block's new body, keeping its inline/multi-line layout (a table starts on its own line)."""
-    out = RENDER[name](data)
+    out = render[name](data)
     return f"\n{out}\n" if body.startswith("\n") else out
 
 
-def render_readme(text: str, data: dict) -> str:
+def render_readme(text: str, data: dict, render: dict = RENDER) -> str:
     def sub(m):
-        return m.group(1) + rendered(data, m["body"], m["name"]) + m.group(4)
+        return m.group(1) + rendered(data, m["body"], m["name"], render) + m.group(4)
 
     return BLOCK.sub(sub, text)
 
 
-def check(text: str, data: dict) -> list:
-    """Differences between README blocks and the JSON: list of (block, in README, from JSON)."""
+def check(text: str, data: dict, render: dict = RENDER) -> list:
+    """Differences between a file's blocks (README: ``RENDER``; docs/optimization.md: ``DOC_RENDER``) and the
+    JSON: list of (block, in the file, from JSON)."""
     found = blocks(text)
-    bad = [(n, "(no block)", "") for n in RENDER if n not in found]
+    bad = [(n, "(no block)", "") for n in render if n not in found]
     for n, body in found.items():
-        if n not in RENDER:
+        if n not in render:
             bad.append((n, body, "(unknown block)"))
             continue
-        want = rendered(data, body, n)
+        want = rendered(data, body, n, render)
         if body.strip() != want.strip():
             bad.append((n, body.strip(), want.strip()))
     return bad
@@ -170,21 +199,23 @@ def main(argv=None) -> int:
     data = load()
     text = README.read_text()
     if cmd == "render":
-        new = render_readme(text, data)
-        if new != text:
-            tmp = README.with_suffix(".tmp")
-            tmp.write_text(new)
-            tmp.replace(README)
+        for path, render in ((README, RENDER), (DOCS, DOC_RENDER)):
+            old = path.read_text()
+            new = render_readme(old, data, render)
+            if new != old:
+                tmp = path.with_suffix(".tmp")
+                tmp.write_text(new)
+                tmp.replace(path)
         src = [bench_json(s) for s in SUITES] + [MUTATION_JSON] + [causal_json(a, b) for a in CAUSAL_SETS
                                                                     for b in CAUSAL_VALUATIONS]
         print(f"README figures rendered from {', '.join(str(p.relative_to(ROOT)) for p in src if p.exists())}")
         return 0
     if cmd == "check":
-        bad = check(text, data)
+        bad = check(text, data) + check(DOCS.read_text(), data, DOC_RENDER)
         for n, have, want in bad:
-            print(f"README block {n!r} differs from the benchmark JSON:\n  README: {have}\n  JSON:   {want}")
+            print(f"block {n!r} differs from the benchmark JSON:\n  file: {have}\n  JSON: {want}")
         if not bad:
-            print("README figures match the benchmark JSON")
+            print("README and docs/optimization.md figures match the benchmark JSON")
         return 1 if bad else 0
     print(__doc__)
     return 2

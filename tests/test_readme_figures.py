@@ -14,6 +14,7 @@ def test_readme_blocks_match_the_benchmark_json():
     assert "sim" in data, "reports/figures/bench-sim.json missing: run `make figures`"
     assert "mutation" in data, "reports/mutation.json missing: run scripts/mutation.py"
     assert figures.check(figures.README.read_text(), data) == []
+    assert figures.check(figures.DOCS.read_text(), data, figures.DOC_RENDER) == []
 
 
 def test_check_catches_an_edited_figure():
