@@ -570,7 +570,7 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold,
 
 @njit(cache=True)  # serial: once per step, a copy
 def _soc_innermost(Vrow, ns, out):
-    """The next cost-to-go ``Vrow`` (SOC outermost, as stored) into ``out`` with SOC innermost, in float64;
+    """The next cost-to-go ``Vrow`` (SOC outermost, as stored) into ``out`` with SOC innermost (in out's dtype);
     False if a value is not finite (the separable kernels then hand the pass to the exact ones)."""
     ng = Vrow.size // ns
     ok = True
@@ -806,7 +806,9 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
     WB = np.empty((2, np_ * ns))
     PP = np.empty((2, np_ * ns))
     LMIN = np.empty(ns)
-    V64 = np.empty(ns * nt)  # the cost-to-go, [coolant, SOC]: SOC innermost for contiguous reads
+    # the cost-to-go, [coolant, SOC]: SOC innermost for contiguous reads; float32 as stored (the same values,
+    # half the cache: 6 % faster, alternated in one process)
+    V32 = np.empty(ns * nt, np.float32)
     R0 = np.empty((np_, ns), np.int64)  # per control, runs of rows whose SOC cell is the row plus a constant
     R1 = np.empty((np_, ns), np.int64)
     RD = np.empty((np_, ns), np.int64)
@@ -826,7 +828,7 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
     for k in range(N - 1, -1, -1):
         cur = k % 2
         nxt = 1 - cur
-        if not _soc_innermost(VT[k + 1], ns, V64):
+        if not _soc_innermost(VT[k + 1], ns, V32):
             return k
         i_lo, i_hi = p_lo, p_hi
         _choose_rows(LV[cur], AC[cur], ns, np_, i_lo, i_hi, level_tol, LMIN, L1T[k])
@@ -853,7 +855,7 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
                     r0, r1, rd = R0[ip], R1[ip], RD[ip]
                     for jj in range(m):
                         o = TBc[ip, j0 + jj] * ns
-                        _lerp_into(W, jj * ns, V64, o, o + ns, amin, amax + 2, TTc[ip, j0 + jj])
+                        _lerp_into(W, jj * ns, V32, o, o + ns, amin, amax + 2, TTc[ip, j0 + jj])
                     m2 = m - m % 2
                     for jj in range(0, m2, 2):
                         _min_runs_pair(best, jj * nr - i_lo, (jj + 1) * nr - i_lo, W, jj * ns, (jj + 1) * ns,
