@@ -143,20 +143,6 @@ def _heater_demand(P, tclg, T_cab, q0, qv):
         qv[j] = _delivered_heat(P, tclg[j], T_cab, q0, 0.0)  # a grid command: the target is not read
 
 
-@njit(inline="always", cache=True)
-def _loc_sel(x, lo, inv, top, n2):
-    """:func:`_loc` with selects instead of branches (``top`` = n - 1, ``n2`` = n - 2), for loops that LLVM
-    is to vectorise: the same cell and fraction."""
-    r = (x - lo) * inv
-    ri = np.floor(r + 0.5)
-    r = ri if abs(r - ri) < _SNAP else r
-    r = r if r >= 0.0 else 0.0
-    r = top if r > top else r
-    i = np.int64(r)
-    i = n2 if i > n2 else i
-    return i, r - i
-
-
 @njit(cache=True)  # a call, not inlined: once per power control and step
 def _coolant_columns2(ip, P, tab, tclg, fclg, lossg, qv, TB, TT, PT, C0):
     """Thermal-DP, power control ``ip``: per coolant node the next coolant's cell and fraction, its penalty
@@ -173,7 +159,6 @@ def _coolant_columns2(ip, P, tab, tclg, fclg, lossg, qv, TB, TT, PT, C0):
     P_e = tab[ip, _T_PE]
     lhv, gam, ceng = P[_MS0 + _LHV], P[_MS0 + _GAMMA], P[_MS0 + _CENG]
     tlo, thi, th = P[_C_TLO], P[_C_THI], P[_C_TH]
-    top = float(nt - 1)
     TBr, TTr, PTr, C0r = TB[ip], TT[ip], PT[ip], C0[ip]
     un = np.uint64(nt)
     for j in range(un):
@@ -183,7 +168,7 @@ def _coolant_columns2(ip, P, tab, tclg, fclg, lossg, qv, TB, TT, PT, C0):
     for j in range(un):
         tn = TTr[j]
         PTr[j] = _excess(tn, tlo, thi, th)
-        bb, tt = _loc_sel(tn, t_lo, t_inv, top, nt - 2)
+        bb, tt = _loc(tn, t_lo, t_inv, nt)
         TBr[j] = bb
         TTr[j] = tt
 
@@ -600,9 +585,9 @@ def _soc_col(ip, P, tab, L1n, s_off, s_lo, s_inv, ns, i_lo, i_hi, level_tol, rea
     (+inf where the control is not allowed), the next SOC's cell (-1 where not allowed), the weights along
     SOC (the reach rule's where ``reach``) and the SOC penalty's stage cost.
 
-    :func:`_soc_cell` and :func:`_loc` written out with selects instead of branches, on unsigned indices, so
-    that LLVM vectorises the loop (3.6 times faster alone); the weights and penalty of a row whose cell is -1
-    are written too and never read."""
+    :func:`_soc_cell` written out: a disallowed row is marked by selects, not skipped by a branch out of the
+    loop, and the indices are unsigned, so that LLVM vectorises the loop (3.6 times faster alone); the weights
+    and penalty of a row whose cell is -1 are written too and never read."""
     o = np.uint64(ip * ns)
     u_lo, u_hi = np.uint64(i_lo), np.uint64(i_hi)
     if tab[ip, _T_OK] == 0.0:
@@ -611,17 +596,9 @@ def _soc_col(ip, P, tab, L1n, s_off, s_lo, s_inv, ns, i_lo, i_hi, level_tol, rea
             AC[o + i] = -1
         return
     PEN, lo, hi, sh = P[_C_PEN], P[_C_SLO], P[_C_SHI], P[_C_SH]
-    top = float(ns - 1)
     for i in range(u_lo, u_hi):
         sn = tab[ip, np.uint64(_T_SOC0) + i]
-        r = (sn - s_off - s_lo) * s_inv  # :func:`_loc`: snap, clip (a NaN to 0; it is not allowed below)
-        ri = np.floor(r + 0.5)
-        r = ri if abs(r - ri) < _SNAP else r
-        r = r if r >= 0.0 else 0.0
-        r = top if r > top else r
-        a = np.int64(r)
-        a = ns - 2 if a > ns - 2 else a
-        ta = r - a
+        a, ta = _loc(sn - s_off, s_lo, s_inv, ns)  # a NaN charge gives cell 0; it is not allowed below
         la = np.float64(L1n[np.uint64(a)])
         lb = np.float64(L1n[np.uint64(a + 1)])
         # the engine's exact interpolation: a corner of weight 0 is not read
