@@ -733,6 +733,82 @@ def _min_runs_pair(best, ob0, ob1, W, ow0, ow1, a0, a1, ip, ns, PP, WA, WB, r0, 
             best[u1] = v1 if v1 < b1 else b1
 
 
+
+@njit(inline="always", cache=True)
+def _column(K, CB, CC, col, cb, cc, tt, t2, add):
+    """Heat column ``col`` of Thermal-Cabin-DP's separable kernel: its next coolant's and cabin's cells, the
+    bilinear weights of the cell's corners (00, 01: next cabin node, 10: next coolant node, 11) and its stage
+    cost (fuel and penalties)."""
+    CB[col] = cb
+    CC[col] = cc
+    K[col, 0] = (1.0 - tt) * (1.0 - t2)
+    K[col, 1] = (1.0 - tt) * t2
+    K[col, 2] = tt * (1.0 - t2)
+    K[col, 3] = tt * t2
+    K[col, 4] = add
+
+@njit(inline="always", cache=True)
+def _soc_row(U, stamp, r, V, ip, ns, WA, WB, r0, r1, rd, nrun):
+    """Thermal-Cabin-DP's separable kernel: row ``r`` (a (coolant, cabin) node) of the cost-to-go interpolated
+    along SOC for control ``ip``'s SOC rows (its runs), U[r * ns + row], from V ([coolant, cabin, SOC]); once
+    per control: ``stamp[r]`` holds the control it was computed for."""
+    if stamp[r] == ip:
+        return
+    stamp[r] = ip
+    o = np.uint64(r * ns)
+    for ru in range(nrun):
+        d = rd[ru]
+        for i in range(r0[ru], r1[ru]):
+            u = np.uint64(ip * ns + i)
+            x = o + np.uint64(i + d)
+            U[o + np.uint64(i)] = WA[u] * V[x] + WB[u] * V[x + np.uint64(1)]
+
+
+@njit(inline="always", cache=True)
+def _min_corners4(best, ob, U, o00, o01, o10, o11, K, q, ip, ns, PP, r0, r1, rd, nrun):
+    """Four heat columns of one (coolant, cabin) cell (rows q..q+3 of K: corner weights, stage cost) into the
+    running minimum ``best[ob + row]``: the bilinear combination of the cell's corners (rows of U at offsets
+    ``o00``, ``o01`` next cabin node, ``o10`` next coolant node, ``o11``), plus the stage cost and the row's SOC
+    penalty. The corners are read once for the four."""
+    a00, a01, a02, a03, a0 = K[q, 0], K[q, 1], K[q, 2], K[q, 3], K[q, 4]
+    b00, b01, b02, b03, b0 = K[q + 1, 0], K[q + 1, 1], K[q + 1, 2], K[q + 1, 3], K[q + 1, 4]
+    c00, c01, c02, c03, c0 = K[q + 2, 0], K[q + 2, 1], K[q + 2, 2], K[q + 2, 3], K[q + 2, 4]
+    d00, d01, d02, d03, d0 = K[q + 3, 0], K[q + 3, 1], K[q + 3, 2], K[q + 3, 3], K[q + 3, 4]
+    u00, u01, u10, u11 = np.uint64(o00), np.uint64(o01), np.uint64(o10), np.uint64(o11)
+    for ru in range(nrun):
+        for i in range(r0[ru], r1[ru]):
+            ui = np.uint64(i)
+            x0 = U[u00 + ui]
+            x1 = U[u01 + ui]
+            x2 = U[u10 + ui]
+            x3 = U[u11 + ui]
+            va = a0 + (a00 * x0 + a01 * x1 + a02 * x2 + a03 * x3)
+            vb = b0 + (b00 * x0 + b01 * x1 + b02 * x2 + b03 * x3)
+            vc = c0 + (c00 * x0 + c01 * x1 + c02 * x2 + c03 * x3)
+            vd = d0 + (d00 * x0 + d01 * x1 + d02 * x2 + d03 * x3)
+            v = va if va < vb else vb
+            v = v if v < vc else vc
+            v = v if v < vd else vd
+            v = v + PP[np.uint64(ip * ns + i)]
+            ub = np.uint64(ob + i)
+            bo = best[ub]
+            best[ub] = v if v < bo else bo
+
+
+@njit(inline="always", cache=True)
+def _min_corners1(best, ob, U, o00, o01, o10, o11, K, q, ip, ns, PP, r0, r1, rd, nrun):
+    """:func:`_min_corners4` for one column."""
+    a00, a01, a02, a03, a0 = K[q, 0], K[q, 1], K[q, 2], K[q, 3], K[q, 4]
+    u00, u01, u10, u11 = np.uint64(o00), np.uint64(o01), np.uint64(o10), np.uint64(o11)
+    for ru in range(nrun):
+        for i in range(r0[ru], r1[ru]):
+            ui = np.uint64(i)
+            v = (a0 + (a00 * U[u00 + ui] + a01 * U[u01 + ui] + a02 * U[u10 + ui] + a03 * U[u11 + ui])
+                 + PP[np.uint64(ip * ns + i)])
+            ub = np.uint64(ob + i)
+            bo = best[ub]
+            best[ub] = v if v < bo else bo
+
 @njit(parallel=True, cache=True)
 def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, nchunk):
     """Thermal-DP backward pass when the level depends on SOC alone (a terminal set on SOC only, the default):
@@ -860,10 +936,15 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
     :func:`backward2_sep` for :func:`backward3` (multilinear or reach interpolation; not the cubic):
     returns -1, or the step whose next cost-to-go holds a non-finite value.
 
-    Per power control and state (coolant, cabin), each distinct heater column (the heats the core can
-    deliver, the first limited one, hold the bound) is interpolated along cabin and coolant once for every
-    SOC node it reads; a state-control pair then costs two contiguous reads and the weights along SOC.
-    The cost-to-go is kept SOC-innermost ([coolant, cabin, SOC]) so those reads are contiguous."""
+    The order of the interpolation is turned round: SOC first. Per power control, the cost-to-go is
+    interpolated along SOC with the control's weights for each (coolant, cabin) node a heat column reads, once
+    (:func:`_soc_row`). A heat column (the heats the core can deliver, the first limited one, hold the bound)
+    then costs, per SOC row, the bilinear combination of its (coolant, cabin) cell's four corners. The heats
+    change the next coolant and cabin temperatures by hundredths of a cell, so most columns of a state share
+    one cell: its corners are read once for four columns (:func:`_min_corners4`). The value is the same
+    trilinear interpolation, rounded in another order (the stored float32 values are equal to those of
+    the cabin-first order, or one unit of the last place apart). The cost-to-go is kept SOC-innermost
+    ([coolant, cabin, SOC]) so the reads along SOC are contiguous."""
     ns, nt, nc, nq = socg.size, tclg.size, cabg.size, Q.size
     nq1 = nq + 1 if hold else nq
     np_ = big.shape[1]
@@ -877,7 +958,6 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
     nh = nc if hold else 0
     qlim, nunl, pcu, cu, tu, qh, hsk, TB, TT, PT, QFUEL, C0 = _cabin_work(np_, nt, nc, nq, nq1, nh)
     VS = np.empty(ng * ns)  # the cost-to-go, [coolant, cabin, SOC]
-    SV = np.empty((nc * nq1, nt * ns))  # cabin-interpolated slices, [coolant, SOC] per (cabin node, column)
     # per (power control, SOC node), control-major: level, SOC cell (-1: not a candidate)
     LV = np.empty(np_ * ns)
     AC = np.empty(np_ * ns, np.int64)
@@ -898,14 +978,6 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
         s_off = w[k, 5]
         lb, off, off_n = _cabin_offsets(P, w[k])
         _cabin_columns(P, cabg, tclg, Q, off, off_n, lb, hold, qlim, nunl, qh, hsk, pcu, cu, tu)
-        for r in prange(nc * nq1):
-            m = r // nq1
-            iq = r - m * nq1
-            c = cu[m, iq]
-            t2 = tu[m, iq]
-            for t in range(nt):
-                o0 = (t * nc + c) * ns
-                _lerp_into(SV[r], t * ns, VS, o0, o0 + ns, 0, ns, t2)
         i_lo, i_hi = _active(P, w[k, 4], s_lo, s_inv, ns, skip)
         for ip in prange(np_):  # one parallel region for both sides of a control
             _coolant_columns(ip, P, tab, tclg, fclg, lossg, Q, qh, nh, TB, TT, PT, QFUEL, C0)
@@ -919,10 +991,13 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
             if g1 <= g0:
                 continue
             best = np.full((g1 - g0) * nr, np.inf)  # [state (coolant, cabin), SOC row]
-            W = np.empty((nq + 2) * ns)  # per heat column, the cost-to-go interpolated along cabin and coolant
-            ADD = np.empty(nq + 2)  # a column's stage cost (fuel and penalties)
+            U = np.empty(ng * ns)  # the cost-to-go interpolated along SOC for one control, [coolant, cabin, SOC row]
+            stamp = np.full(ng, -1, np.int64)  # the control a row of U was computed for
+            CB = np.empty(nq + 2, np.int64)  # per heat column: its next coolant's and cabin's cells, ...
+            CC = np.empty(nq + 2, np.int64)
+            K = np.empty((nq + 2, 5))  # ... the weights of the cell's four corners and the stage cost
             for ip in range(np_):
-                nrun, amin, amax = RN[ip, 0], RN[ip, 1], RN[ip, 2]
+                nrun = RN[ip, 0]
                 if nrun == 0:
                     continue
                 r0, r1, rd = R0[ip], R1[ip], RD[ip]
@@ -931,38 +1006,44 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
                     m = g - j * nc
                     ob = (g - g0) * nr - i_lo
                     nu_ = nunl[j, m]
-                    ncol = nu_ + (1 if nu_ < nq else 0) + (0 if hsk[j, m] else 1)
-                    for col in range(ncol):
-                        if col < nu_ or (col == ncol - 1 and not hsk[j, m]):
-                            iq = col if col < nu_ else nq
-                            cq = col if col < nu_ else nq + m
-                            rr = m * nq1 + iq
-                            tt = TT[ip, j, cq]
-                            o0 = TB[ip, j, cq] * ns
-                            _lerp_into(W, col * ns, SV[rr], o0, o0 + ns, amin, amax + 2, tt)
-                            ADD[col] = C0[ip, j] + PEN * (PT[ip, j, cq] + pcu[m, iq])
-                        else:
-                            # the first heater-limited control: the core's limit heat, both next temperatures
-                            # depend on the state
-                            tn, tc, pt, pc = _limited_next(P, tab[ip, _T_PE], qlim[j, m], QFUEL[ip, j], tclg[j],
-                                                           lossg[j], cabg[m] + off, lb)
-                            pen = pt + pc
-                            bb, tt = _loc(tn, t_lo, t_inv, nt)
-                            c, t2 = _loc(tc - off_n, c_lo, c_inv, nc)
-                            o0 = (bb * nc + c) * ns
-                            o1 = o0 + nc * ns
-                            u0, u1, un, uw = np.uint64(o0), np.uint64(o1), np.uint64(ns), np.uint64(col * ns)
-                            for s in range(np.uint64(amin), np.uint64(amax + 2)):
-                                W[uw + s] = ((1.0 - tt) * ((1.0 - t2) * VS[u0 + s] + t2 * VS[u0 + un + s])
-                                        + tt * ((1.0 - t2) * VS[u1 + s] + t2 * VS[u1 + un + s]))
-                            ADD[col] = C0[ip, j] + PEN * pen
-                    # the columns into the running minimum in their order, two at a time
-                    c2 = ncol - ncol % 2
-                    for col in range(0, c2, 2):
-                        _min_runs_pair(best, ob, ob, W, col * ns, (col + 1) * ns, ADD[col], ADD[col + 1], ip, ns, PP,
-                                       WA, WB, r0, r1, rd, nrun)
-                    for col in range(c2, ncol):
-                        _min_runs(best, ob, W, col * ns, ADD[col], ip, ns, PP, WA, WB, r0, r1, rd, nrun)
+                    c0 = C0[ip, j]
+                    for iq in range(nu_):  # the heats the core delivers in full
+                        _column(K, CB, CC, iq, TB[ip, j, iq], cu[m, iq], TT[ip, j, iq], tu[m, iq],
+                                c0 + PEN * (PT[ip, j, iq] + pcu[m, iq]))
+                    ncol = nu_
+                    if nu_ < nq:
+                        # the first heater-limited control: the core's limit heat, both next temperatures
+                        # depend on the state
+                        tn, tc, pt, pc = _limited_next(P, tab[ip, _T_PE], qlim[j, m], QFUEL[ip, j], tclg[j],
+                                                       lossg[j], cabg[m] + off, lb)
+                        bb, tt = _loc(tn, t_lo, t_inv, nt)
+                        c, t2 = _loc(tc - off_n, c_lo, c_inv, nc)
+                        _column(K, CB, CC, ncol, bb, c, tt, t2, c0 + PEN * (pt + pc))
+                        ncol += 1
+                    if not hsk[j, m]:  # hold the bound
+                        _column(K, CB, CC, ncol, TB[ip, j, nq + m], cu[m, nq], TT[ip, j, nq + m], tu[m, nq],
+                                c0 + PEN * (PT[ip, j, nq + m] + pcu[m, nq]))
+                        ncol += 1
+                    # groups: consecutive columns whose next (coolant, cabin) lies in the same cell (the grid's
+                    # heats are in order, so their cells change at most once along each axis)
+                    a = 0
+                    while a < ncol:
+                        e = a + 1
+                        while e < ncol and CB[e] == CB[a] and CC[e] == CC[a]:
+                            e += 1
+                        r00 = CB[a] * nc + CC[a]
+                        for r in (r00, r00 + 1, r00 + nc, r00 + nc + 1):
+                            _soc_row(U, stamp, r, VS, ip, ns, WA, WB, r0, r1, rd, nrun)
+                        o00 = r00 * ns
+                        o10 = o00 + nc * ns
+                        e4 = e - (e - a) % 4
+                        for q in range(a, e4, 4):
+                            _min_corners4(best, ob, U, o00, o00 + ns, o10, o10 + ns, K, q, ip, ns, PP, r0, r1, rd,
+                                          nrun)
+                        for q in range(e4, e):
+                            _min_corners1(best, ob, U, o00, o00 + ns, o10, o10 + ns, K, q, ip, ns, PP, r0, r1, rd,
+                                          nrun)
+                        a = e
             for ii in range(nr):
                 for g in range(g0, g1):
                     VT[k, (i_lo + ii) * ng + g] = best[(g - g0) * nr + ii]
