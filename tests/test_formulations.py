@@ -763,6 +763,69 @@ def test_fused_locate_snaps_to_a_node_and_puts_the_last_node_in_the_last_cell():
     assert _loc(7.0, lo, inv, n) == (3, 1.0) and _loc(-1.0, lo, inv, n) == (0, 0.0)
 
 
+def _stretch_case(rng, curv, kink):
+    """Heat columns of one cell as the separable Thermal-Cabin kernel sees them: fractions affine in the column
+    (steps tau, sigma), a stage cost with a penalty that starts at column ``kink`` (none: -1), corners whose
+    mixed difference (x11 - x10 - x01 + x00) is about ``curv``; SOC rows in two runs."""
+    from optimize.formulations.fused import _column
+
+    ncol, ns = 13, 30
+    K = np.empty((ncol + 2, 7))
+    CB = np.zeros(ncol + 2, np.int64)
+    CC = np.zeros(ncol + 2, np.int64)
+    tau, sig = -0.06, 0.07
+    for q in range(ncol):
+        add = 0.05 + (2.0 * (kink - q) if 0 <= kink and q < kink else 0.0)
+        _column(K, CB, CC, q, 0, 0, 0.9 + tau * q, 0.05 + sig * q, add)
+    U = np.empty(4 * ns)
+    base = 100.0 + rng.random(ns)
+    U[:ns] = base
+    U[ns:2 * ns] = base + rng.normal(0.0, 0.05, ns)  # next cabin node
+    U[2 * ns:3 * ns] = base + rng.normal(0.0, 0.05, ns)  # next coolant node
+    U[3 * ns:] = U[ns:2 * ns] + U[2 * ns:3 * ns] - base + curv * rng.random(ns)
+    PP = rng.random(ns) * 1e-3
+    r0, r1, rd = np.array([2, 11], np.int64), np.array([11, 27], np.int64), np.zeros(2, np.int64)
+    return K, U, PP, r0, r1, rd, ncol, ns
+
+
+@pytest.mark.parametrize("curv,kink", [(0.0, -1), (-3.0, -1), (0.3, 5), (-0.3, 5), (-3.0, 9)])
+def test_fused_heat_stretches_equal_every_column(curv, kink):
+    """The separable Thermal-Cabin kernel's least cost over a cell's heat columns from the ends of the stretches
+    where the stage cost is affine, plus the inner columns of the rows where the curvature allows an interior
+    minimum (:func:`_min_stretches`), against evaluating every column: the same minimum bit for bit, on cases
+    with interior minima (a positive curvature, a penalty that stops inside the range)."""
+    from optimize.formulations.fused import _affine_fractions, _min_corners1, _min_stretches
+
+    rng = np.random.default_rng(7)
+    K, U, PP, r0, r1, rd, ncol, ns = _stretch_case(rng, curv, kink)
+    assert _affine_fractions(K, 0, ncol)
+    every = np.full(ns, np.inf)
+    for q in range(ncol):
+        _min_corners1(every, 0, U, 0, ns, 2 * ns, 3 * ns, K, q, 0, ns, PP, r0, r1, rd, 2)
+    got = np.full(ns, np.inf)
+    _min_stretches(got, 0, U, 0, ns, 2 * ns, 3 * ns, K, np.empty(ncol, np.int64), 0, ncol, 0, ns, PP, r0, r1, rd, 2)
+    np.testing.assert_array_equal(got, every)
+    rows = np.r_[2:27]
+    vals = np.array([[K[q, 4] + K[q, 0] * U[i] + K[q, 1] * U[ns + i] + K[q, 2] * U[2 * ns + i] + K[q, 3] * U[3 * ns + i]
+                      for q in range(ncol)] for i in rows])
+    least = np.argmin(vals, axis=1)
+    # tau * sigma < 0: a negative mixed difference is a positive curvature, which can put the least cost
+    # between the ends and the column where the penalty stops; the cases can tell a method that reads only those
+    assert ((least != 0) & (least != ncol - 1) & (least != kink)).any() == (curv < 0)
+    assert (least == kink).any() == (kink > 0)
+
+
+def test_fused_affine_fractions_refuses_uneven_columns():
+    """The stretch minimum needs fractions that change evenly from column to column; otherwise the kernel
+    evaluates every column."""
+    from optimize.formulations.fused import _affine_fractions
+
+    K, *_ = _stretch_case(np.random.default_rng(1), 0.0, -1)
+    assert _affine_fractions(K, 0, 13)
+    K[6, 5] += 1e-6
+    assert not _affine_fractions(K, 0, 13) and _affine_fractions(K, 0, 6)
+
+
 def test_problem_layout_gives_the_kernels_the_grids_ends_and_steps_and_the_outcome_its_speed(params):
     """The parameter vector the kernels read holds each state grid's ends and step, the step being the
     unit of the penalty for leaving the grid (a 4-K coolant grid from 10 degC: 4 K, not the sum of two

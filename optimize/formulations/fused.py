@@ -737,8 +737,8 @@ def _min_runs_pair(best, ob0, ob1, W, ow0, ow1, a0, a1, ip, ns, PP, WA, WB, r0, 
 @njit(inline="always", cache=True)
 def _column(K, CB, CC, col, cb, cc, tt, t2, add):
     """Heat column ``col`` of Thermal-Cabin-DP's separable kernel: its next coolant's and cabin's cells, the
-    bilinear weights of the cell's corners (00, 01: next cabin node, 10: next coolant node, 11) and its stage
-    cost (fuel and penalties)."""
+    bilinear weights of the cell's corners (00, 01: next cabin node, 10: next coolant node, 11), its stage
+    cost (fuel and penalties) and the two fractions."""
     CB[col] = cb
     CC[col] = cc
     K[col, 0] = (1.0 - tt) * (1.0 - t2)
@@ -746,6 +746,8 @@ def _column(K, CB, CC, col, cb, cc, tt, t2, add):
     K[col, 2] = tt * (1.0 - t2)
     K[col, 3] = tt * t2
     K[col, 4] = add
+    K[col, 5] = tt
+    K[col, 6] = t2
 
 @njit(inline="always", cache=True)
 def _soc_row(U, stamp, r, V, ip, ns, WA, WB, r0, r1, rd, nrun):
@@ -808,6 +810,84 @@ def _min_corners1(best, ob, U, o00, o01, o10, o11, K, q, ip, ns, PP, r0, r1, rd,
             ub = np.uint64(ob + i)
             bo = best[ub]
             best[ub] = v if v < bo else bo
+
+
+@njit(inline="always", cache=True)
+def _affine_fractions(K, a, e):
+    """Whether the next coolant's and cabin's fractions of heat columns a..e-1 (one cell) change by the same
+    amount from column to column, as they do with the grid's evenly spaced heats and heat rates linear in the
+    heat (up to rounding and the locate's snap to a node, 1e-9 of a cell)."""
+    for q in range(a + 1, e - 1):
+        if abs(K[q + 1, 5] - 2.0 * K[q, 5] + K[q - 1, 5]) > 1e-8 or abs(K[q + 1, 6] - 2.0 * K[q, 6] + K[q - 1, 6]) > 1e-8:
+            return False
+    return True
+
+
+@njit(inline="always", cache=True)
+def _min_stretches(best, ob, U, o00, o01, o10, o11, K, CAND, a, e, ip, ns, PP, r0, r1, rd, nrun):
+    """The least cost over the grid's heat columns a..e-1 of one cell (:func:`_affine_fractions`), into the
+    running minimum ``best[ob + row]``, the same as evaluating every column (:func:`_min_corners1`).
+
+    Along the columns the fractions are affine in the column index, so the interpolated cost-to-go is a
+    quadratic in it, of curvature tau * sigma * (x11 - x10 - x01 + x00) (tau, sigma: the fractions' steps);
+    the stage cost is affine between the columns where a penalty starts or stops (its second difference is
+    not zero). Between two such columns (a stretch of length L) a quadratic has an interior minimum only if
+    its curvature g is positive and the ends differ by less than g L^2. So the ends of every stretch are
+    evaluated for all rows (vectorised), and the inner columns only for the rows where that test, with a
+    margin of two times and 1e-9 of the value, does not rule an interior minimum out."""
+    n = 0
+    CAND[n] = a
+    n += 1
+    for q in range(a + 1, e - 1):
+        d2 = K[q + 1, 4] - 2.0 * K[q, 4] + K[q - 1, 4]
+        if abs(d2) > 1e-12 * abs(K[q, 4]):
+            CAND[n] = q
+            n += 1
+    CAND[n] = e - 1
+    n += 1
+    gu = (K[e - 1, 5] - K[a, 5]) / (e - 1 - a) * ((K[e - 1, 6] - K[a, 6]) / (e - 1 - a))
+    for c in range(n - 1):
+        qs, qe = CAND[c], CAND[c + 1]
+        ln = qe - qs
+        gl = 2.0 * gu * ln * ln
+        s00, s01, s02, s03, s0 = K[qs, 0], K[qs, 1], K[qs, 2], K[qs, 3], K[qs, 4]
+        e00, e01, e02, e03, e0 = K[qe, 0], K[qe, 1], K[qe, 2], K[qe, 3], K[qe, 4]
+        u00, u01, u10, u11 = np.uint64(o00), np.uint64(o01), np.uint64(o10), np.uint64(o11)
+        flagged = 0
+        for ru in range(nrun):
+            for i in range(r0[ru], r1[ru]):
+                ui = np.uint64(i)
+                x0 = U[u00 + ui]
+                x1 = U[u01 + ui]
+                x2 = U[u10 + ui]
+                x3 = U[u11 + ui]
+                vs = s0 + (s00 * x0 + s01 * x1 + s02 * x2 + s03 * x3)
+                ve = e0 + (e00 * x0 + e01 * x1 + e02 * x2 + e03 * x3)
+                v = vs if vs < ve else ve
+                v = v + PP[np.uint64(ip * ns + i)]
+                ub = np.uint64(ob + i)
+                bo = best[ub]
+                best[ub] = v if v < bo else bo
+                g = gl * (x3 - x2 - x1 + x0)
+                flagged += 1 if (g > 0.0 and abs(ve - vs) < g + 1e-9 * abs(vs)) else 0
+        if flagged == 0 or ln < 2:
+            continue
+        for ru in range(nrun):  # the rows where an inner column may be least: all of them
+            for i in range(r0[ru], r1[ru]):
+                x0 = U[o00 + i]
+                x1 = U[o01 + i]
+                x2 = U[o10 + i]
+                x3 = U[o11 + i]
+                vs = s0 + (s00 * x0 + s01 * x1 + s02 * x2 + s03 * x3)
+                ve = e0 + (e00 * x0 + e01 * x1 + e02 * x2 + e03 * x3)
+                g = gl * (x3 - x2 - x1 + x0)
+                if not (g > 0.0 and abs(ve - vs) < g + 1e-9 * abs(vs)):
+                    continue
+                pp = PP[ip * ns + i]
+                for q in range(qs + 1, qe):
+                    v = (K[q, 4] + (K[q, 0] * x0 + K[q, 1] * x1 + K[q, 2] * x2 + K[q, 3] * x3)) + pp
+                    if v < best[ob + i]:
+                        best[ob + i] = v
 
 @njit(parallel=True, cache=True)
 def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, nchunk):
@@ -941,10 +1021,13 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
     (:func:`_soc_row`). A heat column (the heats the core can deliver, the first limited one, hold the bound)
     then costs, per SOC row, the bilinear combination of its (coolant, cabin) cell's four corners. The heats
     change the next coolant and cabin temperatures by hundredths of a cell, so most columns of a state share
-    one cell: its corners are read once for four columns (:func:`_min_corners4`). The value is the same
-    trilinear interpolation, rounded in another order (the stored float32 values are equal to those of
-    the cabin-first order, or one unit of the last place apart). The cost-to-go is kept SOC-innermost
-    ([coolant, cabin, SOC]) so the reads along SOC are contiguous."""
+    one cell: its corners are read once for four columns (:func:`_min_corners4`). Over the grid's heats of a
+    cell the least cost is taken from the ends of the stretches where the stage cost is affine, and from
+    the inner columns only where the curvature allows an interior minimum (:func:`_min_stretches`: the same
+    minimum as every column's). The value is the same trilinear interpolation, rounded in another order
+    (the stored float32 values are equal to those of the cabin-first order, or one unit of the last place
+    apart). The cost-to-go is kept SOC-innermost ([coolant, cabin, SOC]) so the reads along SOC are
+    contiguous."""
     ns, nt, nc, nq = socg.size, tclg.size, cabg.size, Q.size
     nq1 = nq + 1 if hold else nq
     np_ = big.shape[1]
@@ -995,7 +1078,8 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
             stamp = np.full(ng, -1, np.int64)  # the control a row of U was computed for
             CB = np.empty(nq + 2, np.int64)  # per heat column: its next coolant's and cabin's cells, ...
             CC = np.empty(nq + 2, np.int64)
-            K = np.empty((nq + 2, 5))  # ... the weights of the cell's four corners and the stage cost
+            K = np.empty((nq + 2, 7))  # ... the weights of the cell's four corners, the stage cost, the fractions
+            CAND = np.empty(nq + 2, np.int64)  # a group's heat columns where the minimum can lie
             for ip in range(np_):
                 nrun = RN[ip, 0]
                 if nrun == 0:
@@ -1036,6 +1120,11 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
                             _soc_row(U, stamp, r, VS, ip, ns, WA, WB, r0, r1, rd, nrun)
                         o00 = r00 * ns
                         o10 = o00 + nc * ns
+                        eg = min(e, nu_)  # the grid's heats of the group; then the limited one and the hold
+                        if eg - a >= 3 and _affine_fractions(K, a, eg):
+                            _min_stretches(best, ob, U, o00, o00 + ns, o10, o10 + ns, K, CAND, a, eg, ip, ns, PP, r0,
+                                           r1, rd, nrun)
+                            a = eg
                         e4 = e - (e - a) % 4
                         for q in range(a, e4, 4):
                             _min_corners4(best, ob, U, o00, o00 + ns, o10, o10 + ns, K, q, ip, ns, PP, r0, r1, rd,
