@@ -156,8 +156,8 @@ def _check_separable(b, vg, vs):
      {"interp": "multilinear", "cabin": "absolute"}),
 ])
 def test_fused_kernel_equals_generic_engine_separable_on_a_cold_drive(params, nx, scen, grids, kw):
-    """The separable kernels (levels per SOC node, the cost-to-go interpolated along coolant and cabin
-    first) on cold starts, the heater limited by the core at first: :func:`_check_separable`. In
+    """The separable kernels (levels per SOC node; the cost-to-go interpolated along the coolant first, or in
+    Thermal-Cabin-DP along SOC first) on cold starts, the heater limited by the core at first: :func:`_check_separable`. In
     Thermal-DP on the paper's grids the value functions are equal to float32 rounding where the terminal
     set is reachable."""
     from optimize.formulations.fused import backward_pass_fused

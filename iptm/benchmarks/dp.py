@@ -60,7 +60,9 @@ def run(quick: bool = False, halve: bool = False) -> dict:
         # weighted reads of the cost-to-go interpolated along coolant and cabin, the stage cost and the minimum: 6;
         # that interpolation, shared by the SOC rows, about 4 per pair) and 5 reads (40 bytes), in loops the
         # compiler vectorises, so their flop bound is the vector peak (the matrix product's rate), not the
-        # scalar one; their reads come from cache, so the memory figure is not their bound either
+        # scalar one; their reads come from cache, so the memory figure is not their bound either. Thermal-Cabin's
+        # separable kernel evaluates only some heats of a cell (the ends of affine stretches), so its
+        # evaluations/s count the pairs it settles, not the pairs it computes
         sep = r["engine"] == "fused-separable"
         fl, by = (10.0, 40.0) if sep else (30.0, 64.0)
         r["flops_per_evaluation"] = fl
