@@ -764,6 +764,9 @@ def _soc_row(U, stamp, r, V, ip, ns, WA, WB, r0, r1, rd, nrun):
             u = np.uint64(ip * ns + i)
             x = o + np.uint64(i + d)
             U[o + np.uint64(i)] = WA[u] * V[x] + WB[u] * V[x + np.uint64(1)]
+        if ru + 1 < nrun:  # rows between runs are not candidates: +inf, so the passes over [r0[0], r1[-1]) skip them
+            for i in range(r1[ru], r0[ru + 1]):
+                U[o + np.uint64(i)] = np.inf
 
 
 @njit(inline="always", cache=True)
@@ -777,24 +780,23 @@ def _min_corners4(best, ob, U, o00, o01, o10, o11, K, q, ip, ns, PP, r0, r1, rd,
     c00, c01, c02, c03, c0 = K[q + 2, 0], K[q + 2, 1], K[q + 2, 2], K[q + 2, 3], K[q + 2, 4]
     d00, d01, d02, d03, d0 = K[q + 3, 0], K[q + 3, 1], K[q + 3, 2], K[q + 3, 3], K[q + 3, 4]
     u00, u01, u10, u11 = np.uint64(o00), np.uint64(o01), np.uint64(o10), np.uint64(o11)
-    for ru in range(nrun):
-        for i in range(r0[ru], r1[ru]):
-            ui = np.uint64(i)
-            x0 = U[u00 + ui]
-            x1 = U[u01 + ui]
-            x2 = U[u10 + ui]
-            x3 = U[u11 + ui]
-            va = a0 + (a00 * x0 + a01 * x1 + a02 * x2 + a03 * x3)
-            vb = b0 + (b00 * x0 + b01 * x1 + b02 * x2 + b03 * x3)
-            vc = c0 + (c00 * x0 + c01 * x1 + c02 * x2 + c03 * x3)
-            vd = d0 + (d00 * x0 + d01 * x1 + d02 * x2 + d03 * x3)
-            v = va if va < vb else vb
-            v = v if v < vc else vc
-            v = v if v < vd else vd
-            v = v + PP[np.uint64(ip * ns + i)]
-            ub = np.uint64(ob + i)
-            bo = best[ub]
-            best[ub] = v if v < bo else bo
+    for i in range(r0[0], r1[nrun - 1]):
+        ui = np.uint64(i)
+        x0 = U[u00 + ui]
+        x1 = U[u01 + ui]
+        x2 = U[u10 + ui]
+        x3 = U[u11 + ui]
+        va = a0 + (a00 * x0 + a01 * x1 + a02 * x2 + a03 * x3)
+        vb = b0 + (b00 * x0 + b01 * x1 + b02 * x2 + b03 * x3)
+        vc = c0 + (c00 * x0 + c01 * x1 + c02 * x2 + c03 * x3)
+        vd = d0 + (d00 * x0 + d01 * x1 + d02 * x2 + d03 * x3)
+        v = va if va < vb else vb
+        v = v if v < vc else vc
+        v = v if v < vd else vd
+        v = v + PP[np.uint64(ip * ns + i)]
+        ub = np.uint64(ob + i)
+        bo = best[ub]
+        best[ub] = v if v < bo else bo
 
 
 @njit(inline="always", cache=True)
@@ -802,14 +804,13 @@ def _min_corners1(best, ob, U, o00, o01, o10, o11, K, q, ip, ns, PP, r0, r1, rd,
     """:func:`_min_corners4` for one column."""
     a00, a01, a02, a03, a0 = K[q, 0], K[q, 1], K[q, 2], K[q, 3], K[q, 4]
     u00, u01, u10, u11 = np.uint64(o00), np.uint64(o01), np.uint64(o10), np.uint64(o11)
-    for ru in range(nrun):
-        for i in range(r0[ru], r1[ru]):
-            ui = np.uint64(i)
-            v = (a0 + (a00 * U[u00 + ui] + a01 * U[u01 + ui] + a02 * U[u10 + ui] + a03 * U[u11 + ui])
-                 + PP[np.uint64(ip * ns + i)])
-            ub = np.uint64(ob + i)
-            bo = best[ub]
-            best[ub] = v if v < bo else bo
+    for i in range(r0[0], r1[nrun - 1]):
+        ui = np.uint64(i)
+        v = (a0 + (a00 * U[u00 + ui] + a01 * U[u01 + ui] + a02 * U[u10 + ui] + a03 * U[u11 + ui])
+             + PP[np.uint64(ip * ns + i)])
+        ub = np.uint64(ob + i)
+        bo = best[ub]
+        best[ub] = v if v < bo else bo
 
 
 @njit(inline="always", cache=True)
@@ -854,40 +855,38 @@ def _min_stretches(best, ob, U, o00, o01, o10, o11, K, CAND, a, e, ip, ns, PP, r
         e00, e01, e02, e03, e0 = K[qe, 0], K[qe, 1], K[qe, 2], K[qe, 3], K[qe, 4]
         u00, u01, u10, u11 = np.uint64(o00), np.uint64(o01), np.uint64(o10), np.uint64(o11)
         flagged = 0
-        for ru in range(nrun):
-            for i in range(r0[ru], r1[ru]):
-                ui = np.uint64(i)
-                x0 = U[u00 + ui]
-                x1 = U[u01 + ui]
-                x2 = U[u10 + ui]
-                x3 = U[u11 + ui]
-                vs = s0 + (s00 * x0 + s01 * x1 + s02 * x2 + s03 * x3)
-                ve = e0 + (e00 * x0 + e01 * x1 + e02 * x2 + e03 * x3)
-                v = vs if vs < ve else ve
-                v = v + PP[np.uint64(ip * ns + i)]
-                ub = np.uint64(ob + i)
-                bo = best[ub]
-                best[ub] = v if v < bo else bo
-                g = gl * (x3 - x2 - x1 + x0)
-                flagged += 1 if (g > 0.0 and abs(ve - vs) < g + 1e-9 * abs(vs)) else 0
+        for i in range(r0[0], r1[nrun - 1]):
+            ui = np.uint64(i)
+            x0 = U[u00 + ui]
+            x1 = U[u01 + ui]
+            x2 = U[u10 + ui]
+            x3 = U[u11 + ui]
+            vs = s0 + (s00 * x0 + s01 * x1 + s02 * x2 + s03 * x3)
+            ve = e0 + (e00 * x0 + e01 * x1 + e02 * x2 + e03 * x3)
+            v = vs if vs < ve else ve
+            v = v + PP[np.uint64(ip * ns + i)]
+            ub = np.uint64(ob + i)
+            bo = best[ub]
+            best[ub] = v if v < bo else bo
+            g = gl * (x3 - x2 - x1 + x0)
+            flagged += 1 if (g > 0.0 and abs(ve - vs) < g + 1e-9 * abs(vs)) else 0
         if flagged == 0 or ln < 2:
             continue
-        for ru in range(nrun):  # the rows where an inner column may be least: all of them
-            for i in range(r0[ru], r1[ru]):
-                x0 = U[o00 + i]
-                x1 = U[o01 + i]
-                x2 = U[o10 + i]
-                x3 = U[o11 + i]
-                vs = s0 + (s00 * x0 + s01 * x1 + s02 * x2 + s03 * x3)
-                ve = e0 + (e00 * x0 + e01 * x1 + e02 * x2 + e03 * x3)
-                g = gl * (x3 - x2 - x1 + x0)
-                if not (g > 0.0 and abs(ve - vs) < g + 1e-9 * abs(vs)):
-                    continue
-                pp = PP[ip * ns + i]
-                for q in range(qs + 1, qe):
-                    v = (K[q, 4] + (K[q, 0] * x0 + K[q, 1] * x1 + K[q, 2] * x2 + K[q, 3] * x3)) + pp
-                    if v < best[ob + i]:
-                        best[ob + i] = v
+        for i in range(r0[0], r1[nrun - 1]):  # the rows where an inner column may be least: all of them
+            x0 = U[o00 + i]
+            x1 = U[o01 + i]
+            x2 = U[o10 + i]
+            x3 = U[o11 + i]
+            vs = s0 + (s00 * x0 + s01 * x1 + s02 * x2 + s03 * x3)
+            ve = e0 + (e00 * x0 + e01 * x1 + e02 * x2 + e03 * x3)
+            g = gl * (x3 - x2 - x1 + x0)
+            if not (g > 0.0 and abs(ve - vs) < g + 1e-9 * abs(vs)):
+                continue
+            pp = PP[ip * ns + i]
+            for q in range(qs + 1, qe):
+                v = (K[q, 4] + (K[q, 0] * x0 + K[q, 1] * x1 + K[q, 2] * x2 + K[q, 3] * x3)) + pp
+                if v < best[ob + i]:
+                    best[ob + i] = v
 
 @njit(parallel=True, cache=True)
 def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, nchunk):
