@@ -770,6 +770,26 @@ def _soc_row(U, stamp, r, V, ip, ns, WA, WB, r0, r1, rd, nrun):
 
 
 @njit(inline="always", cache=True)
+def _corners_at(U, u00, u01, u10, u11, ui):
+    """SOC row ``ui`` of a (coolant, cabin) cell's four corner rows of U."""
+    return U[u00 + ui], U[u01 + ui], U[u10 + ui], U[u11 + ui]
+
+
+@njit(inline="always", cache=True)
+def _lower(best, ub, v):
+    """best[ub] = min(best[ub], v), as a select (a NaN or +inf v changes nothing)."""
+    bo = best[ub]
+    best[ub] = v if v < bo else bo
+
+
+@njit(inline="always", cache=True)
+def _interior_possible(vs, ve, g):
+    """Whether a quadratic of curvature g / (2 L^2) over a stretch of length L, with ends vs and ve, may have
+    its minimum inside (:func:`_min_stretches`: g carries a margin of two times, 1e-9 of the value more)."""
+    return g > 0.0 and abs(ve - vs) < g + 1e-9 * abs(vs)
+
+
+@njit(inline="always", cache=True)
 def _min_corners4(best, ob, U, o00, o01, o10, o11, K, q, ip, ns, PP, r0, r1, rd, nrun):
     """Four heat columns of one (coolant, cabin) cell (rows q..q+3 of K: corner weights, stage cost) into the
     running minimum ``best[ob + row]``: the bilinear combination of the cell's corners (rows of U at offsets
@@ -781,11 +801,7 @@ def _min_corners4(best, ob, U, o00, o01, o10, o11, K, q, ip, ns, PP, r0, r1, rd,
     d00, d01, d02, d03, d0 = K[q + 3, 0], K[q + 3, 1], K[q + 3, 2], K[q + 3, 3], K[q + 3, 4]
     u00, u01, u10, u11 = np.uint64(o00), np.uint64(o01), np.uint64(o10), np.uint64(o11)
     for i in range(r0[0], r1[nrun - 1]):
-        ui = np.uint64(i)
-        x0 = U[u00 + ui]
-        x1 = U[u01 + ui]
-        x2 = U[u10 + ui]
-        x3 = U[u11 + ui]
+        x0, x1, x2, x3 = _corners_at(U, u00, u01, u10, u11, np.uint64(i))
         va = a0 + (a00 * x0 + a01 * x1 + a02 * x2 + a03 * x3)
         vb = b0 + (b00 * x0 + b01 * x1 + b02 * x2 + b03 * x3)
         vc = c0 + (c00 * x0 + c01 * x1 + c02 * x2 + c03 * x3)
@@ -793,10 +809,7 @@ def _min_corners4(best, ob, U, o00, o01, o10, o11, K, q, ip, ns, PP, r0, r1, rd,
         v = va if va < vb else vb
         v = v if v < vc else vc
         v = v if v < vd else vd
-        v = v + PP[np.uint64(ip * ns + i)]
-        ub = np.uint64(ob + i)
-        bo = best[ub]
-        best[ub] = v if v < bo else bo
+        _lower(best, np.uint64(ob + i), v + PP[np.uint64(ip * ns + i)])
 
 
 @njit(inline="always", cache=True)
@@ -805,12 +818,8 @@ def _min_corners1(best, ob, U, o00, o01, o10, o11, K, q, ip, ns, PP, r0, r1, rd,
     a00, a01, a02, a03, a0 = K[q, 0], K[q, 1], K[q, 2], K[q, 3], K[q, 4]
     u00, u01, u10, u11 = np.uint64(o00), np.uint64(o01), np.uint64(o10), np.uint64(o11)
     for i in range(r0[0], r1[nrun - 1]):
-        ui = np.uint64(i)
-        v = (a0 + (a00 * U[u00 + ui] + a01 * U[u01 + ui] + a02 * U[u10 + ui] + a03 * U[u11 + ui])
-             + PP[np.uint64(ip * ns + i)])
-        ub = np.uint64(ob + i)
-        bo = best[ub]
-        best[ub] = v if v < bo else bo
+        x0, x1, x2, x3 = _corners_at(U, u00, u01, u10, u11, np.uint64(i))
+        _lower(best, np.uint64(ob + i), (a0 + (a00 * x0 + a01 * x1 + a02 * x2 + a03 * x3)) + PP[np.uint64(ip * ns + i)])
 
 
 @njit(inline="always", cache=True)
@@ -856,37 +865,24 @@ def _min_stretches(best, ob, U, o00, o01, o10, o11, K, CAND, a, e, ip, ns, PP, r
         u00, u01, u10, u11 = np.uint64(o00), np.uint64(o01), np.uint64(o10), np.uint64(o11)
         flagged = 0
         for i in range(r0[0], r1[nrun - 1]):
-            ui = np.uint64(i)
-            x0 = U[u00 + ui]
-            x1 = U[u01 + ui]
-            x2 = U[u10 + ui]
-            x3 = U[u11 + ui]
+            x0, x1, x2, x3 = _corners_at(U, u00, u01, u10, u11, np.uint64(i))
             vs = s0 + (s00 * x0 + s01 * x1 + s02 * x2 + s03 * x3)
             ve = e0 + (e00 * x0 + e01 * x1 + e02 * x2 + e03 * x3)
             v = vs if vs < ve else ve
-            v = v + PP[np.uint64(ip * ns + i)]
-            ub = np.uint64(ob + i)
-            bo = best[ub]
-            best[ub] = v if v < bo else bo
-            g = gl * (x3 - x2 - x1 + x0)
-            flagged += 1 if (g > 0.0 and abs(ve - vs) < g + 1e-9 * abs(vs)) else 0
+            _lower(best, np.uint64(ob + i), v + PP[np.uint64(ip * ns + i)])
+            flagged += 1 if _interior_possible(vs, ve, gl * (x3 - x2 - x1 + x0)) else 0
         if flagged == 0 or ln < 2:
             continue
         for i in range(r0[0], r1[nrun - 1]):  # the rows where an inner column may be least: all of them
-            x0 = U[o00 + i]
-            x1 = U[o01 + i]
-            x2 = U[o10 + i]
-            x3 = U[o11 + i]
+            x0, x1, x2, x3 = _corners_at(U, u00, u01, u10, u11, np.uint64(i))
             vs = s0 + (s00 * x0 + s01 * x1 + s02 * x2 + s03 * x3)
             ve = e0 + (e00 * x0 + e01 * x1 + e02 * x2 + e03 * x3)
-            g = gl * (x3 - x2 - x1 + x0)
-            if not (g > 0.0 and abs(ve - vs) < g + 1e-9 * abs(vs)):
+            if not _interior_possible(vs, ve, gl * (x3 - x2 - x1 + x0)):
                 continue
             pp = PP[ip * ns + i]
             for q in range(qs + 1, qe):
-                v = (K[q, 4] + (K[q, 0] * x0 + K[q, 1] * x1 + K[q, 2] * x2 + K[q, 3] * x3)) + pp
-                if v < best[ob + i]:
-                    best[ob + i] = v
+                _lower(best, np.uint64(ob + i), (K[q, 4] + (K[q, 0] * x0 + K[q, 1] * x1 + K[q, 2] * x2 + K[q, 3] * x3)) + pp)
+
 
 @njit(parallel=True, cache=True)
 def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, nchunk):
