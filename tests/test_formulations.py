@@ -766,7 +766,7 @@ def test_fused_locate_snaps_to_a_node_and_puts_the_last_node_in_the_last_cell():
 def _stretch_case(rng, curv, kink):
     """Heat columns of one cell as the separable Thermal-Cabin kernel sees them: fractions affine in the column
     (steps tau, sigma), a stage cost with a penalty that starts at column ``kink`` (none: -1), corners whose
-    mixed difference (x11 - x10 - x01 + x00) is about ``curv``; SOC rows in two runs."""
+    mixed difference (x11 - x10 - x01 + x00) is about ``curv``; SOC rows 2..26."""
     from optimize.formulations.fused import _column
 
     ncol, ns = 13, 30
@@ -784,8 +784,7 @@ def _stretch_case(rng, curv, kink):
     U[2 * ns:3 * ns] = base + rng.normal(0.0, 0.05, ns)  # next coolant node
     U[3 * ns:] = U[ns:2 * ns] + U[2 * ns:3 * ns] - base + curv * rng.random(ns)
     PP = rng.random(ns) * 1e-3
-    r0, r1, rd = np.array([2, 11], np.int64), np.array([11, 27], np.int64), np.zeros(2, np.int64)
-    return K, U, PP, r0, r1, rd, ncol, ns
+    return K, U, PP, 2, 27, ncol, ns
 
 
 @pytest.mark.parametrize("curv,kink", [(0.0, -1), (-3.0, -1), (0.3, 5), (-0.3, 5), (-3.0, 9)])
@@ -797,15 +796,15 @@ def test_fused_heat_stretches_equal_every_column(curv, kink):
     from optimize.formulations.fused import _affine_fractions, _min_corners1, _min_stretches
 
     rng = np.random.default_rng(7)
-    K, U, PP, r0, r1, rd, ncol, ns = _stretch_case(rng, curv, kink)
+    K, U, PP, i0, i1, ncol, ns = _stretch_case(rng, curv, kink)
     assert _affine_fractions(K, 0, ncol)
     every = np.full(ns, np.inf)
     for q in range(ncol):
-        _min_corners1(every, 0, U, 0, ns, 2 * ns, 3 * ns, K, q, 0, ns, PP, r0, r1, rd, 2)
+        _min_corners1(every, 0, U, 0, ns, 2 * ns, 3 * ns, K, q, 0, ns, PP, i0, i1)
     got = np.full(ns, np.inf)
-    _min_stretches(got, 0, U, 0, ns, 2 * ns, 3 * ns, K, np.empty(ncol, np.int64), 0, ncol, 0, ns, PP, r0, r1, rd, 2)
+    _min_stretches(got, 0, U, 0, ns, 2 * ns, 3 * ns, K, np.empty(ncol, np.int64), 0, ncol, 0, ns, PP, i0, i1)
     np.testing.assert_array_equal(got, every)
-    rows = np.r_[2:27]
+    rows = np.r_[i0:i1]
     vals = np.array([[K[q, 4] + K[q, 0] * U[i] + K[q, 1] * U[ns + i] + K[q, 2] * U[2 * ns + i] + K[q, 3] * U[3 * ns + i]
                       for q in range(ncol)] for i in rows])
     least = np.argmin(vals, axis=1)

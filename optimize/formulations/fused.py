@@ -733,7 +733,6 @@ def _min_runs_pair(best, ob0, ob1, W, ow0, ow1, a0, a1, ip, ns, PP, WA, WB, r0, 
             best[u1] = v1 if v1 < b1 else b1
 
 
-
 @njit(inline="always", cache=True)
 def _column(K, CB, CC, col, cb, cc, tt, t2, add):
     """Heat column ``col`` of Thermal-Cabin-DP's separable kernel: its next coolant's and cabin's cells, the
@@ -748,6 +747,7 @@ def _column(K, CB, CC, col, cb, cc, tt, t2, add):
     K[col, 4] = add
     K[col, 5] = tt
     K[col, 6] = t2
+
 
 @njit(inline="always", cache=True)
 def _soc_row(U, stamp, r, V, ip, ns, WA, WB, r0, r1, rd, nrun):
@@ -790,9 +790,10 @@ def _interior_possible(vs, ve, g):
 
 
 @njit(inline="always", cache=True)
-def _min_corners4(best, ob, U, o00, o01, o10, o11, K, q, ip, ns, PP, r0, r1, rd, nrun):
+def _min_corners4(best, ob, U, o00, o01, o10, o11, K, q, ip, ns, PP, i0, i1):
     """Four heat columns of one (coolant, cabin) cell (rows q..q+3 of K: corner weights, stage cost) into the
-    running minimum ``best[ob + row]``: the bilinear combination of the cell's corners (rows of U at offsets
+    running minimum ``best[ob + row]`` for the SOC rows i0..i1-1 (rows that are not candidates hold +inf in U,
+    :func:`_soc_row`): the bilinear combination of the cell's corners (rows of U at offsets
     ``o00``, ``o01`` next cabin node, ``o10`` next coolant node, ``o11``), plus the stage cost and the row's SOC
     penalty. The corners are read once for the four."""
     a00, a01, a02, a03, a0 = K[q, 0], K[q, 1], K[q, 2], K[q, 3], K[q, 4]
@@ -800,7 +801,7 @@ def _min_corners4(best, ob, U, o00, o01, o10, o11, K, q, ip, ns, PP, r0, r1, rd,
     c00, c01, c02, c03, c0 = K[q + 2, 0], K[q + 2, 1], K[q + 2, 2], K[q + 2, 3], K[q + 2, 4]
     d00, d01, d02, d03, d0 = K[q + 3, 0], K[q + 3, 1], K[q + 3, 2], K[q + 3, 3], K[q + 3, 4]
     u00, u01, u10, u11 = np.uint64(o00), np.uint64(o01), np.uint64(o10), np.uint64(o11)
-    for i in range(r0[0], r1[nrun - 1]):
+    for i in range(i0, i1):
         x0, x1, x2, x3 = _corners_at(U, u00, u01, u10, u11, np.uint64(i))
         va = a0 + (a00 * x0 + a01 * x1 + a02 * x2 + a03 * x3)
         vb = b0 + (b00 * x0 + b01 * x1 + b02 * x2 + b03 * x3)
@@ -813,11 +814,11 @@ def _min_corners4(best, ob, U, o00, o01, o10, o11, K, q, ip, ns, PP, r0, r1, rd,
 
 
 @njit(inline="always", cache=True)
-def _min_corners1(best, ob, U, o00, o01, o10, o11, K, q, ip, ns, PP, r0, r1, rd, nrun):
+def _min_corners1(best, ob, U, o00, o01, o10, o11, K, q, ip, ns, PP, i0, i1):
     """:func:`_min_corners4` for one column."""
     a00, a01, a02, a03, a0 = K[q, 0], K[q, 1], K[q, 2], K[q, 3], K[q, 4]
     u00, u01, u10, u11 = np.uint64(o00), np.uint64(o01), np.uint64(o10), np.uint64(o11)
-    for i in range(r0[0], r1[nrun - 1]):
+    for i in range(i0, i1):
         x0, x1, x2, x3 = _corners_at(U, u00, u01, u10, u11, np.uint64(i))
         _lower(best, np.uint64(ob + i), (a0 + (a00 * x0 + a01 * x1 + a02 * x2 + a03 * x3)) + PP[np.uint64(ip * ns + i)])
 
@@ -834,7 +835,7 @@ def _affine_fractions(K, a, e):
 
 
 @njit(inline="always", cache=True)
-def _min_stretches(best, ob, U, o00, o01, o10, o11, K, CAND, a, e, ip, ns, PP, r0, r1, rd, nrun):
+def _min_stretches(best, ob, U, o00, o01, o10, o11, K, CAND, a, e, ip, ns, PP, i0, i1):
     """The least cost over the grid's heat columns a..e-1 of one cell (:func:`_affine_fractions`), into the
     running minimum ``best[ob + row]``, the same as evaluating every column (:func:`_min_corners1`).
 
@@ -856,15 +857,15 @@ def _min_stretches(best, ob, U, o00, o01, o10, o11, K, CAND, a, e, ip, ns, PP, r
     CAND[n] = e - 1
     n += 1
     gu = (K[e - 1, 5] - K[a, 5]) / (e - 1 - a) * ((K[e - 1, 6] - K[a, 6]) / (e - 1 - a))
+    u00, u01, u10, u11 = np.uint64(o00), np.uint64(o01), np.uint64(o10), np.uint64(o11)
     for c in range(n - 1):
         qs, qe = CAND[c], CAND[c + 1]
         ln = qe - qs
         gl = 2.0 * gu * ln * ln
         s00, s01, s02, s03, s0 = K[qs, 0], K[qs, 1], K[qs, 2], K[qs, 3], K[qs, 4]
         e00, e01, e02, e03, e0 = K[qe, 0], K[qe, 1], K[qe, 2], K[qe, 3], K[qe, 4]
-        u00, u01, u10, u11 = np.uint64(o00), np.uint64(o01), np.uint64(o10), np.uint64(o11)
         flagged = 0
-        for i in range(r0[0], r1[nrun - 1]):
+        for i in range(i0, i1):
             x0, x1, x2, x3 = _corners_at(U, u00, u01, u10, u11, np.uint64(i))
             vs = s0 + (s00 * x0 + s01 * x1 + s02 * x2 + s03 * x3)
             ve = e0 + (e00 * x0 + e01 * x1 + e02 * x2 + e03 * x3)
@@ -873,7 +874,7 @@ def _min_stretches(best, ob, U, o00, o01, o10, o11, K, CAND, a, e, ip, ns, PP, r
             flagged += 1 if _interior_possible(vs, ve, gl * (x3 - x2 - x1 + x0)) else 0
         if flagged == 0 or ln < 2:
             continue
-        for i in range(r0[0], r1[nrun - 1]):  # the rows where an inner column may be least: all of them
+        for i in range(i0, i1):  # the rows where an inner column may be least: all of them
             x0, x1, x2, x3 = _corners_at(U, u00, u01, u10, u11, np.uint64(i))
             vs = s0 + (s00 * x0 + s01 * x1 + s02 * x2 + s03 * x3)
             ve = e0 + (e00 * x0 + e01 * x1 + e02 * x2 + e03 * x3)
@@ -1080,6 +1081,7 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
                 if nrun == 0:
                     continue
                 r0, r1, rd = R0[ip], R1[ip], RD[ip]
+                i0, i1 = r0[0], r1[nrun - 1]  # the passes run over the rows from the first run to the last
                 for g in range(g0, g1):
                     j = g // nc
                     m = g - j * nc
@@ -1117,16 +1119,14 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
                         o10 = o00 + nc * ns
                         eg = min(e, nu_)  # the grid's heats of the group; then the limited one and the hold
                         if eg - a >= 3 and _affine_fractions(K, a, eg):
-                            _min_stretches(best, ob, U, o00, o00 + ns, o10, o10 + ns, K, CAND, a, eg, ip, ns, PP, r0,
-                                           r1, rd, nrun)
+                            _min_stretches(best, ob, U, o00, o00 + ns, o10, o10 + ns, K, CAND, a, eg, ip, ns, PP, i0,
+                                           i1)
                             a = eg
                         e4 = e - (e - a) % 4
                         for q in range(a, e4, 4):
-                            _min_corners4(best, ob, U, o00, o00 + ns, o10, o10 + ns, K, q, ip, ns, PP, r0, r1, rd,
-                                          nrun)
+                            _min_corners4(best, ob, U, o00, o00 + ns, o10, o10 + ns, K, q, ip, ns, PP, i0, i1)
                         for q in range(e4, e):
-                            _min_corners1(best, ob, U, o00, o00 + ns, o10, o10 + ns, K, q, ip, ns, PP, r0, r1, rd,
-                                          nrun)
+                            _min_corners1(best, ob, U, o00, o00 + ns, o10, o10 + ns, K, q, ip, ns, PP, i0, i1)
                         a = e
             for ii in range(nr):
                 for g in range(g0, g1):
