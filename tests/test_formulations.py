@@ -763,10 +763,12 @@ def test_fused_locate_snaps_to_a_node_and_puts_the_last_node_in_the_last_cell():
     assert _loc(7.0, lo, inv, n) == (3, 1.0) and _loc(-1.0, lo, inv, n) == (0, 0.0)
 
 
-def _stretch_case(rng, curv, kink):
+def _stretch_case(rng, curv, kink, clip=-1, kink2=-1, slope2=0.5):
     """Heat columns of one cell as the separable Thermal-Cabin kernel sees them: fractions affine in the column
-    (steps tau, sigma), a stage cost with a penalty that starts at column ``kink`` (none: -1), corners whose
-    mixed difference (x11 - x10 - x01 + x00) is about ``curv``; SOC rows 2..26."""
+    (steps tau, sigma), the cabin's constant from column ``clip`` on (the next cabin past the grid's end), a
+    stage cost with a penalty that stops at column ``kink`` and one of slope ``slope2`` that starts after
+    ``kink2`` (none: -1),
+    corners whose mixed difference (x11 - x10 - x01 + x00) is about ``curv``; SOC rows 2..26."""
     from optimize.formulations.fused import _column
 
     ncol, ns = 13, 30
@@ -776,7 +778,9 @@ def _stretch_case(rng, curv, kink):
     tau, sig = -0.06, 0.07
     for q in range(ncol):
         add = 0.05 + (2.0 * (kink - q) if 0 <= kink and q < kink else 0.0)
-        _column(K, CB, CC, q, 0, 0, 0.9 + tau * q, 0.05 + sig * q, add)
+        add += slope2 * (q - kink2) if 0 <= kink2 < q else 0.0
+        t2 = 0.05 + sig * (min(q, clip) if clip >= 0 else q)
+        _column(K, CB, CC, q, 0, 0, 0.9 + tau * q, t2, add)
     U = np.empty(4 * ns)
     base = 100.0 + rng.random(ns)
     U[:ns] = base
@@ -787,17 +791,21 @@ def _stretch_case(rng, curv, kink):
     return K, U, PP, 2, 27, ncol, ns
 
 
-@pytest.mark.parametrize("curv,kink", [(0.0, -1), (-3.0, -1), (0.3, 5), (-0.3, 5), (-3.0, 9)])
-def test_fused_heat_stretches_equal_every_column(curv, kink):
+@pytest.mark.parametrize("curv,kink,clip,kink2,slope2", [
+    (0.0, -1, -1, -1, 0.0), (-3.0, -1, -1, -1, 0.0), (0.3, 5, -1, -1, 0.0), (-0.3, 5, -1, -1, 0.0),
+    (-3.0, 9, -1, -1, 0.0), (-3.0, -1, 8, -1, 0.0), (-0.3, 3, 8, -1, 0.0), (-3.0, 2, 8, 10, 0.5),
+    (0.3, 2, 5, 8, 0.5), (-3.0, 2, 8, 10, -0.005)])
+def test_fused_heat_stretches_equal_every_column(curv, kink, clip, kink2, slope2):
     """The separable Thermal-Cabin kernel's least cost over a cell's heat columns from the ends of the stretches
-    where the stage cost is affine, plus the inner columns of the rows where the curvature allows an interior
-    minimum (:func:`_min_stretches`), against evaluating every column: the same minimum bit for bit, on cases
-    with interior minima (a positive curvature, a penalty that stops inside the range)."""
-    from optimize.formulations.fused import _affine_fractions, _min_corners1, _min_stretches
+    between the columns where the stage cost or a fraction bends, plus the inner columns of the rows where the
+    curvature allows an interior minimum (:func:`_min_stretches`), against evaluating every column: the same
+    minimum bit for bit, on cases with interior minima (a positive curvature, a penalty that stops inside the
+    range), a fraction clipped at the grid's end, and four stretches in one pass, the last column least on
+    some rows."""
+    from optimize.formulations.fused import _bends, _min_corners1, _min_stretches
 
     rng = np.random.default_rng(7)
-    K, U, PP, i0, i1, ncol, ns = _stretch_case(rng, curv, kink)
-    assert _affine_fractions(K, 0, ncol)
+    K, U, PP, i0, i1, ncol, ns = _stretch_case(rng, curv, kink, clip, kink2, slope2)
     every = np.full(ns, np.inf)
     for q in range(ncol):
         _min_corners1(every, 0, U, 0, ns, 2 * ns, 3 * ns, K, q, 0, ns, PP, i0, i1)
@@ -808,21 +816,29 @@ def test_fused_heat_stretches_equal_every_column(curv, kink):
     vals = np.array([[K[q, 4] + K[q, 0] * U[i] + K[q, 1] * U[ns + i] + K[q, 2] * U[2 * ns + i] + K[q, 3] * U[3 * ns + i]
                       for q in range(ncol)] for i in rows])
     least = np.argmin(vals, axis=1)
+    ends = {0, ncol - 1} | {q for q in range(1, ncol - 1) if _bends(K, q)}
+    assert ends == {0, ncol - 1} | {q for q in (kink, clip, kink2) if q > 0}
     # tau * sigma < 0: a negative mixed difference is a positive curvature, which can put the least cost
-    # between the ends and the column where the penalty stops; the cases can tell a method that reads only those
-    assert ((least != 0) & (least != ncol - 1) & (least != kink)).any() == (curv < 0)
+    # inside a stretch; the cases can tell a method that reads only the stretches' ends
+    assert (~np.isin(least, list(ends))).any() == (curv < 0)
     assert (least == kink).any() == (kink > 0)
+    if slope2 < 0:  # the last of five columns read in one pass
+        assert (least == ncol - 1).any()
 
 
-def test_fused_affine_fractions_refuses_uneven_columns():
-    """The stretch minimum needs fractions that change evenly from column to column; otherwise the kernel
-    evaluates every column."""
-    from optimize.formulations.fused import _affine_fractions
+def test_fused_bends_mark_where_a_fraction_or_the_stage_cost_turns():
+    """The stretch minimum needs fractions and a stage cost that change evenly between its ends: a column
+    where one turns is the end of a stretch; rounding and the locate's snap (1e-9 of a cell) are not turns."""
+    from optimize.formulations.fused import _bends
 
     K, *_ = _stretch_case(np.random.default_rng(1), 0.0, -1)
-    assert _affine_fractions(K, 0, 13)
+    assert not any(_bends(K, q) for q in range(1, 12))
+    K[6, 5] += 1e-9
+    assert not any(_bends(K, q) for q in range(1, 12))
     K[6, 5] += 1e-6
-    assert not _affine_fractions(K, 0, 13) and _affine_fractions(K, 0, 6)
+    assert [q for q in range(1, 12) if _bends(K, q)] == [5, 6, 7]
+    K, *_ = _stretch_case(np.random.default_rng(1), 0.0, 4, 9)
+    assert [q for q in range(1, 12) if _bends(K, q)] == [4, 9]
 
 
 def test_problem_layout_gives_the_kernels_the_grids_ends_and_steps_and_the_outcome_its_speed(params):

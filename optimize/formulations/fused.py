@@ -177,26 +177,37 @@ def _coolant_columns2(ip, P, tab, tclg, fclg, lossg, qv, TB, TT, PT, C0):
 def _coolant_columns(ip, P, tab, tclg, fclg, lossg, Q, qh, nh, TB, TT, PT, QFUEL, C0):
     """Thermal-Cabin-DP, power control ``ip``: per coolant node the fuel heat and fuel (g), and per heat
     column (the heater grid's, then the hold heat of each cabin node) the next coolant's cell, fraction
-    and penalty."""
+    and penalty.
+
+    Short loops along the columns on unsigned indices, the next coolant passed through ``TT``, as in
+    :func:`_coolant_columns2`, so that LLVM vectorises them."""
     if tab[ip, _T_OK] == 0.0:
         return
-    nt, nq = tclg.size, Q.size
+    nt = tclg.size
     t_lo, t_inv = tclg[0], (nt - 1) / (tclg[-1] - tclg[0])
     Ts = P[_C_TS]
     wf = tab[ip, _T_WF]
     P_e = tab[ip, _T_PE]
+    lhv, gam, ceng = P[_MS0 + _LHV], P[_MS0 + _GAMMA], P[_MS0 + _CENG]
+    tlo, thi, th = P[_C_TLO], P[_C_THI], P[_C_TH]
+    uq, uh = np.uint64(Q.size), np.uint64(nh)
     for j in range(nt):
         W_f = wf * fclg[j]
-        Q_fuel = P[_MS0 + _LHV] * W_f
+        Q_fuel = lhv * W_f
         QFUEL[ip, j] = Q_fuel
         C0[ip, j] = W_f * Ts
-        for c in range(nq + nh):
-            q = Q[c] if c < nq else qh[c - nq]
-            tn = tclg[j] + Ts * coolant_heat_rate(P[_MS0 + _GAMMA], Q_fuel, P_e, lossg[j], q)[0] / P[_MS0 + _CENG]
-            PT[ip, j, c] = _excess(tn, P[_C_TLO], P[_C_THI], P[_C_TH])
+        TBr, TTr, PTr = TB[ip, j], TT[ip, j], PT[ip, j]
+        t0, lj = tclg[j], lossg[j]
+        for c in range(uq):
+            TTr[c] = t0 + Ts * coolant_heat_rate(gam, Q_fuel, P_e, lj, Q[c])[0] / ceng
+        for c in range(uh):
+            TTr[uq + c] = t0 + Ts * coolant_heat_rate(gam, Q_fuel, P_e, lj, qh[c])[0] / ceng
+        for c in range(uq + uh):
+            tn = TTr[c]
+            PTr[c] = _excess(tn, tlo, thi, th)
             bb, tt = _loc(tn, t_lo, t_inv, nt)
-            TB[ip, j, c] = bb
-            TT[ip, j, c] = tt
+            TBr[c] = bb
+            TTr[c] = tt
 
 
 @njit(cache=True)  # a call, not inlined: once per step
@@ -790,6 +801,12 @@ def _interior_possible(vs, ve, g):
 
 
 @njit(inline="always", cache=True)
+def _interior_flag(vs, ve, g):
+    """:func:`_interior_possible` as 1 or 0, without a branch (the passes over the rows vectorise)."""
+    return np.int64((g > 0.0) & (abs(ve - vs) < g + 1e-9 * abs(vs)))
+
+
+@njit(inline="always", cache=True)
 def _min_corners4(best, ob, U, o00, o01, o10, o11, K, q, ip, ns, PP, i0, i1):
     """Four heat columns of one (coolant, cabin) cell (rows q..q+3 of K: corner weights, stage cost) into the
     running minimum ``best[ob + row]`` for the SOC rows i0..i1-1 (rows that are not candidates hold +inf in U,
@@ -824,65 +841,124 @@ def _min_corners1(best, ob, U, o00, o01, o10, o11, K, q, ip, ns, PP, i0, i1):
 
 
 @njit(inline="always", cache=True)
-def _affine_fractions(K, a, e):
-    """Whether the next coolant's and cabin's fractions of heat columns a..e-1 (one cell) change by the same
-    amount from column to column, as they do with the grid's evenly spaced heats and heat rates linear in the
-    heat (up to rounding and the locate's snap to a node, 1e-9 of a cell)."""
-    for q in range(a + 1, e - 1):
-        if abs(K[q + 1, 5] - 2.0 * K[q, 5] + K[q - 1, 5]) > 1e-8 or abs(K[q + 1, 6] - 2.0 * K[q, 6] + K[q - 1, 6]) > 1e-8:
-            return False
-    return True
+def _bends(K, q):
+    """Whether heat column ``q``'s stage cost, next coolant's fraction or next cabin's fraction departs from the
+    line through its neighbours' (second difference): where a penalty starts or stops, or a next temperature
+    leaves the grid (its fraction is clipped). Rounding and the locate's snap to a node (1e-9 of a cell) are
+    not bends."""
+    return (abs(K[q + 1, 4] - 2.0 * K[q, 4] + K[q - 1, 4]) > 1e-12 * abs(K[q, 4])
+            or abs(K[q + 1, 5] - 2.0 * K[q, 5] + K[q - 1, 5]) > 1e-8
+            or abs(K[q + 1, 6] - 2.0 * K[q, 6] + K[q - 1, 6]) > 1e-8)
+
+
+@njit(inline="always", cache=True)
+def _at_column(K, q, x0, x1, x2, x3):
+    """Heat column ``q``'s cost at a SOC row whose cell corners hold x0..x3: its stage cost plus the bilinear
+    combination."""
+    return K[q, 4] + (K[q, 0] * x0 + K[q, 1] * x1 + K[q, 2] * x2 + K[q, 3] * x3)
+
+
+@njit(inline="always", cache=True)
+def _inner_columns(best, ob, U, u00, u01, u10, u11, K, qs, qe, ip, ns, PP, i0, i1):
+    """The inner columns of the stretch qs..qe for the rows where its ends and curvature allow an interior
+    minimum (:func:`_interior_possible`)."""
+    gl = 2.0 * (K[qe, 5] - K[qs, 5]) * (K[qe, 6] - K[qs, 6])  # 2 tau sigma L^2
+    for i in range(i0, i1):
+        x0, x1, x2, x3 = _corners_at(U, u00, u01, u10, u11, np.uint64(i))
+        if not _interior_possible(_at_column(K, qs, x0, x1, x2, x3), _at_column(K, qe, x0, x1, x2, x3),
+                                  gl * (x3 - x2 - x1 + x0)):
+            continue
+        pp = PP[ip * ns + i]
+        for q in range(qs + 1, qe):
+            _lower(best, np.uint64(ob + i), _at_column(K, q, x0, x1, x2, x3) + pp)
+
+
+@njit(inline="always", cache=True)
+def _ends1(best, ob, U, u00, u01, u10, u11, K, qs, qe, ip, ns, PP, i0, i1):
+    """One stretch's ends (columns qs, qe) into the running minimum for the SOC rows i0..i1-1; returns how many
+    rows may have an interior minimum."""
+    gl = 2.0 * (K[qe, 5] - K[qs, 5]) * (K[qe, 6] - K[qs, 6])
+    s00, s01, s02, s03, s0 = K[qs, 0], K[qs, 1], K[qs, 2], K[qs, 3], K[qs, 4]
+    e00, e01, e02, e03, e0 = K[qe, 0], K[qe, 1], K[qe, 2], K[qe, 3], K[qe, 4]
+    flagged = 0
+    for i in range(i0, i1):
+        x0, x1, x2, x3 = _corners_at(U, u00, u01, u10, u11, np.uint64(i))
+        vs = s0 + (s00 * x0 + s01 * x1 + s02 * x2 + s03 * x3)
+        ve = e0 + (e00 * x0 + e01 * x1 + e02 * x2 + e03 * x3)
+        v = vs if vs < ve else ve
+        _lower(best, np.uint64(ob + i), v + PP[np.uint64(ip * ns + i)])
+        flagged += _interior_flag(vs, ve, gl * (x3 - x2 - x1 + x0))
+    return flagged
+
+
+@njit(inline="always", cache=True)
+def _ends4(best, ob, U, u00, u01, u10, u11, K, qa, qb, qc, qd, qf, ip, ns, PP, i0, i1):
+    """:func:`_ends1` for four consecutive stretches (columns qa, qb, qc, qd, qf; a stretch of length 0 repeats
+    a column and flags nothing) in one pass: each column is evaluated once."""
+    ga = 2.0 * (K[qb, 5] - K[qa, 5]) * (K[qb, 6] - K[qa, 6])
+    gb = 2.0 * (K[qc, 5] - K[qb, 5]) * (K[qc, 6] - K[qb, 6])
+    gc = 2.0 * (K[qd, 5] - K[qc, 5]) * (K[qd, 6] - K[qc, 6])
+    gd = 2.0 * (K[qf, 5] - K[qd, 5]) * (K[qf, 6] - K[qd, 6])
+    a00, a01, a02, a03, a0 = K[qa, 0], K[qa, 1], K[qa, 2], K[qa, 3], K[qa, 4]
+    b00, b01, b02, b03, b0 = K[qb, 0], K[qb, 1], K[qb, 2], K[qb, 3], K[qb, 4]
+    c00, c01, c02, c03, c0 = K[qc, 0], K[qc, 1], K[qc, 2], K[qc, 3], K[qc, 4]
+    d00, d01, d02, d03, d0 = K[qd, 0], K[qd, 1], K[qd, 2], K[qd, 3], K[qd, 4]
+    f00, f01, f02, f03, f0 = K[qf, 0], K[qf, 1], K[qf, 2], K[qf, 3], K[qf, 4]
+    flagged = 0
+    for i in range(i0, i1):
+        x0, x1, x2, x3 = _corners_at(U, u00, u01, u10, u11, np.uint64(i))
+        va = a0 + (a00 * x0 + a01 * x1 + a02 * x2 + a03 * x3)
+        vb = b0 + (b00 * x0 + b01 * x1 + b02 * x2 + b03 * x3)
+        vc = c0 + (c00 * x0 + c01 * x1 + c02 * x2 + c03 * x3)
+        vd = d0 + (d00 * x0 + d01 * x1 + d02 * x2 + d03 * x3)
+        vf = f0 + (f00 * x0 + f01 * x1 + f02 * x2 + f03 * x3)
+        v = va if va < vb else vb
+        v = v if v < vc else vc
+        v = v if v < vd else vd
+        v = v if v < vf else vf
+        _lower(best, np.uint64(ob + i), v + PP[np.uint64(ip * ns + i)])
+        xm = x3 - x2 - x1 + x0
+        flagged += (_interior_flag(va, vb, ga * xm) | _interior_flag(vb, vc, gb * xm) | _interior_flag(vc, vd, gc * xm)
+                    | _interior_flag(vd, vf, gd * xm))
+    return flagged
 
 
 @njit(inline="always", cache=True)
 def _min_stretches(best, ob, U, o00, o01, o10, o11, K, CAND, a, e, ip, ns, PP, i0, i1):
-    """The least cost over the grid's heat columns a..e-1 of one cell (:func:`_affine_fractions`), into the
-    running minimum ``best[ob + row]``, the same as evaluating every column (:func:`_min_corners1`).
+    """The least cost over heat columns a..e-1 of one cell (the grid's heats, in order), into the running
+    minimum ``best[ob + row]``, the same as evaluating every column (:func:`_min_corners1`).
 
-    Along the columns the fractions are affine in the column index, so the interpolated cost-to-go is a
-    quadratic in it, of curvature tau * sigma * (x11 - x10 - x01 + x00) (tau, sigma: the fractions' steps);
-    the stage cost is affine between the columns where a penalty starts or stops (its second difference is
-    not zero). Between two such columns (a stretch of length L) a quadratic has an interior minimum only if
-    its curvature g is positive and the ends differ by less than g L^2. So the ends of every stretch are
-    evaluated for all rows (vectorised), and the inner columns only for the rows where that test, with a
-    margin of two times and 1e-9 of the value, does not rule an interior minimum out."""
+    Between two columns where the stage cost or a fraction bends (:func:`_bends`; a stretch of length L),
+    the fractions and the stage cost are affine in the column index, so the interpolated cost-to-go is a
+    quadratic in it, of curvature tau * sigma * (x11 - x10 - x01 + x00) (tau, sigma: the fractions' steps
+    along the stretch). A quadratic has an interior minimum only if its curvature g is positive and its ends
+    differ by less than g L^2. So the ends of the stretches are evaluated for all rows (vectorised; up to
+    four stretches in one pass), and the inner columns only for the rows where that test, with a margin of
+    two times and 1e-9 of the value, does not rule an interior minimum out."""
     n = 0
     CAND[n] = a
     n += 1
     for q in range(a + 1, e - 1):
-        d2 = K[q + 1, 4] - 2.0 * K[q, 4] + K[q - 1, 4]
-        if abs(d2) > 1e-12 * abs(K[q, 4]):
+        if _bends(K, q):
             CAND[n] = q
             n += 1
     CAND[n] = e - 1
     n += 1
-    gu = (K[e - 1, 5] - K[a, 5]) / (e - 1 - a) * ((K[e - 1, 6] - K[a, 6]) / (e - 1 - a))
     u00, u01, u10, u11 = np.uint64(o00), np.uint64(o01), np.uint64(o10), np.uint64(o11)
-    for c in range(n - 1):
-        qs, qe = CAND[c], CAND[c + 1]
-        ln = qe - qs
-        gl = 2.0 * gu * ln * ln
-        s00, s01, s02, s03, s0 = K[qs, 0], K[qs, 1], K[qs, 2], K[qs, 3], K[qs, 4]
-        e00, e01, e02, e03, e0 = K[qe, 0], K[qe, 1], K[qe, 2], K[qe, 3], K[qe, 4]
-        flagged = 0
-        for i in range(i0, i1):
-            x0, x1, x2, x3 = _corners_at(U, u00, u01, u10, u11, np.uint64(i))
-            vs = s0 + (s00 * x0 + s01 * x1 + s02 * x2 + s03 * x3)
-            ve = e0 + (e00 * x0 + e01 * x1 + e02 * x2 + e03 * x3)
-            v = vs if vs < ve else ve
-            _lower(best, np.uint64(ob + i), v + PP[np.uint64(ip * ns + i)])
-            flagged += 1 if _interior_possible(vs, ve, gl * (x3 - x2 - x1 + x0)) else 0
-        if flagged == 0 or ln < 2:
-            continue
-        for i in range(i0, i1):  # the rows where an inner column may be least: all of them
-            x0, x1, x2, x3 = _corners_at(U, u00, u01, u10, u11, np.uint64(i))
-            vs = s0 + (s00 * x0 + s01 * x1 + s02 * x2 + s03 * x3)
-            ve = e0 + (e00 * x0 + e01 * x1 + e02 * x2 + e03 * x3)
-            if not _interior_possible(vs, ve, gl * (x3 - x2 - x1 + x0)):
-                continue
-            pp = PP[ip * ns + i]
-            for q in range(qs + 1, qe):
-                _lower(best, np.uint64(ob + i), (K[q, 4] + (K[q, 0] * x0 + K[q, 1] * x1 + K[q, 2] * x2 + K[q, 3] * x3)) + pp)
+    c = 0
+    while c < n - 1:
+        m = min(n - 1 - c, 4)  # stretches in this pass
+        if m == 1:
+            flagged = _ends1(best, ob, U, u00, u01, u10, u11, K, CAND[c], CAND[c + 1], ip, ns, PP, i0, i1)
+        else:
+            q = CAND[c + m]  # columns past the pass's last repeat it
+            flagged = _ends4(best, ob, U, u00, u01, u10, u11, K, CAND[c], CAND[c + 1], CAND[c + 2] if m >= 2 else q,
+                             CAND[c + 3] if m >= 3 else q, q, ip, ns, PP, i0, i1)
+        if flagged:
+            for cc in range(c, c + m):
+                if CAND[cc + 1] - CAND[cc] >= 2:
+                    _inner_columns(best, ob, U, u00, u01, u10, u11, K, CAND[cc], CAND[cc + 1], ip, ns, PP, i0, i1)
+        c += m
 
 
 @njit(parallel=True, cache=True)
@@ -1118,7 +1194,7 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
                         o00 = r00 * ns
                         o10 = o00 + nc * ns
                         eg = min(e, nu_)  # the grid's heats of the group; then the limited one and the hold
-                        if eg - a >= 3 and _affine_fractions(K, a, eg):
+                        if eg - a >= 3:
                             _min_stretches(best, ob, U, o00, o00 + ns, o10, o10 + ns, K, CAND, a, eg, ip, ns, PP, i0,
                                            i1)
                             a = eg
