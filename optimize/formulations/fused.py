@@ -807,37 +807,56 @@ def _interior_flag(vs, ve, g):
 
 
 @njit(inline="always", cache=True)
+def _weights(K, q):
+    """Heat column ``q``'s four corner weights and stage cost, read once for a pass over the rows."""
+    return K[q, 0], K[q, 1], K[q, 2], K[q, 3], K[q, 4]
+
+
+@njit(inline="always", cache=True)
+def _cost(w, x0, x1, x2, x3):
+    """A column's cost (weights and stage cost ``w``, :func:`_weights`) at a SOC row whose cell corners hold
+    x0..x3: the stage cost plus the bilinear combination."""
+    return w[4] + (w[0] * x0 + w[1] * x1 + w[2] * x2 + w[3] * x3)
+
+
+@njit(inline="always", cache=True)
+def _costs4(wa, wb, wc, wd, x0, x1, x2, x3):
+    """:func:`_cost` of four columns at one SOC row, and the least of them."""
+    va = _cost(wa, x0, x1, x2, x3)
+    vb = _cost(wb, x0, x1, x2, x3)
+    vc = _cost(wc, x0, x1, x2, x3)
+    vd = _cost(wd, x0, x1, x2, x3)
+    v = va if va < vb else vb
+    v = v if v < vc else vc
+    return va, vb, vc, vd, (v if v < vd else vd)
+
+
+@njit(inline="always", cache=True)
 def _min_corners4(best, ob, U, o00, o01, o10, o11, K, q, ip, ns, PP, i0, i1):
     """Four heat columns of one (coolant, cabin) cell (rows q..q+3 of K: corner weights, stage cost) into the
     running minimum ``best[ob + row]`` for the SOC rows i0..i1-1 (rows that are not candidates hold +inf in U,
     :func:`_soc_row`): the bilinear combination of the cell's corners (rows of U at offsets
     ``o00``, ``o01`` next cabin node, ``o10`` next coolant node, ``o11``), plus the stage cost and the row's SOC
     penalty. The corners are read once for the four."""
-    a00, a01, a02, a03, a0 = K[q, 0], K[q, 1], K[q, 2], K[q, 3], K[q, 4]
-    b00, b01, b02, b03, b0 = K[q + 1, 0], K[q + 1, 1], K[q + 1, 2], K[q + 1, 3], K[q + 1, 4]
-    c00, c01, c02, c03, c0 = K[q + 2, 0], K[q + 2, 1], K[q + 2, 2], K[q + 2, 3], K[q + 2, 4]
-    d00, d01, d02, d03, d0 = K[q + 3, 0], K[q + 3, 1], K[q + 3, 2], K[q + 3, 3], K[q + 3, 4]
+    wa = _weights(K, q)
+    wb = _weights(K, q + 1)
+    wc = _weights(K, q + 2)
+    wd = _weights(K, q + 3)
     u00, u01, u10, u11 = np.uint64(o00), np.uint64(o01), np.uint64(o10), np.uint64(o11)
     for i in range(i0, i1):
         x0, x1, x2, x3 = _corners_at(U, u00, u01, u10, u11, np.uint64(i))
-        va = a0 + (a00 * x0 + a01 * x1 + a02 * x2 + a03 * x3)
-        vb = b0 + (b00 * x0 + b01 * x1 + b02 * x2 + b03 * x3)
-        vc = c0 + (c00 * x0 + c01 * x1 + c02 * x2 + c03 * x3)
-        vd = d0 + (d00 * x0 + d01 * x1 + d02 * x2 + d03 * x3)
-        v = va if va < vb else vb
-        v = v if v < vc else vc
-        v = v if v < vd else vd
+        v = _costs4(wa, wb, wc, wd, x0, x1, x2, x3)[4]
         _lower(best, np.uint64(ob + i), v + PP[np.uint64(ip * ns + i)])
 
 
 @njit(inline="always", cache=True)
 def _min_corners1(best, ob, U, o00, o01, o10, o11, K, q, ip, ns, PP, i0, i1):
     """:func:`_min_corners4` for one column."""
-    a00, a01, a02, a03, a0 = K[q, 0], K[q, 1], K[q, 2], K[q, 3], K[q, 4]
+    wa = _weights(K, q)
     u00, u01, u10, u11 = np.uint64(o00), np.uint64(o01), np.uint64(o10), np.uint64(o11)
     for i in range(i0, i1):
         x0, x1, x2, x3 = _corners_at(U, u00, u01, u10, u11, np.uint64(i))
-        _lower(best, np.uint64(ob + i), (a0 + (a00 * x0 + a01 * x1 + a02 * x2 + a03 * x3)) + PP[np.uint64(ip * ns + i)])
+        _lower(best, np.uint64(ob + i), _cost(wa, x0, x1, x2, x3) + PP[np.uint64(ip * ns + i)])
 
 
 @njit(inline="always", cache=True)
@@ -852,39 +871,39 @@ def _bends(K, q):
 
 
 @njit(inline="always", cache=True)
-def _at_column(K, q, x0, x1, x2, x3):
-    """Heat column ``q``'s cost at a SOC row whose cell corners hold x0..x3: its stage cost plus the bilinear
-    combination."""
-    return K[q, 4] + (K[q, 0] * x0 + K[q, 1] * x1 + K[q, 2] * x2 + K[q, 3] * x3)
+def _gain(K, qs, qe):
+    """2 tau sigma L^2 of the stretch qs..qe (its fractions' changes): times the corners' mixed difference, the
+    margin-doubled curvature term of :func:`_interior_possible`."""
+    return 2.0 * (K[qe, 5] - K[qs, 5]) * (K[qe, 6] - K[qs, 6])
 
 
 @njit(inline="always", cache=True)
 def _inner_columns(best, ob, U, u00, u01, u10, u11, K, qs, qe, ip, ns, PP, i0, i1):
     """The inner columns of the stretch qs..qe for the rows where its ends and curvature allow an interior
     minimum (:func:`_interior_possible`)."""
-    gl = 2.0 * (K[qe, 5] - K[qs, 5]) * (K[qe, 6] - K[qs, 6])  # 2 tau sigma L^2
+    gl = _gain(K, qs, qe)
     for i in range(i0, i1):
         x0, x1, x2, x3 = _corners_at(U, u00, u01, u10, u11, np.uint64(i))
-        if not _interior_possible(_at_column(K, qs, x0, x1, x2, x3), _at_column(K, qe, x0, x1, x2, x3),
+        if not _interior_possible(_cost(_weights(K, qs), x0, x1, x2, x3), _cost(_weights(K, qe), x0, x1, x2, x3),
                                   gl * (x3 - x2 - x1 + x0)):
             continue
         pp = PP[ip * ns + i]
         for q in range(qs + 1, qe):
-            _lower(best, np.uint64(ob + i), _at_column(K, q, x0, x1, x2, x3) + pp)
+            _lower(best, np.uint64(ob + i), _cost(_weights(K, q), x0, x1, x2, x3) + pp)
 
 
 @njit(inline="always", cache=True)
 def _ends1(best, ob, U, u00, u01, u10, u11, K, qs, qe, ip, ns, PP, i0, i1):
     """One stretch's ends (columns qs, qe) into the running minimum for the SOC rows i0..i1-1; returns how many
     rows may have an interior minimum."""
-    gl = 2.0 * (K[qe, 5] - K[qs, 5]) * (K[qe, 6] - K[qs, 6])
-    s00, s01, s02, s03, s0 = K[qs, 0], K[qs, 1], K[qs, 2], K[qs, 3], K[qs, 4]
-    e00, e01, e02, e03, e0 = K[qe, 0], K[qe, 1], K[qe, 2], K[qe, 3], K[qe, 4]
+    gl = _gain(K, qs, qe)
+    ws = _weights(K, qs)
+    we = _weights(K, qe)
     flagged = 0
     for i in range(i0, i1):
         x0, x1, x2, x3 = _corners_at(U, u00, u01, u10, u11, np.uint64(i))
-        vs = s0 + (s00 * x0 + s01 * x1 + s02 * x2 + s03 * x3)
-        ve = e0 + (e00 * x0 + e01 * x1 + e02 * x2 + e03 * x3)
+        vs = _cost(ws, x0, x1, x2, x3)
+        ve = _cost(we, x0, x1, x2, x3)
         v = vs if vs < ve else ve
         _lower(best, np.uint64(ob + i), v + PP[np.uint64(ip * ns + i)])
         flagged += _interior_flag(vs, ve, gl * (x3 - x2 - x1 + x0))
@@ -895,26 +914,20 @@ def _ends1(best, ob, U, u00, u01, u10, u11, K, qs, qe, ip, ns, PP, i0, i1):
 def _ends4(best, ob, U, u00, u01, u10, u11, K, qa, qb, qc, qd, qf, ip, ns, PP, i0, i1):
     """:func:`_ends1` for four consecutive stretches (columns qa, qb, qc, qd, qf; a stretch of length 0 repeats
     a column and flags nothing) in one pass: each column is evaluated once."""
-    ga = 2.0 * (K[qb, 5] - K[qa, 5]) * (K[qb, 6] - K[qa, 6])
-    gb = 2.0 * (K[qc, 5] - K[qb, 5]) * (K[qc, 6] - K[qb, 6])
-    gc = 2.0 * (K[qd, 5] - K[qc, 5]) * (K[qd, 6] - K[qc, 6])
-    gd = 2.0 * (K[qf, 5] - K[qd, 5]) * (K[qf, 6] - K[qd, 6])
-    a00, a01, a02, a03, a0 = K[qa, 0], K[qa, 1], K[qa, 2], K[qa, 3], K[qa, 4]
-    b00, b01, b02, b03, b0 = K[qb, 0], K[qb, 1], K[qb, 2], K[qb, 3], K[qb, 4]
-    c00, c01, c02, c03, c0 = K[qc, 0], K[qc, 1], K[qc, 2], K[qc, 3], K[qc, 4]
-    d00, d01, d02, d03, d0 = K[qd, 0], K[qd, 1], K[qd, 2], K[qd, 3], K[qd, 4]
-    f00, f01, f02, f03, f0 = K[qf, 0], K[qf, 1], K[qf, 2], K[qf, 3], K[qf, 4]
+    ga = _gain(K, qa, qb)
+    gb = _gain(K, qb, qc)
+    gc = _gain(K, qc, qd)
+    gd = _gain(K, qd, qf)
+    wa = _weights(K, qa)
+    wb = _weights(K, qb)
+    wc = _weights(K, qc)
+    wd = _weights(K, qd)
+    wf = _weights(K, qf)
     flagged = 0
     for i in range(i0, i1):
         x0, x1, x2, x3 = _corners_at(U, u00, u01, u10, u11, np.uint64(i))
-        va = a0 + (a00 * x0 + a01 * x1 + a02 * x2 + a03 * x3)
-        vb = b0 + (b00 * x0 + b01 * x1 + b02 * x2 + b03 * x3)
-        vc = c0 + (c00 * x0 + c01 * x1 + c02 * x2 + c03 * x3)
-        vd = d0 + (d00 * x0 + d01 * x1 + d02 * x2 + d03 * x3)
-        vf = f0 + (f00 * x0 + f01 * x1 + f02 * x2 + f03 * x3)
-        v = va if va < vb else vb
-        v = v if v < vc else vc
-        v = v if v < vd else vd
+        va, vb, vc, vd, v = _costs4(wa, wb, wc, wd, x0, x1, x2, x3)
+        vf = _cost(wf, x0, x1, x2, x3)
         v = v if v < vf else vf
         _lower(best, np.uint64(ob + i), v + PP[np.uint64(ip * ns + i)])
         xm = x3 - x2 - x1 + x0
