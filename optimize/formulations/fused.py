@@ -143,6 +143,19 @@ def _heater_demand(P, tclg, T_cab, q0, qv):
         qv[j] = _delivered_heat(P, tclg[j], T_cab, q0, 0.0)  # a grid command: the target is not read
 
 
+@njit(inline="always", cache=True)
+def _next_coolant_cells(TB, TT, PT, n, tlo, thi, th, t_lo, t_inv, nt):
+    """The next coolant temperatures in TT[0..n-1] to their penalty (grid steps outside the coolant box, in
+    PT), cell (TB) and fraction (back into TT): a loop of its own on an unsigned ``n``, which LLVM
+    vectorises."""
+    for c in range(n):
+        tn = TT[c]
+        PT[c] = _excess(tn, tlo, thi, th)
+        bb, tt = _loc(tn, t_lo, t_inv, nt)
+        TB[c] = bb
+        TT[c] = tt
+
+
 @njit(cache=True)  # a call, not inlined: once per power control and step
 def _coolant_columns2(ip, P, tab, tclg, fclg, lossg, qv, TB, TT, PT, C0):
     """Thermal-DP, power control ``ip``: per coolant node the next coolant's cell and fraction, its penalty
@@ -165,12 +178,7 @@ def _coolant_columns2(ip, P, tab, tclg, fclg, lossg, qv, TB, TT, PT, C0):
         C0r[j] = wf * fclg[j] * Ts
     for j in range(un):
         TTr[j] = tclg[j] + Ts * coolant_heat_rate(gam, lhv * (wf * fclg[j]), P_e, lossg[j], qv[j])[0] / ceng
-    for j in range(un):
-        tn = TTr[j]
-        PTr[j] = _excess(tn, tlo, thi, th)
-        bb, tt = _loc(tn, t_lo, t_inv, nt)
-        TBr[j] = bb
-        TTr[j] = tt
+    _next_coolant_cells(TBr, TTr, PTr, un, tlo, thi, th, t_lo, t_inv, nt)
 
 
 @njit(cache=True)  # a call, not inlined: once per power control and step
@@ -202,12 +210,7 @@ def _coolant_columns(ip, P, tab, tclg, fclg, lossg, Q, qh, nh, TB, TT, PT, QFUEL
             TTr[c] = t0 + Ts * coolant_heat_rate(gam, Q_fuel, P_e, lj, Q[c])[0] / ceng
         for c in range(uh):
             TTr[uq + c] = t0 + Ts * coolant_heat_rate(gam, Q_fuel, P_e, lj, qh[c])[0] / ceng
-        for c in range(uq + uh):
-            tn = TTr[c]
-            PTr[c] = _excess(tn, tlo, thi, th)
-            bb, tt = _loc(tn, t_lo, t_inv, nt)
-            TBr[c] = bb
-            TTr[c] = tt
+        _next_coolant_cells(TBr, TTr, PTr, uq + uh, tlo, thi, th, t_lo, t_inv, nt)
 
 
 @njit(cache=True)  # a call, not inlined: once per step
@@ -797,7 +800,7 @@ def _lower(best, ub, v):
 def _interior_possible(vs, ve, g):
     """Whether a quadratic of curvature g / (2 L^2) over a stretch of length L, with ends vs and ve, may have
     its minimum inside (:func:`_min_stretches`: g carries a margin of two times, 1e-9 of the value more)."""
-    return g > 0.0 and abs(ve - vs) < g + 1e-9 * abs(vs)
+    return _interior_flag(vs, ve, g) != 0
 
 
 @njit(inline="always", cache=True)
@@ -965,7 +968,7 @@ def _min_stretches(best, ob, U, o00, o01, o10, o11, K, CAND, a, e, ip, ns, PP, i
             flagged = _ends1(best, ob, U, u00, u01, u10, u11, K, CAND[c], CAND[c + 1], ip, ns, PP, i0, i1)
         else:
             q = CAND[c + m]  # columns past the pass's last repeat it
-            flagged = _ends4(best, ob, U, u00, u01, u10, u11, K, CAND[c], CAND[c + 1], CAND[c + 2] if m >= 2 else q,
+            flagged = _ends4(best, ob, U, u00, u01, u10, u11, K, CAND[c], CAND[c + 1], CAND[c + 2],
                              CAND[c + 3] if m >= 3 else q, q, ip, ns, PP, i0, i1)
         if flagged:
             for cc in range(c, c + m):
@@ -1107,8 +1110,8 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
     then costs, per SOC row, the bilinear combination of its (coolant, cabin) cell's four corners. The heats
     change the next coolant and cabin temperatures by hundredths of a cell, so most columns of a state share
     one cell: its corners are read once for four columns (:func:`_min_corners4`). Over the grid's heats of a
-    cell the least cost is taken from the ends of the stretches where the stage cost is affine, and from
-    the inner columns only where the curvature allows an interior minimum (:func:`_min_stretches`: the same
+    cell the least cost is taken from the ends of the stretches where the stage cost and the fractions are
+    affine, and from the inner columns only where the curvature allows an interior minimum (:func:`_min_stretches`: the same
     minimum as every column's). The value is the same trilinear interpolation, rounded in another order
     (the stored float32 values are equal to those of the cabin-first order, or one unit of the last place
     apart). The cost-to-go is kept SOC-innermost ([coolant, cabin, SOC]) so the reads along SOC are
