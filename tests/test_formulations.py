@@ -889,8 +889,26 @@ def test_fused_kernel_separable_hands_a_non_finite_cost_to_go_back(params, nx):
         if nx == 2:
             got = backward2_sep(p.N, p.params, big, p.w, p.grids[0], p.grids[1], Q, VT, L1T, 0.0, True, False, nch)
         else:
-            got = backward3_sep(p.N, p.params, big, p.w, *p.grids, Q, VT, L1T, 0.0, True, True, False, nch)
+            got = backward3_sep(p.N, p.params, big, p.w, *p.grids, Q, VT, L1T, 0.0, True, True, False, nch,
+                                numba.get_num_threads())
         assert got == want
+
+
+def test_fused_blocks_are_dealt_to_the_threads_in_turn():
+    """Thermal-Cabin-DP's blocks of states go to the threads in turn (numba gives each thread a run of
+    consecutive prange iterations): every block exactly once, thread t the blocks t, t + T, ...; where the
+    blocks do not divide among the threads, in order."""
+    from optimize.formulations.fused import _dealt
+
+    for n, nth in ((8, 2), (12, 3), (16, 4), (8, 1), (7, 2), (6, 4)):
+        got = [_dealt(cp, n, nth) for cp in range(n)]
+        assert sorted(got) == list(range(n))
+        if n % nth == 0:
+            per = n // nth
+            for t in range(nth):
+                assert got[t * per:(t + 1) * per] == list(range(t, n, nth))
+        else:
+            assert got == list(range(n))
 
 
 def test_an_unknown_engine_is_refused_by_name(params):

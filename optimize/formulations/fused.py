@@ -1098,8 +1098,23 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
     return -1
 
 
+@njit(inline="always", cache=True)
+def _dealt(cp, n, nth):
+    """The block that iteration ``cp`` of a prange over ``n`` blocks takes on ``nth`` threads: numba splits a
+    prange into one run of consecutive iterations per thread, and the blocks are dealt out in turn instead
+    (thread t takes blocks t, t + T, t + 2T, ...). Thermal-Cabin-DP's blocks of states along the coolant grid differ in
+    work (on the default drive the coldest eighth costs a third of the others: the heater core delivers
+    fewer heats), so consecutive blocks would leave one thread idle. The identity where n is not a
+    multiple of the threads (the thread count is an argument: a kernel that asks numba for it cannot be
+    cached)."""
+    per = n // nth
+    if per * nth != n:
+        return np.int64(cp)
+    return np.int64((cp % per) * nth + cp // per)
+
+
 @njit(parallel=True, cache=True)
-def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, reach, skip, nchunk):
+def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, reach, skip, nchunk, nth):
     """Thermal-Cabin-DP backward pass when the level depends on SOC alone, the counterpart of
     :func:`backward2_sep` for :func:`backward3` (multilinear or reach interpolation; not the cubic):
     returns -1, or the step whose next cost-to-go holds a non-finite value.
@@ -1156,7 +1171,8 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
         _choose_rows(LV, AC, ns, np_, i_lo, i_hi, level_tol, LMIN, L1T[k])
         _all_runs(AC, np_, ns, i_lo, i_hi, R0, R1, RD, RN)
         nr = i_hi - i_lo
-        for ch in prange(nchunk):
+        for cp in prange(nchunk):
+            ch = _dealt(cp, nchunk, nth)
             g0 = ch * gsz
             g1 = min(ng, g0 + gsz)
             if g1 <= g0:
@@ -1277,8 +1293,9 @@ def backward_pass_fused(prob, skip: bool = True, separable: bool = True) -> Valu
             k = backward2_sep(prob.N, P, big, prob.w, g[0], g[1], Q, VT, L1T, tol, reach, skip,
                               min(g[1].size, 2 * numba.get_num_threads()))
         else:
+            nth = numba.get_num_threads()
             k = backward3_sep(prob.N, P, big, prob.w, g[0], g[1], g[2], Q, VT, L1T, tol, hold, reach, skip,
-                              min(rows.shape[1], 4 * numba.get_num_threads()))
+                              min(rows.shape[1], 4 * nth), nth)
         if k < 0:  # else a non-finite cost-to-go at step k: the exact kernel redoes the pass (V_N is untouched)
             LT[:] = np.repeat(L1T, rows.shape[1], axis=1)
             kernel = "fused-separable"
