@@ -1113,7 +1113,7 @@ def _dealt(cp, n, nth):
     return np.int64((cp % per) * nth + cp // per)
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath={"contract"})
 def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, reach, skip, nchunk, nth):
     """Thermal-Cabin-DP backward pass when the level depends on SOC alone, the counterpart of
     :func:`backward2_sep` for :func:`backward3` (multilinear or reach interpolation; not the cubic):
