@@ -885,10 +885,11 @@ def _inner_columns(best, ob, U, u00, u01, u10, u11, K, qs, qe, ip, ns, PP, i0, i
     """The inner columns of the stretch qs..qe for the rows where its ends and curvature allow an interior
     minimum (:func:`_interior_possible`)."""
     gl = _gain(K, qs, qe)
+    ws = _weights(K, qs)
+    we = _weights(K, qe)
     for i in range(i0, i1):
         x0, x1, x2, x3 = _corners_at(U, u00, u01, u10, u11, np.uint64(i))
-        if not _interior_possible(_cost(_weights(K, qs), x0, x1, x2, x3), _cost(_weights(K, qe), x0, x1, x2, x3),
-                                  gl * (x3 - x2 - x1 + x0)):
+        if not _interior_possible(_cost(ws, x0, x1, x2, x3), _cost(we, x0, x1, x2, x3), gl * (x3 - x2 - x1 + x0)):
             continue
         pp = PP[ip * ns + i]
         for q in range(qs + 1, qe):
@@ -1104,9 +1105,9 @@ def _dealt(cp, n, nth):
     prange into one run of consecutive iterations per thread, and the blocks are dealt out in turn instead
     (thread t takes blocks t, t + T, t + 2T, ...). Thermal-Cabin-DP's blocks of states along the coolant
     grid differ in work (on the default drive the coldest eighth costs a third of the others: the heater
-    core delivers fewer heats), so consecutive blocks would leave one thread idle. The identity where n is not a
-    multiple of the threads (the thread count is an argument: a kernel that asks numba for it cannot be
-    cached)."""
+    core delivers fewer heats), so consecutive blocks would leave one thread idle. The identity where n is
+    not a multiple of the threads (the thread count is an argument: a kernel that asks numba for it cannot
+    be cached)."""
     per = n // nth
     if per * nth != n:
         return np.int64(cp)
@@ -1127,8 +1128,8 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
     change the next coolant and cabin temperatures by hundredths of a cell, so most columns of a state share
     one cell: its corners are read once for four columns (:func:`_min_corners4`). Over the grid's heats of a
     cell the least cost is taken from the ends of the stretches where the stage cost and the fractions are
-    affine, and from the inner columns only where the curvature allows an interior minimum (:func:`_min_stretches`: the same
-    minimum as every column's). The value is the same trilinear interpolation, rounded in another order
+    affine, and from the inner columns only where the curvature allows an interior minimum
+    (:func:`_min_stretches`: the same minimum as every column's). The value is the same trilinear interpolation, rounded in another order
     (the stored float32 values are equal to those of the cabin-first order, or one unit of the last place
     apart). The cost-to-go is kept SOC-innermost ([coolant, cabin, SOC]) so the reads along SOC are
     contiguous."""
