@@ -610,17 +610,25 @@ def _soc_col(ip, P, tab, L1n, s_off, s_lo, s_inv, ns, i_lo, i_hi, level_tol, rea
             AC[o + i] = -1
         return
     PEN, lo, hi, sh = P[_C_PEN], P[_C_SLO], P[_C_SHI], P[_C_SH]
+    # two loops: the cells first (AC, and the fractions in WB), then the levels they read (one loop, with the
+    # levels' loads at cells computed in it, took 1.3 times as long: 40 ms a pass of the default drive)
     for i in range(u_lo, u_hi):
         sn = tab[ip, np.uint64(_T_SOC0) + i]
         a, ta = _loc(sn - s_off, s_lo, s_inv, ns)  # a NaN charge gives cell 0; it is not allowed below
-        la = np.float64(L1n[np.uint64(a)])
-        lb = np.float64(L1n[np.uint64(a + 1)])
+        AC[o + i] = a
+        WB[o + i] = ta
+        PP[o + i] = PEN * _excess(sn, lo, hi, sh)
+    for i in range(u_lo, u_hi):
+        a = np.uint64(AC[o + i])
+        ta = WB[o + i]
+        la = np.float64(L1n[a])
+        lb = np.float64(L1n[a + np.uint64(1)])
         # the engine's exact interpolation: a corner of weight 0 is not read
         lv = la if ta == 0.0 else (lb if ta == 1.0 else (1.0 - ta) * la + ta * lb)
+        sn = tab[ip, np.uint64(_T_SOC0) + i]
         ok = (sn == sn) and lv < np.inf  # a NaN charge: the battery cannot deliver the control
         LV[o + i] = lv if ok else np.inf
-        AC[o + i] = a if ok else -1
-        PP[o + i] = PEN * _excess(sn, lo, hi, sh)
+        AC[o + i] = AC[o + i] if ok else -1
         if reach:
             wa, wb = reach_weights(la, lb, level_tol, ta)
         else:
@@ -1036,7 +1044,6 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
     RD = np.empty((np_, ns), np.int64)
     RN = np.empty((np_, 3), np.int64)
     csz = (nt + nchunk - 1) // nchunk
-    psz = (np_ + nchunk - 1) // nchunk  # power controls prepared per task
     BEST = np.empty((nchunk, csz * ns))  # per task: [coolant node, SOC row]
     WK = np.empty((nchunk, csz * ns))  # per task: [coolant node, SOC node], the cost-to-go interpolated along the coolant
     # step N - 1's preparation
@@ -1091,7 +1098,7 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
                     for jj in range(m):
                         VT[k, (i_lo + ii) * nt + j0 + jj] = best[jj * nr + ii]
             if k > 0:  # step k - 1's preparation, this task's share of the power controls
-                for ip in range(c * psz, min(np_, (c + 1) * psz)):
+                for ip in range(c, np_, nchunk):
                     _coolant_columns2(ip, P, big[k - 1], tclg, fclg, lossg, qv, TB[nxt], TT[nxt], PT[nxt], C0[nxt])
                     _soc_col(ip, P, big[k - 1], L1T[k], w[k - 1, 5], s_lo, s_inv, ns, p_lo, p_hi, level_tol, reach,
                              LV[nxt], AC[nxt], WA[nxt], WB[nxt], PP[nxt])
