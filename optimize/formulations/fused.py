@@ -610,8 +610,8 @@ def _soc_col(ip, P, tab, L1n, s_off, s_lo, s_inv, ns, i_lo, i_hi, level_tol, rea
             AC[o + i] = -1
         return
     PEN, lo, hi, sh = P[_C_PEN], P[_C_SLO], P[_C_SHI], P[_C_SH]
-    # two loops: the cells first (AC, and the fractions in WB), then the levels they read (one loop, with the
-    # levels' loads at cells computed in it, took 1.3 times as long: 40 ms a pass of the default drive)
+    # two loops: the cells first (AC, and the fractions in WB), then the levels they read (in one loop, the
+    # levels' loads at cells computed in it took 40 ms against 31 ms over a pass of the default drive)
     for i in range(u_lo, u_hi):
         sn = tab[ip, np.uint64(_T_SOC0) + i]
         a, ta = _loc(sn - s_off, s_lo, s_inv, ns)  # a NaN charge gives cell 0; it is not allowed below
@@ -1097,7 +1097,8 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
                 for ii in range(nr):
                     for jj in range(m):
                         VT[k, (i_lo + ii) * nt + j0 + jj] = best[jj * nr + ii]
-            if k > 0:  # step k - 1's preparation, this task's share of the power controls
+            if k > 0:  # step k - 1's preparation: the power controls dealt to the tasks in turn (at most steps
+                # only the first half of them is allowed, so runs of consecutive ones left one thread most of it)
                 for ip in range(c, np_, nchunk):
                     _coolant_columns2(ip, P, big[k - 1], tclg, fclg, lossg, qv, TB[nxt], TT[nxt], PT[nxt], C0[nxt])
                     _soc_col(ip, P, big[k - 1], L1T[k], w[k - 1, 5], s_lo, s_inv, ns, p_lo, p_hi, level_tol, reach,
