@@ -15,7 +15,8 @@ __all__ = ["plot_case_study", "plot_study", "plot_policy", "plot_dp_result"]
 
 
 def plot_case_study(cs, outdir) -> list:
-    """The paper's figures as PNGs in ``outdir``; returns their paths."""
+    """The paper's figures as PNGs in ``outdir``; returns their paths. The cabin and heater figures are
+    drawn only when Thermal-DP or Thermal-Cabin-DP was solved (the other strategies do not decide the heat)."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)
@@ -46,6 +47,8 @@ def plot_case_study(cs, outdir) -> list:
     for name, ylabel, get, _kind in series:
         use = keys if name not in ("cabin", "heater_power") else [k for k in keys if k in ("thermal",
                                                                                            "thermal_cabin")]
+        if not use:  # no strategy of this figure was solved: no empty axes
+            continue
         if name == "engine_mode":
             fig, axs = plt.subplots(len(use), 1, figsize=(9, 1.6 * len(use) + 0.6), sharex=True,
                                     squeeze=False)

@@ -121,3 +121,21 @@ def test_fuel_chart_labels_every_bar(tmp_path, monkeypatch):
     assert "saving vs Rule-based (tuned) [%]" == ax.get_xlabel()
     leg = ax.get_legend()
     assert leg is not None and leg.get_bbox_to_anchor().y0 < ax.bbox.y0  # below the axes, covering no bar
+
+
+def test_case_study_draws_no_empty_cabin_figures(tmp_path):
+    """Without Thermal-DP or Thermal-Cabin-DP no strategy decides the heat: the cabin and heater figures are
+    not drawn (an empty axes with a legend of nothing), and the others are."""
+    import warnings
+    from pathlib import Path
+
+    from calib.model.params import default_parameters
+    from optimize.casestudy import run_case_study
+
+    cs = run_case_study(default_parameters(), DPScenario(duration_s=60.0), strategies=("rule", "baseline"),
+                        progress=False, grids=GRIDS)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # matplotlib warns when a legend has no labelled artist
+        names = {Path(p).stem for p in cs.plot(tmp_path)}
+    assert "cabin" not in names and "heater_power" not in names
+    assert {"soc", "coolant", "fuel_bars"} <= names
