@@ -99,15 +99,22 @@ def test_optimize_reuses_the_run_cache(run, capsys):
     assert "Baseline-DP on thermal model" in cap.err and "from the cache" in cap.err
 
 
-def test_fuel_chart_labels_every_bar(tmp_path, monkeypatch):
-    """The fuel chart draws savings against rule-based (differences of a few % stay visible) and writes a
-    value on every bar; its legend sits outside the axes."""
-    import calib.fileio as fio
+@pytest.fixture(scope="module")
+def rule_baseline_cs():
+    """A short case study of rule-based and Baseline-DP only (no strategy that decides the heat)."""
     from calib.model.params import default_parameters
     from optimize.casestudy import run_case_study
 
-    cs = run_case_study(default_parameters(), DPScenario(duration_s=60.0), strategies=("rule", "baseline"),
-                        progress=False, grids=GRIDS)
+    return run_case_study(default_parameters(), DPScenario(duration_s=60.0), strategies=("rule", "baseline"),
+                          progress=False, grids=GRIDS)
+
+
+def test_fuel_chart_labels_every_bar(rule_baseline_cs, tmp_path, monkeypatch):
+    """The fuel chart draws savings against rule-based (differences of a few % stay visible) and writes a
+    value on every bar; its legend sits outside the axes."""
+    import calib.fileio as fio
+
+    cs = rule_baseline_cs
     figs = {}
     real = fio.save_figure
     monkeypatch.setattr(fio, "save_figure", lambda fig, path, **kw: (figs.__setitem__(path.stem, fig),
@@ -123,19 +130,14 @@ def test_fuel_chart_labels_every_bar(tmp_path, monkeypatch):
     assert leg is not None and leg.get_bbox_to_anchor().y0 < ax.bbox.y0  # below the axes, covering no bar
 
 
-def test_case_study_draws_no_empty_cabin_figures(tmp_path):
+def test_case_study_draws_no_empty_cabin_figures(rule_baseline_cs, tmp_path):
     """Without Thermal-DP or Thermal-Cabin-DP no strategy decides the heat: the cabin and heater figures are
     not drawn (an empty axes with a legend of nothing), and the others are."""
     import warnings
     from pathlib import Path
 
-    from calib.model.params import default_parameters
-    from optimize.casestudy import run_case_study
-
-    cs = run_case_study(default_parameters(), DPScenario(duration_s=60.0), strategies=("rule", "baseline"),
-                        progress=False, grids=GRIDS)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # matplotlib warns when a legend has no labelled artist
-        names = {Path(p).stem for p in cs.plot(tmp_path)}
+        names = {Path(p).stem for p in rule_baseline_cs.plot(tmp_path)}
     assert "cabin" not in names and "heater_power" not in names
     assert {"soc", "coolant", "fuel_bars"} <= names

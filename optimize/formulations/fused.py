@@ -1137,10 +1137,10 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
     one cell: its corners are read once for four columns (:func:`_min_corners4`). Over the grid's heats of a
     cell the least cost is taken from the ends of the stretches where the stage cost and the fractions are
     affine, and from the inner columns only where the curvature allows an interior minimum
-    (:func:`_min_stretches`: the same minimum as every column's). The value is the same trilinear interpolation, rounded in another order
-    (the stored float32 values are equal to those of the cabin-first order, or one unit of the last place
-    apart). The cost-to-go is kept SOC-innermost ([coolant, cabin, SOC]) so the reads along SOC are
-    contiguous."""
+    (:func:`_min_stretches`: the same minimum as every column's). The value is the same trilinear
+    interpolation, rounded in another order (the stored float32 values are equal to those of the cabin-first
+    order, or one unit of the last place apart). The cost-to-go is kept SOC-innermost ([coolant, cabin, SOC])
+    so the reads along SOC are contiguous."""
     ns, nt, nc, nq = socg.size, tclg.size, cabg.size, Q.size
     nq1 = nq + 1 if hold else nq
     np_ = big.shape[1]
@@ -1299,11 +1299,11 @@ def backward_pass_fused(prob, skip: bool = True, separable: bool = True) -> Valu
         L1T = np.empty((prob.N + 1, g[0].size), dtype=np.float32)
         L1T[prob.N] = rows[:, 0]
         tol = float(prob.level_tol)
+        nth = numba.get_num_threads()
         if nx == 2:
             k = backward2_sep(prob.N, P, big, prob.w, g[0], g[1], Q, VT, L1T, tol, reach, skip,
-                              min(g[1].size, 2 * numba.get_num_threads()))
+                              min(g[1].size, 2 * nth))
         else:
-            nth = numba.get_num_threads()
             k = backward3_sep(prob.N, P, big, prob.w, g[0], g[1], g[2], Q, VT, L1T, tol, hold, reach, skip,
                               min(rows.shape[1], 4 * nth), nth)
         if k < 0:  # else a non-finite cost-to-go at step k: the exact kernel redoes the pass (V_N is untouched)
