@@ -10,8 +10,8 @@ import pytest
 
 from calib.model.cycles import load_cycle
 from calib.errors import IptmError
-from optimize.causal.compare import (DRIVE_SETS, FRESH_TEST, HELD_OUT, RESERVE_TEST, THIRD_TEST, TRAIN_CYCLES,
-                                     compare_causal)
+from optimize.causal.compare import (DRIVE_SETS, FOURTH_TEST, FRESH_TEST, HELD_OUT, RESERVE_TEST, THIRD_TEST,
+                                     TRAIN_CYCLES, compare_causal)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -28,7 +28,10 @@ def test_training_held_out_fresh_and_reserve_drives_are_disjoint_and_bundled():
     assert not set(FRESH_TEST) & (set(TRAIN_CYCLES) | set(HELD_OUT))
     assert not set(RESERVE_TEST) & (set(TRAIN_CYCLES) | set(HELD_OUT) | set(FRESH_TEST))
     assert not set(THIRD_TEST) & (set(TRAIN_CYCLES) | set(HELD_OUT) | set(FRESH_TEST) | set(RESERVE_TEST))
-    assert DRIVE_SETS == {"held-out": HELD_OUT, "fresh": FRESH_TEST, "reserve": RESERVE_TEST, "third": THIRD_TEST}
+    assert not set(FOURTH_TEST) & (set(TRAIN_CYCLES) | set(HELD_OUT) | set(FRESH_TEST) | set(RESERVE_TEST)
+                                   | set(THIRD_TEST))
+    assert DRIVE_SETS == {"held-out": HELD_OUT, "fresh": FRESH_TEST, "reserve": RESERVE_TEST, "third": THIRD_TEST,
+                          "fourth": FOURTH_TEST}
     # each reserve trip is a later trip of a car of the fresh set, each third trip later than its car's reserve one
     first = {n.split("_")[1] + "_" + n.split("_")[2]: (n.split("_")[3], "") for n in FRESH_TEST}
     second = {n.split("_")[1] + "_" + n.split("_")[2]: tuple(n.split("_")[3:]) for n in RESERVE_TEST}
@@ -36,9 +39,12 @@ def test_training_held_out_fresh_and_reserve_drives_are_disjoint_and_bundled():
         for n in later:
             _, veh, no, day, hhmm = n.split("_")
             assert (day, hhmm) > earlier[f"{veh}_{no}"] and len(hhmm) == 4, n
-    for name in FRESH_TEST + RESERVE_TEST + THIRD_TEST:
+    cmap = [n for n in FOURTH_TEST if n.startswith("cmap_")]
+    assert cmap == ["cmap_4108468_1_20070625_1220"] and cmap[0] > THIRD_TEST[0]  # the fourth trip of that car
+    for name in FRESH_TEST + RESERVE_TEST + THIRD_TEST + FOURTH_TEST:
         c = load_cycle(name)
-        assert 300.0 <= c.t[-1] <= 1800.0, name  # the rule's 5-30 min
+        if name.startswith("cmap_"):
+            assert 300.0 <= c.t[-1] <= 1800.0, name  # the rule's 5-30 min
         assert c.v[0] == 0.0 and c.v[-1] == 0.0, name  # a trip starts and ends at rest
         assert np.all(np.diff(c.t) == 1.0)
 

@@ -36,10 +36,12 @@ def register(sub):
                    help="causal: how final states are valued: corrected (fuel equivalents of the stored energy, "
                         "default) or continuation (the rule-based controller's fuel over UDDS six times from the final "
                         "state; Thermal-DP with the 'continued' terminal)")
-    p.add_argument("--drives", choices=("held-out", "fresh", "reserve", "third"), default="held-out",
+    p.add_argument("--drives", choices=("held-out", "fresh", "reserve", "third", "fourth"), default="held-out",
                    help="causal: the drives compared on: held-out (six drives, looked at while the settings were "
-                        "developed), fresh (eight real trips first simulated after the settings were last chosen) "
-                        "reserve (the later trip of seven of the fresh trips' cars) or third (the third trip of four)")
+                        "developed), fresh (eight real trips first simulated after the SDP's settings were last "
+                        "chosen), reserve (the later trip of seven of the fresh trips' cars), third (the third trip "
+                        "of four) or fourth (the WLTC high and extra-high phases and a fourth CMAP trip, first "
+                        "simulated after the ECMS's settings were chosen again)")
     p.add_argument("--learn-from", metavar="SET[,SET]",
                    help="causal: also run the SDP on a demand chain that learnt these drive sets too (rows sdp_own), "
                         "e.g. --drives reserve --learn-from fresh: each car's earlier trip")
