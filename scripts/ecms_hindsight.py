@@ -1,9 +1,9 @@
 """Split the causal ECMS's gap to Thermal-DP into structure and knowledge of the drive.
 
 For every run (drive, ambient) of the committed causal comparisons (``reports/causal-SET-VALUATION.json``,
-written by ``iptm bench causal``), the ECMS is driven again as committed (the figure must equal the report's,
-else the model has changed and the comparison must be run again) and then with its settings tuned on that
-very drive (:func:`optimize.causal.hindsight.tune_ecms_on_drive`: the ``adaptive`` and the ``constant``
+written by ``iptm bench causal``), the ECMS is driven again with the settings the report records (the figure
+must equal the report's, else the model has changed and the comparison must be run again) and then with its
+settings tuned on that very drive (:func:`optimize.causal.hindsight.tune_ecms_on_drive`: the ``adaptive`` and the ``constant``
 co-state searches, each kept to runs ending within 0.01 of SOC_0). The gap of each to the report's
 Thermal-DP is printed per run, with the counts within 3 %. Thermal-DP is not solved again: its figures are
 the report's.
@@ -41,11 +41,11 @@ def one_run(job: dict) -> dict:
     mp = ps.model_params()
     scen = _scenario(job["cycle"], job["T_amb"], job["valuation"])
     t0 = time.perf_counter()
-    ep = replace(ECMSParams(), Q_heat_W=scen.Q_heat, soc_target=scen.soc0)
+    ep = replace(ECMSParams(**job["ecms_settings"]), Q_heat_W=scen.Q_heat, soc_target=scen.soc0)
     committed = _corrected(_sim(ps, mp, scen.load_cycle(), scen, ep), scen, job["valuation"])[0]
     out = {**job, "ecms_again_g": committed}
     for search in ("adaptive", "constant"):
-        h = tune_ecms_on_drive(ps, scen, search=search, valuation=job["valuation"], soc_band=SOC_TOL)
+        h = tune_ecms_on_drive(ps, scen, search=search, valuation=job["valuation"], soc_band=SOC_TOL, ecms=ep)
         b = h.best
         out[search] = {"best": b, "n_tried": len(h.tried),
                        "n_in_band": sum(1 for r in h.tried if abs(r["dsoc"]) <= SOC_TOL),
@@ -57,7 +57,7 @@ def one_run(job: dict) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--valuation", default="corrected", choices=("corrected", "continuation"))
-    ap.add_argument("--drives", default="held-out,fresh,reserve,third")
+    ap.add_argument("--drives", default="held-out,fresh,reserve,third,fourth")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", type=Path)
     a = ap.parse_args(argv)
@@ -67,11 +67,15 @@ def main(argv=None) -> int:
         if not rep.is_file():
             raise SystemExit(f"{rep}: missing; run `iptm bench causal --drives {d} --valuation {a.valuation} "
                              f"--json {rep}` first")
-        rows = json.loads(rep.read_text())["causal"]["table"]
+        report = json.loads(rep.read_text())["causal"]
+        if "ecms_settings" not in report:
+            raise SystemExit(f"{rep}: records no ECMS settings; run `iptm bench causal` again to write them")
+        rows = report["table"]
         by = {(r["cycle"], r["T_amb"], r["strategy"]): r for r in rows}
         for (c, T, s), r in by.items():
             if s == "dp_thermal":
                 jobs.append({"set": d, "cycle": c, "T_amb": T, "valuation": a.valuation,
+                             "ecms_settings": report["ecms_settings"],
                              "dp_g": r["fuel_corrected_g"], "ecms_g": by[(c, T, "ecms")]["fuel_corrected_g"],
                              "rule_g": by[(c, T, "rule_tuned")]["fuel_corrected_g"]})
     t0 = time.perf_counter()

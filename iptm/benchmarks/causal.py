@@ -17,6 +17,7 @@ def run(quick: bool = False, valuation: str = "corrected", drives: str = "held-o
     from calib.model.params import default_parameters
     from optimize.causal.compare import AMBIENTS, DRIVE_SETS, TRAIN_CYCLES, compare_causal, drives_of, step_timing
     from optimize.causal.controllers import ECMSController, SDPController
+    from optimize.causal.ecms import ECMSParams
 
     ps = default_parameters()
     HELD_OUT = DRIVE_SETS[drives]
@@ -79,7 +80,7 @@ def run(quick: bool = False, valuation: str = "corrected", drives: str = "held-o
               f"{p.info['converged']}) (goal < 60 s)")
     return {"table": cmp.rows, "goals": cmp.goals(),
             "credit_per_gram": {str(k): v for k, v in credit.items()}, "valuation": valuation, "drives": drives,
-            "learn_from": list(more), "own_settings": own_settings,
+            "learn_from": list(more), "own_settings": own_settings, "ecms_settings": ECMSParams().to_dict(),
             "continuation_credit_per_gram": {str(k): v for k, v in cont.items()}, "validation": cmp.validation,
             "validation_own": cmp.validation_own, "step": steps,
             "build": {str(T): p.info for T, p in cmp.policies.items()},
