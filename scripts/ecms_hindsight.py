@@ -1,8 +1,9 @@
 """Split the causal ECMS's gap to Thermal-DP into structure and knowledge of the drive.
 
 For every run (drive, ambient) of the committed causal comparisons (``reports/causal-SET-VALUATION.json``,
-written by ``iptm bench causal``), the ECMS is driven again with the settings the report records (the figure
-must equal the report's, else the model has changed and the comparison must be run again) and then with its
+written by ``iptm bench causal``), the ECMS is driven again with the settings the report records (the defaults
+when it records none; the figure must equal the report's, else the model or the settings have changed and
+the comparison must be run again) and then with its
 settings tuned on that very drive (:func:`optimize.causal.hindsight.tune_ecms_on_drive`: the ``adaptive`` and the ``constant``
 co-state searches, each kept to runs ending within 0.01 of SOC_0). The gap of each to the report's
 Thermal-DP is printed per run, with the counts within 3 %. Thermal-DP is not solved again: its figures are
@@ -61,6 +62,8 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", type=Path)
     a = ap.parse_args(argv)
+    from optimize.causal.ecms import ECMSParams
+
     jobs = []
     for d in a.drives.split(","):
         rep = Path(f"reports/causal-{d}-{a.valuation}.json")
@@ -68,14 +71,15 @@ def main(argv=None) -> int:
             raise SystemExit(f"{rep}: missing; run `iptm bench causal --drives {d} --valuation {a.valuation} "
                              f"--json {rep}` first")
         report = json.loads(rep.read_text())["causal"]
-        if "ecms_settings" not in report:
-            raise SystemExit(f"{rep}: records no ECMS settings; run `iptm bench causal` again to write them")
+        # a report without them was made before they were recorded: the defaults, which the check below
+        # confirms by driving the report's figures again
+        settings = report.get("ecms_settings") or ECMSParams().to_dict()
         rows = report["table"]
         by = {(r["cycle"], r["T_amb"], r["strategy"]): r for r in rows}
         for (c, T, s), r in by.items():
             if s == "dp_thermal":
                 jobs.append({"set": d, "cycle": c, "T_amb": T, "valuation": a.valuation,
-                             "ecms_settings": report["ecms_settings"],
+                             "ecms_settings": settings,
                              "dp_g": r["fuel_corrected_g"], "ecms_g": by[(c, T, "ecms")]["fuel_corrected_g"],
                              "rule_g": by[(c, T, "rule_tuned")]["fuel_corrected_g"]})
     t0 = time.perf_counter()

@@ -13,8 +13,9 @@ Two rules are applied, each the SDP's (``scripts/causal_select.py``): among the 
 SOC_0 (the 0.01 band less a quarter of it), the least mean gap; ``ends`` judges the drives' ends only,
 ``stops`` every stop. Held-out drives are never simulated here.
 
-Usage: ``python scripts/ecms_select.py [--out reports/ecms-select.json] [--plot FILE.png]`` (about 6
-minutes on 2 cores: six Thermal-DP solutions, then 960 ECMS drives).
+Usage: ``python scripts/ecms_select.py [--out reports/ecms-select.json] [--plot FILE.png]`` (about 5
+minutes on 2 cores: six Thermal-DP solutions, then 960 ECMS drives); ``--replot REPORT --plot FILE.png``
+draws an earlier report again.
 """
 from __future__ import annotations
 
@@ -47,9 +48,11 @@ def stop_indices(v) -> np.ndarray:
 
 def front(rows: list) -> list:
     """The settings no other beats on both the mean gap and the largest |dSOC| at a stop."""
-    return sorted((r for r in rows if not any(o["mean_gap_pct"] < r["mean_gap_pct"]
-                                              and o["max_abs_dsoc_stop"] < r["max_abs_dsoc_stop"] for o in rows)),
-                  key=lambda r: r["max_abs_dsoc_stop"])
+    def beats(o, r):
+        a, b = (o["mean_gap_pct"], o["max_abs_dsoc_stop"]), (r["mean_gap_pct"], r["max_abs_dsoc_stop"])
+        return a[0] <= b[0] and a[1] <= b[1] and a != b
+
+    return sorted((r for r in rows if not any(beats(o, r) for o in rows)), key=lambda r: r["max_abs_dsoc_stop"])
 
 
 def plot(rows: list, committed: dict | None, out: Path) -> None:
@@ -84,7 +87,16 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=Path("reports/ecms-select.json"))
     ap.add_argument("--plot", type=Path, help="draw the trade-off (PNG)")
+    ap.add_argument("--replot", type=Path, metavar="REPORT", help="only draw --plot from an earlier report")
     a = ap.parse_args(argv)
+    if a.replot:
+        import json
+
+        if not a.plot:
+            raise SystemExit("--replot: give --plot FILE.png")
+        d = json.loads(a.replot.read_text())
+        plot(d["rows"], d["committed"], a.plot)
+        return 0
 
     from calib.fileio import write_json
     from calib.model.params import default_parameters

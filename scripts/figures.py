@@ -30,12 +30,17 @@ SUITES = ("sim",)
 MUTATION_JSON = ROOT / "reports" / "mutation.json"
 #: ``iptm bench causal --drives SET --valuation V --json reports/causal-SET-V.json`` (each run takes minutes:
 #: ``run`` does not re-run them)
-CAUSAL_SETS = ("held-out", "fresh", "reserve", "third")
+CAUSAL_SETS = ("held-out", "fresh", "reserve", "third", "fourth")
 CAUSAL_VALUATIONS = ("corrected", "continuation")
 
 
 def causal_json(drives: str, valuation: str) -> Path:
     return ROOT / "reports" / f"causal-{drives}-{valuation}.json"
+
+
+def hindsight_json(valuation: str) -> Path:
+    """``python scripts/ecms_hindsight.py --valuation V --out reports/ecms-hindsight-V.json`` (not re-run)."""
+    return ROOT / "reports" / f"ecms-hindsight-{valuation}.json"
 
 
 def bench_json(suite: str) -> Path:
@@ -115,9 +120,64 @@ def _causal_rule_train(d: dict) -> str:
     return "\n".join(out[1:])
 
 
+def _causal_per_drive(d: dict, drives: str = "fourth") -> str:
+    """Per drive of one set, both valuations: Thermal-DP, the rule tuned on the drive, the SDP and the ECMS
+    (docs/optimization.md s.7)."""
+    out = []
+    for valuation in CAUSAL_VALUATIONS:
+        c = d.get("causal", {}).get((drives, valuation))
+        if c is None:
+            continue
+        cont = valuation == "continuation"
+        out += ["", f"{valuation.capitalize()} valuation (`reports/causal-{drives}-{valuation}.json`):", "",
+                "| drive | ambient | Thermal-DP g" + (" (credit; SOC_N)" if cont else "") + " | tuned rule g | "
+                "SDP g (gap to DP, vs rule) | SDP SOC_N | ECMS g (gap to DP, vs rule) | ECMS SOC_N |",
+                "|---|---|---|---|---|---|---|---|"]
+        by = {(r["cycle"], r["T_amb"], r["strategy"]): r for r in c["table"]}
+        for (cyc, T, strat), dp in by.items():
+            if strat != "dp_thermal":
+                continue
+            rule, sdp, ecms = by[(cyc, T, "rule_tuned")], by[(cyc, T, "sdp")], by[(cyc, T, "ecms")]
+            dp_cell = f"{dp['fuel_corrected_g']:.2f}" + (f" ({dp['credit_g']:+.2f}; {dp['soc_final']:.3f})" if cont else "")
+            out.append(f"| {cyc} | {T:g} | {dp_cell} | {rule['fuel_corrected_g']:.2f} | "
+                       + " | ".join(f"{r['fuel_corrected_g']:.2f} ({r['gap_to_dp_pct']:+.2f} %, {r['vs_rule_pct']:+.2f} %) | "
+                                    f"{r['soc_final']:.4f}" for r in (sdp, ecms)) + " |")
+    return "\n".join(out[1:])
+
+
+def _ecms_hindsight(d: dict) -> str:
+    """Per valuation, the causal ECMS against the ECMS tuned on each drive (scripts/ecms_hindsight.py)."""
+    rows = ["| valuation | runs | within 3 % of Thermal-DP: causal ECMS | ECMS tuned on the drive | constant co-states "
+            "tuned on the drive | rule tuned on the drive | better than the rule tuned on the drive: causal ECMS | "
+            "ECMS tuned on the drive | constant co-states tuned on the drive | largest gap to DP: causal, tuned, "
+            "constant |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for v, h in d.get("ecms_hindsight", {}).items():
+        runs = h["runs"]
+        n = len(runs)
+
+        def fuel(r, k):  # None: no setting of the search ended in the band
+            return r["ecms_g"] if k == "causal" else (r[k]["best"] or {}).get("fuel_valued_g")
+
+        def gap(r, k):
+            f = fuel(r, k)
+            return None if f is None else 100.0 * (f / r["dp_g"] - 1.0)
+
+        within = {k: sum(1 for r in runs if (g := gap(r, k)) is not None and g <= 3.0)
+                  for k in ("causal", "adaptive", "constant")}
+        better = {k: sum(1 for r in runs if (f := fuel(r, k)) is not None and f < r["rule_g"])
+                  for k in ("causal", "adaptive", "constant")}
+        rule = sum(1 for r in runs if 100.0 * (r["rule_g"] / r["dp_g"] - 1.0) <= 3.0)
+        worst = [max(g for r in runs if (g := gap(r, k)) is not None) for k in ("causal", "adaptive", "constant")]
+        rows.append(f"| {v} | {n} | {within['causal']}/{n} | {within['adaptive']}/{n} | {within['constant']}/{n} | "
+                    f"{rule}/{n} | {better['causal']}/{n} | {better['adaptive']}/{n} | {better['constant']}/{n} | "
+                    + ", ".join(f"{w:+.2f} %" for w in worst) + " |")
+    return "\n".join(rows)
+
+
 RENDER = {"epa": _epa, "sim-speed": _sim_speed, "mutation": _mutation, "causal": _causal}
 #: Blocks of docs/optimization.md rendered the same way.
-DOC_RENDER = {"causal-rule-train": _causal_rule_train}
+DOC_RENDER = {"causal-rule-train": _causal_rule_train, "ecms-hindsight": _ecms_hindsight,
+              "causal-fourth": _causal_per_drive}
 
 
 # --------------------------------------------------------------------------------------------------- README blocks
@@ -140,6 +200,9 @@ def load() -> dict:
                                        "own_settings": c.get("own_settings"), "table": c.get("table", [])}
     if causal:
         d["causal"] = causal
+    hind = {v: json.loads(p.read_text()) for v in CAUSAL_VALUATIONS if (p := hindsight_json(v)).exists()}
+    if hind:
+        d["ecms_hindsight"] = hind
     if MUTATION_JSON.exists():
         m = json.loads(MUTATION_JSON.read_text())
         d["mutation"] = {k: m.get(k) for k in ("score", "killed", "survived", "equivalent", "run", "sample", "seed")}
@@ -206,8 +269,9 @@ def main(argv=None) -> int:
                 tmp = path.with_suffix(".tmp")
                 tmp.write_text(new)
                 tmp.replace(path)
-        src = [bench_json(s) for s in SUITES] + [MUTATION_JSON] + [causal_json(a, b) for a in CAUSAL_SETS
-                                                                    for b in CAUSAL_VALUATIONS]
+        src = ([bench_json(s) for s in SUITES] + [MUTATION_JSON]
+               + [causal_json(a, b) for a in CAUSAL_SETS for b in CAUSAL_VALUATIONS]
+               + [hindsight_json(b) for b in CAUSAL_VALUATIONS])
         print(f"README figures rendered from {', '.join(str(p.relative_to(ROOT)) for p in src if p.exists())}")
         return 0
     if cmd == "check":
