@@ -36,14 +36,14 @@ def one_run(job: dict) -> dict:
     from calib.model.params import default_parameters
     from optimize.causal.compare import _corrected
     from optimize.causal.ecms import ECMSParams
-    from optimize.causal.hindsight import _sim, tune_ecms_on_drive
+    from optimize.causal.hindsight import drive_ecms, tune_ecms_on_drive
 
     ps = default_parameters()
     mp = ps.model_params()
     scen = _scenario(job["cycle"], job["T_amb"], job["valuation"])
     t0 = time.perf_counter()
     ep = replace(ECMSParams(**job["ecms_settings"]), Q_heat_W=scen.Q_heat, soc_target=scen.soc0)
-    committed = _corrected(_sim(ps, mp, scen.load_cycle(), scen, ep), scen, job["valuation"])[0]
+    committed = _corrected(drive_ecms(ps, mp, scen.load_cycle(), scen, ep), scen, job["valuation"])[0]
     out = {**job, "ecms_again_g": committed}
     for search in ("adaptive", "constant"):
         h = tune_ecms_on_drive(ps, scen, search=search, valuation=job["valuation"], soc_band=SOC_TOL, ecms=ep)

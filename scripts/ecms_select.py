@@ -102,7 +102,7 @@ def main(argv=None) -> int:
     from calib.model.params import default_parameters
     from optimize.causal.compare import AMBIENTS, TRAIN_CYCLES
     from optimize.causal.ecms import ECMSParams
-    from optimize.causal.hindsight import _sim
+    from optimize.causal.hindsight import drive_ecms
     from optimize.formulations.scenario import DPScenario
     from optimize.formulations.solve import solve_thermal
 
@@ -118,7 +118,7 @@ def main(argv=None) -> int:
         drives = []
         for s in runs:
             cyc = cycles[(s.cycle, s.T_amb)]
-            sim = _sim(ps, mp, cyc, s, replace(ep, Q_heat_W=s.Q_heat, soc_target=s.soc0))
+            sim = drive_ecms(ps, mp, cyc, s, replace(ep, Q_heat_W=s.Q_heat, soc_target=s.soc0))
             summ = sim.summary()
             soc = np.asarray(sim.soc)
             at_stops = soc[stop_indices(cyc.v)] - soc[0]

@@ -174,7 +174,8 @@ def _ecms_hindsight(d: dict) -> str:
     return "\n".join(rows)
 
 
-RENDER = {"epa": _epa, "sim-speed": _sim_speed, "mutation": _mutation, "causal": _causal}
+RENDER = {"epa": _epa, "sim-speed": _sim_speed, "mutation": _mutation, "causal": _causal,
+          "ecms-hindsight": _ecms_hindsight}
 #: Blocks of docs/optimization.md rendered the same way.
 DOC_RENDER = {"causal-rule-train": _causal_rule_train, "ecms-hindsight": _ecms_hindsight,
               "causal-fourth": _causal_per_drive}

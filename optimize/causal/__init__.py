@@ -6,11 +6,14 @@
 - :mod:`optimize.causal.ecms`: thermal-aware ECMS with adaptive co-states.
 - :mod:`optimize.causal.controllers`: both as controllers with the rule-based controller's signature.
 - :mod:`optimize.causal.compare`: corrected fuel on held-out drives against the DP and tuned rule-based.
+- :mod:`optimize.causal.hindsight`: the ECMS with its settings tuned on the very drive (structure against
+  knowledge of the drive).
 """
 from optimize.causal.controllers import CONTROLLERS, ECMSController, SDPController, make_controller
 from optimize.causal.ecms import ECMSParams
+from optimize.causal.hindsight import tune_ecms_on_drive
 from optimize.causal.markov import DemandMarkov
 from optimize.causal.sdp import SDPConfig, SDPPolicy, build_policy
 
 __all__ = ["DemandMarkov", "SDPConfig", "SDPPolicy", "build_policy", "ECMSParams", "ECMSController",
-           "SDPController", "make_controller", "CONTROLLERS"]
+           "SDPController", "make_controller", "CONTROLLERS", "tune_ecms_on_drive"]

@@ -21,7 +21,6 @@ A grid search finds an upper bound of each structure's best on the drive, not it
 """
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -48,7 +47,8 @@ class HindsightECMS:
     best: dict | None = None
 
 
-def _sim(params, mp, cyc, scen, ep):
+def drive_ecms(params, mp, cyc, scen, ep):
+    """The ECMS with settings ``ep`` over the drive cycle ``cyc`` from ``scen``'s initial state and ambient."""
     from calib.model.simulate import simulate
 
     return simulate(params, cyc, ECMSController(mp, ep, scen.T_amb), T_amb=scen.T_amb, soc0=scen.soc0,
@@ -79,7 +79,7 @@ def tune_ecms_on_drive(params, scenario, *, search: str = "adaptive", valuation:
     out = HindsightECMS(search)
 
     def run(s, mu):
-        sim = _sim(params, mp, cyc, scenario, replace(base, s0=float(s), mu0=float(mu)))
+        sim = drive_ecms(params, mp, cyc, scenario, replace(base, s0=float(s), mu0=float(mu)))
         summ = sim.summary()
         dsoc = summ["soc_final"] - summ["soc_initial"]
         fuel = _corrected(sim, scenario, valuation)[0] if abs(dsoc) <= soc_band else np.nan
