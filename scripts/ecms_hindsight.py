@@ -1,13 +1,12 @@
 """Split the causal ECMS's gap to Thermal-DP into structure and knowledge of the drive.
 
 For every run (drive, ambient) of the committed causal comparisons (``reports/causal-SET-VALUATION.json``,
-written by ``iptm bench causal``), the ECMS is driven again with the settings the report records (the defaults
-when it records none; the figure must equal the report's, else the model or the settings have changed and
-the comparison must be run again) and then with its
-settings tuned on that very drive (:func:`optimize.causal.hindsight.tune_ecms_on_drive`: the ``adaptive`` and the ``constant``
-co-state searches, each kept to runs ending within 0.01 of SOC_0). The gap of each to the report's
-Thermal-DP is printed per run, with the counts within 3 %. Thermal-DP is not solved again: its figures are
-the report's.
+written by ``iptm bench causal``), the ECMS is driven again with the settings the report records (the
+defaults when it records none; the figure must equal the report's, else the model or the settings have
+changed and the comparison must be run again), then with its settings tuned on that very drive
+(:func:`optimize.causal.hindsight.tune_ecms_on_drive`: the ``adaptive`` and the ``constant`` co-state
+searches, each kept to runs ending within 0.01 of SOC_0). The gap of each to the report's Thermal-DP is
+printed per run, with the counts within 3 %. Thermal-DP is not solved again: its figures are the report's.
 
 Usage: ``python scripts/ecms_hindsight.py [--valuation corrected|continuation] [--drives SET[,SET]]
 [--workers 2] [--out reports/ecms-hindsight-VALUATION.json]``.
@@ -108,7 +107,7 @@ def main(argv=None) -> int:
         gaps = [r[k]["gap_to_dp_pct"] for r in res]
         summary[f"{k}_within"] = sum(g is not None and g <= GOAL for g in gaps)
         summary[f"{k}_no_setting_in_band"] = sum(g is None for g in gaps)
-        summary[f"{k}_max_gap_pct"] = max(g for g in gaps if g is not None)
+        summary[f"{k}_max_gap_pct"] = max((g for g in gaps if g is not None), default=float("nan"))
         summary[f"{k}_better_than_rule"] = sum(r[k]["best"] is not None and r[k]["best"]["fuel_valued_g"] < r["rule_g"]
                                                for r in res)
     summary["rule_within"] = sum(100 * (r["rule_g"] / r["dp_g"] - 1) <= GOAL for r in res)
