@@ -4,12 +4,13 @@ The CMAP Travel Tracker subset in NREL FASTSim's resources (``python/fastsim/res
 Apache-2.0) holds GPS speed logs per vehicle and day and a ``trips.csv`` per vehicle with each trip's start
 and end. The rule, fixed before any of these trips was simulated: trips of 5 to 30 minutes whose samples
 are never more than 2 s apart, of vehicles other than the one whose commute is already bundled
-(``cmap_chicago_commute``), the first such trip of each vehicle (``--nth 2`` / ``3`` / ``4``: the second / third / fourth, for
-the vehicles that have one: the reserve, third and fourth sets). Each is resampled to 1 Hz (linear
-across the 2-s gaps), speed converted from mph to km/h, time counted from the trip's start.
+(``cmap_chicago_commute``), the first such trip of each vehicle (``--nth 2`` / ``3`` / ``4``: the second,
+third or fourth, for the vehicles that have one: the reserve and third sets and a trip of the fourth set).
+Each is resampled to 1 Hz (linear across the 2-s gaps), speed converted from mph to km/h, time counted
+from the trip's start.
 
-Usage: ``python scripts/extract_cmap_trips.py FASTSIM_GIT_DIR [--nth 1|2|3|4] [--out calib/data/cycles]``; FASTSIM_GIT_DIR
-is a clone (or bare repository) of https://github.com/NREL/fastsim. Prints the trips it wrote.
+Usage: ``python scripts/extract_cmap_trips.py FASTSIM_GIT_DIR [--nth 1|2|3|4] [--out calib/data/cycles]``;
+FASTSIM_GIT_DIR is a clone (or bare repository) of https://github.com/NREL/fastsim. Prints the trips it wrote.
 """
 from __future__ import annotations
 

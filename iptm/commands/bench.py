@@ -40,8 +40,8 @@ def register(sub):
                    help="causal: the drives compared on: held-out (six drives, looked at while the settings were "
                         "developed), fresh (eight real trips first simulated after the SDP's settings were last "
                         "chosen), reserve (the later trip of seven of the fresh trips' cars), third (the third trip "
-                        "of four) or fourth (the WLTC high and extra-high phases and a fourth CMAP trip, first "
-                        "simulated after the ECMS's settings were chosen again)")
+                        "of four) or fourth (the WLTC high and extra-high phases and a fourth CMAP trip, driven by "
+                        "no controller before the study of the ECMS tuned on each drive)")
     p.add_argument("--learn-from", metavar="SET[,SET]",
                    help="causal: also run the SDP on a demand chain that learnt these drive sets too (rows sdp_own), "
                         "e.g. --drives reserve --learn-from fresh: each car's earlier trip")

@@ -52,9 +52,9 @@ RESERVE_TEST = ("cmap_4107032_1_20070526_2131", "cmap_4108468_1_20070624_2007", 
 #: for a chain that learnt each car's two earlier trips (fresh and reserve) with settings chosen again for it.
 THIRD_TEST = ("cmap_4108468_1_20070625_0810", "cmap_4108468_2_20070627_1507", "cmap_4111928_1_20070522_1636",
               "cmap_4112082_1_20070705_1419")
-#: A fifth set, first simulated after the ECMS's settings were chosen again on the training cycles
-#: (scripts/ecms_select.py): the WLTC high and extra-high phases and the one CMAP trip left that meets the
-#: rule (the fourth of vehicle 4108468_1, ``extract_cmap_trips.py --nth 4``).
+#: A fifth set, driven by no controller before the study of the ECMS tuned on each drive
+#: (:mod:`optimize.causal.hindsight`): the WLTC high and extra-high phases and the one CMAP trip left that
+#: meets the rule (the fourth of vehicle 4108468_1, ``extract_cmap_trips.py --nth 4``).
 FOURTH_TEST = ("wltc_high_3b", "wltc_extrahigh_3", "cmap_4108468_1_20070625_1220")
 #: The drive sets ``iptm bench causal --drives`` compares on.
 DRIVE_SETS = {"held-out": HELD_OUT, "fresh": FRESH_TEST, "reserve": RESERVE_TEST, "third": THIRD_TEST,
