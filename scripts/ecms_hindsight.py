@@ -25,15 +25,15 @@ SOC_TOL = 0.01
 
 
 def _scenario(cycle, T_amb, valuation):
+    from optimize.causal.compare import valuation_scenario
     from optimize.formulations.scenario import DPScenario
 
-    s = replace(DPScenario(), cycle=cycle, T_amb=T_amb)
-    return replace(s, terminal="continued", cont_soc_band=SOC_TOL) if valuation == "continuation" else s
+    return valuation_scenario(replace(DPScenario(), cycle=cycle, T_amb=T_amb), valuation, SOC_TOL)
 
 
 def one_run(job: dict) -> dict:
     from calib.model.params import default_parameters
-    from optimize.causal.compare import _corrected
+    from optimize.causal.compare import valued_fuel
     from optimize.causal.ecms import ECMSParams
     from optimize.causal.hindsight import drive_ecms, tune_ecms_on_drive
 
@@ -42,7 +42,7 @@ def one_run(job: dict) -> dict:
     scen = _scenario(job["cycle"], job["T_amb"], job["valuation"])
     t0 = time.perf_counter()
     ep = replace(ECMSParams(**job["ecms_settings"]), Q_heat_W=scen.Q_heat, soc_target=scen.soc0)
-    committed = _corrected(drive_ecms(ps, mp, scen.load_cycle(), scen, ep), scen, job["valuation"])[0]
+    committed = valued_fuel(drive_ecms(ps, mp, scen.load_cycle(), scen, ep), scen, job["valuation"])[0]
     out = {**job, "ecms_again_g": committed}
     for search in ("adaptive", "constant"):
         h = tune_ecms_on_drive(ps, scen, search=search, valuation=job["valuation"], soc_band=SOC_TOL, ecms=ep)
@@ -101,17 +101,9 @@ def main(argv=None) -> int:
                       f"({b['s']:.2f}, {b['mu']:.2f})" if b else f"{'':12s}"]
         print(f"{r['set']:9s} {r['cycle']:31s} {r['T_amb']:4g} {100 * (r['ecms_g'] / r['dp_g'] - 1):+7.2f} "
               f"{cells[0]} {cells[1]:>12s} {cells[2]} {cells[3]:>12s} {100 * (r['rule_g'] / r['dp_g'] - 1):+7.2f}")
-    n = len(res)
-    summary = {"runs": n, "causal_within": sum(100 * (r["ecms_g"] / r["dp_g"] - 1) <= GOAL for r in res)}
-    for k in ("adaptive", "constant"):
-        gaps = [r[k]["gap_to_dp_pct"] for r in res]
-        summary[f"{k}_within"] = sum(g is not None and g <= GOAL for g in gaps)
-        summary[f"{k}_no_setting_in_band"] = sum(g is None for g in gaps)
-        summary[f"{k}_max_gap_pct"] = max((g for g in gaps if g is not None), default=float("nan"))
-        summary[f"{k}_better_than_rule"] = sum(r[k]["best"] is not None and r[k]["best"]["fuel_valued_g"] < r["rule_g"]
-                                               for r in res)
-    summary["rule_within"] = sum(100 * (r["rule_g"] / r["dp_g"] - 1) <= GOAL for r in res)
-    summary["seconds"] = time.perf_counter() - t0
+    from optimize.causal.hindsight import summarize
+
+    summary = summarize(res, GOAL) | {"seconds": time.perf_counter() - t0}
     print(json.dumps(summary, indent=1))
     if a.out:
         from calib.fileio import write_json

@@ -147,30 +147,19 @@ def _causal_per_drive(d: dict, drives: str = "fourth") -> str:
 
 def _ecms_hindsight(d: dict) -> str:
     """Per valuation, the causal ECMS against the ECMS tuned on each drive (scripts/ecms_hindsight.py)."""
+    from optimize.causal.hindsight import summarize
+
     rows = ["| valuation | runs | within 3 % of Thermal-DP: causal ECMS | ECMS tuned on the drive | constant co-states "
             "tuned on the drive | rule tuned on the drive | better than the rule tuned on the drive: causal ECMS | "
             "ECMS tuned on the drive | constant co-states tuned on the drive | largest gap to DP: causal, tuned, "
             "constant |", "|---|---|---|---|---|---|---|---|---|---|"]
     for v, h in d.get("ecms_hindsight", {}).items():
-        runs = h["runs"]
-        n = len(runs)
-
-        def fuel(r, k):  # None: no setting of the search ended in the band
-            return r["ecms_g"] if k == "causal" else (r[k]["best"] or {}).get("fuel_valued_g")
-
-        def gap(r, k):
-            f = fuel(r, k)
-            return None if f is None else 100.0 * (f / r["dp_g"] - 1.0)
-
-        within = {k: sum(1 for r in runs if (g := gap(r, k)) is not None and g <= 3.0)
-                  for k in ("causal", "adaptive", "constant")}
-        better = {k: sum(1 for r in runs if (f := fuel(r, k)) is not None and f < r["rule_g"])
-                  for k in ("causal", "adaptive", "constant")}
-        rule = sum(1 for r in runs if 100.0 * (r["rule_g"] / r["dp_g"] - 1.0) <= 3.0)
-        worst = [max(g for r in runs if (g := gap(r, k)) is not None) for k in ("causal", "adaptive", "constant")]
-        rows.append(f"| {v} | {n} | {within['causal']}/{n} | {within['adaptive']}/{n} | {within['constant']}/{n} | "
-                    f"{rule}/{n} | {better['causal']}/{n} | {better['adaptive']}/{n} | {better['constant']}/{n} | "
-                    + ", ".join(f"{w:+.2f} %" for w in worst) + " |")
+        s = summarize(h["runs"])
+        n = s["runs"]
+        cells = [f"{s[f'{k}_within']}/{n}" for k in ("causal", "adaptive", "constant", "rule")]
+        cells += [f"{s[f'{k}_better_than_rule']}/{n}" for k in ("causal", "adaptive", "constant")]
+        worst = ", ".join(f"{s[f'{k}_max_gap_pct']:+.2f} %" for k in ("causal", "adaptive", "constant"))
+        rows.append(f"| {v} | {n} | " + " | ".join(cells) + f" | {worst} |")
     return "\n".join(rows)
 
 

@@ -7,7 +7,7 @@ import pytest
 
 from calib.errors import IptmError
 from calib.model.params import default_parameters
-from optimize.causal.compare import _corrected
+from optimize.causal.compare import valued_fuel
 from optimize.causal.ecms import ECMSParams
 from optimize.causal.hindsight import drive_ecms, tune_ecms_on_drive
 from optimize.formulations.scenario import DPScenario
@@ -29,7 +29,7 @@ def test_adaptive_search_is_no_worse_than_the_committed_setting(ps):
     h = tune_ecms_on_drive(ps, SCEN, search="adaptive", s_grid=(0.4, committed.s0, 0.9), mu_grid=(committed.mu0, 0.5))
     assert len(h.tried) == 6
     assert h.best is not None and abs(h.best["dsoc"]) <= 0.01
-    assert h.best["fuel_valued_g"] <= _corrected(sim, SCEN, "corrected")[0] + 1e-9
+    assert h.best["fuel_valued_g"] <= valued_fuel(sim, SCEN, "corrected")[0] + 1e-9
     in_band = [r for r in h.tried if abs(r["dsoc"]) <= 0.01]
     assert all(r["fuel_valued_g"] >= h.best["fuel_valued_g"] for r in in_band)
     assert all(np.isnan(r["fuel_valued_g"]) for r in h.tried if abs(r["dsoc"]) > 0.01)

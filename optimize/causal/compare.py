@@ -140,7 +140,19 @@ class CausalComparison:
         return "\n".join(lines)
 
 
-def _corrected(sim, scen, valuation) -> tuple:
+def valuation_scenario(base, valuation: str, soc_band: float | None = None):
+    """``base`` as the comparison solves it under ``valuation``: for ``continuation``, Thermal-DP with the
+    ``continued`` terminal held to ``|SOC_N - SOC_0| <= soc_band`` (default :data:`SOC_TOL`)."""
+    from dataclasses import replace
+
+    if valuation != "continuation":
+        return base
+    # the DP ends in the band the causal controllers must end in: free, it banks charge made at its
+    # engine's marginal efficiency, which the continuation (rule-based) uses at a better rate
+    return replace(base, terminal="continued", cont_soc_band=SOC_TOL if soc_band is None else soc_band)
+
+
+def valued_fuel(sim, scen, valuation) -> tuple:
     """(corrected fuel, residual of the continuation or nan) of a run under the valuation."""
     if valuation == "continuation":
         from calib.model.continuation import continuation_corrected
@@ -208,10 +220,7 @@ def compare_causal(params, *, train=TRAIN_CYCLES, train_logs=(), held_out=HELD_O
 
         raise IptmError(f"causal comparison: valuation {valuation!r}; choose one of {', '.join(VALUATIONS)}")
     base = scenario or DPScenario()
-    if valuation == "continuation":
-        # the DP ends in the band the causal controllers must end in: free, it banks charge made at its
-        # engine's marginal efficiency, which the continuation (rule-based) uses at a better rate
-        base = replace(base, terminal="continued", cont_soc_band=SOC_TOL if soc_band is None else soc_band)
+    base = valuation_scenario(base, valuation, soc_band)
     mp = params.model_params() if hasattr(params, "model_params") else params
     markov = DemandMarkov.estimate(params, list(train) + list(train_logs))
     own, own_cfg = (own_chain(params, list(train) + list(train_logs) + list(learn_from), own_settings)
@@ -246,13 +255,13 @@ def compare_causal(params, *, train=TRAIN_CYCLES, train_logs=(), held_out=HELD_O
             tr = tune_rule_based(params, scen.load_cycle(), T_amb=T_amb, soc0=scen.soc0, T_cl0=scen.T_cl0,
                                  T_cab0=scen.T_cab0, Q_heat=scen.Q_heat)
             t_rule = time.perf_counter() - t0
-            dp_corr, dp_res = _corrected(dp.sim, scen, valuation)
-            rule_corr, rule_res = _corrected(tr.result, scen, valuation)
+            dp_corr, dp_res = valued_fuel(dp.sim, scen, valuation)
+            rule_corr, rule_res = valued_fuel(tr.result, scen, valuation)
             kw = dict(T_amb=T_amb, soc0=scen.soc0, T_cl0=scen.T_cl0, T_cab0=scen.T_cab0, Q_heat=scen.Q_heat)
             t0 = time.perf_counter()
             rts = simulate(params, scen.load_cycle(), rule_params=rt.rule, **kw)
             t_rt = time.perf_counter() - t0
-            rt_corr, rt_res = _corrected(rts, scen, valuation)
+            rt_corr, rt_res = valued_fuel(rts, scen, valuation)
             ref = (dp_corr, rule_corr)
             rows.append(_row(cyc, T_amb, "dp_thermal", dp.sim, *ref, t_dp, dp_corr, dp_res, rt_corr))
             rows.append(_row(cyc, T_amb, "rule_tuned", tr.result, *ref, t_rule, rule_corr, rule_res, rt_corr))
@@ -264,7 +273,7 @@ def compare_causal(params, *, train=TRAIN_CYCLES, train_logs=(), held_out=HELD_O
                 t0 = time.perf_counter()
                 sim = simulate(params, scen.load_cycle(), ctrl, **kw)
                 t_s = time.perf_counter() - t0
-                rows.append(_row(cyc, T_amb, name, sim, *ref, t_s, *_corrected(sim, scen, valuation), rt_corr))
+                rows.append(_row(cyc, T_amb, name, sim, *ref, t_s, *valued_fuel(sim, scen, valuation), rt_corr))
             say(f"  {cyc} at {T_amb:g} degC: DP {dp_corr:.2f} g, rule {rule_corr:.2f} g, rule (training) {rt_corr:.2f} g, "
                 + ", ".join(f"{n} {r['fuel_corrected_g']:.2f} g" for (n, _), r in zip(ctrls, rows[-len(ctrls):]))
                 + " (corrected)", flush=True)

@@ -47,6 +47,28 @@ class HindsightECMS:
     best: dict | None = None
 
 
+def summarize(runs: list, goal_pct: float = 3.0) -> dict:
+    """Counts over runs of ``scripts/ecms_hindsight.py`` (each with ``dp_g``, ``rule_g``, ``ecms_g`` and the
+    ``adaptive`` and ``constant`` searches' ``best``): per strategy (``causal``, the committed ECMS; the two
+    searches; ``rule``, the rule tuned on the drive) the runs within ``goal_pct`` of Thermal-DP, better
+    than the rule tuned on the drive, with no setting in the band, and the largest gap (%)."""
+    def fuel(r, k):  # None: no setting of the search ended in the band
+        if k in ("causal", "rule"):
+            return r["ecms_g" if k == "causal" else "rule_g"]
+        return (r[k]["best"] or {}).get("fuel_valued_g")
+
+    out = {"runs": len(runs)}
+    for k in ("causal", "adaptive", "constant", "rule"):
+        gaps = [None if (f := fuel(r, k)) is None else 100.0 * (f / r["dp_g"] - 1.0) for r in runs]
+        out[f"{k}_within"] = sum(g is not None and g <= goal_pct for g in gaps)
+        out[f"{k}_max_gap_pct"] = max((g for g in gaps if g is not None), default=float("nan"))
+        if k != "rule":
+            out[f"{k}_better_than_rule"] = sum((f := fuel(r, k)) is not None and f < r["rule_g"] for r in runs)
+        if k in SEARCHES:
+            out[f"{k}_no_setting_in_band"] = sum(g is None for g in gaps)
+    return out
+
+
 def drive_ecms(params, mp, cyc, scen, ep):
     """The ECMS with settings ``ep`` over the drive cycle ``cyc`` from ``scen``'s initial state and ambient."""
     from calib.model.simulate import simulate
@@ -62,7 +84,7 @@ def tune_ecms_on_drive(params, scenario, *, search: str = "adaptive", valuation:
 
     ``valuation`` as in :func:`optimize.causal.compare.compare_causal` (for ``continuation`` the scenario
     must carry the ``continued`` terminal and its band, as the comparison's does)."""
-    from optimize.causal.compare import _corrected
+    from optimize.causal.compare import valued_fuel
 
     if search not in SEARCHES:
         from calib.errors import IptmError
@@ -82,7 +104,7 @@ def tune_ecms_on_drive(params, scenario, *, search: str = "adaptive", valuation:
         sim = drive_ecms(params, mp, cyc, scenario, replace(base, s0=float(s), mu0=float(mu)))
         summ = sim.summary()
         dsoc = summ["soc_final"] - summ["soc_initial"]
-        fuel = _corrected(sim, scenario, valuation)[0] if abs(dsoc) <= soc_band else np.nan
+        fuel = valued_fuel(sim, scenario, valuation)[0] if abs(dsoc) <= soc_band else np.nan
         row = {"s": float(s), "mu": float(mu), "dsoc": float(dsoc), "fuel_g": float(summ["fuel_g"]),
                "fuel_valued_g": float(fuel), "T_cl_final": float(summ["T_cl_final_degC"])}
         out.tried.append(row)
