@@ -45,6 +45,32 @@ DERIVABLE: dict[str, tuple[str, ...]] = {
     "bat_power_W": ("bat_current_A", "bat_voltage_V"),
 }
 
+#: Physical range of each canonical channel, in its canonical unit: a sample outside it is not a reading of a
+#: car on a road or a dyno (a garbled cell, a wrong unit, a sensor's error code), and is dropped where it enters
+#: (``calib.ingest.common.make_series``) with a count in ``LogMeta.channel_counts``. Wide on purpose: they
+#: catch the impossible, not the unusual. ``docs/logs.md`` gives the reason for each bound.
+RANGES: dict[str, tuple[float, float]] = {
+    "speed_mps": (-0.5, 90.0),  # standstill noise of a few cm/s; 324 km/h
+    "bat_current_A": (-1000.0, 1000.0),
+    "bat_voltage_V": (0.0, 1500.0),
+    "bat_power_W": (-500e3, 500e3),
+    "soc": (0.0, 1.0),
+    "bat_temp_degC": (-60.0, 100.0),
+    "engine_speed_rpm": (0.0, 12000.0),
+    "engine_torque_Nm": (-500.0, 2000.0),
+    "engine_power_W": (-200e3, 1e6),
+    "fuel_rate_g_per_s": (-0.05, 100.0),  # a flow meter's zero offset; 100 g/s is a 1 MW engine
+    "coolant_temp_degC": (-60.0, 150.0),
+    "bay_temp_degC": (-60.0, 200.0),
+    "ambient_temp_degC": (-60.0, 60.0),
+    "cabin_temp_degC": (-60.0, 90.0),
+    "heater_power_W": (-2e3, 50e3),
+    "vent_temp_degC": (-60.0, 120.0),
+    "blower_flow_kg_per_s": (0.0, 2.0),
+    "hvac_setpoint_degC": (0.0, 40.0),
+    "grade_rad": (-0.6, 0.6),  # 68 %
+}
+
 Streams = dict  # dict[str, pd.Series]: channel -> irregular samples (index: time_s)
 
 
@@ -73,6 +99,13 @@ class LogMeta:
     # Empty for an intact file; for a damaged one read as far as possible: what was lost (see
     # calib.ingest.damage.Damage.to_dict), so every report built on the log can say it was recovered.
     damage: dict = field(default_factory=dict)
+    # channel -> sample accounting where the channel entered (calib.ingest.common.make_series): ``read``,
+    # ``nonfinite``, ``out_of_range`` (with ``range`` and the first times), ``merged`` (samples folded into a
+    # mean with another at the same time), ``kept``.
+    channel_counts: dict = field(default_factory=dict)
+    # channel -> how it was estimated when the log does not measure it (fuel from MAF, say): such a channel
+    # is never presented as measured.
+    estimated: dict = field(default_factory=dict)
 
     @property
     def recovered(self) -> bool:

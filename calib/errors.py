@@ -67,3 +67,8 @@ class IptmWarning(UserWarning):
 
 class LogDamageWarning(IptmWarning):
     """A damaged log was read as far as it could be; the message says what was lost."""
+
+
+class ChannelLossWarning(IptmWarning):
+    """A channel lost samples where it entered (non-finite or physically impossible values); the message names
+    each channel, how many it lost and when."""

@@ -12,16 +12,17 @@ load_map(path) -> dict  (column/topic/signal maps from TOML or JSON)
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 
 import pandas as pd
 
 from calib.drivelog import CHANNELS, DriveLog, LogMeta
-from calib.errors import LogFormatError
+from calib.errors import ChannelLossWarning, LogFormatError
 from calib.fileio import atomic_path, write_json
 from calib.ingest.canlog import (CAN_FORMATS, DEFAULT_SIGNAL_MAP, PRIUS_DBC, TOYOTA_2017_DBC, decode_can_signals,
                                  read_can_streams)
-from calib.ingest.channels import channel_report, display_report, format_report
+from calib.ingest.channels import channel_losses, channel_report, display_report, format_report, loss_text
 from calib.ingest.csvlog import read_csv_streams, sniff_is_csv
 from calib.ingest.damage import summarize as damage_summary
 from calib.ingest.damage import warn_damage
@@ -37,7 +38,8 @@ _MAGIC = {b"\x89MCAP": "mcap", b"LOGG": "blf", b"MDF ": "mf4"}
 __all__ = [
     "FORMATS", "DEFAULT_SIGNAL_MAP", "DEFAULT_TOPIC_MAP", "PRIUS_DBC", "TOYOTA_2017_DBC",
     "detect_format", "read_streams", "to_drivelog", "read_log", "channel_report", "display_report", "format_report",
-    "write_canonical", "read_canonical", "load_map", "decode_can_signals", "damage_summary",
+    "write_canonical", "read_canonical", "load_map", "decode_can_signals", "damage_summary", "channel_losses",
+    "loss_text",
 ]
 
 
@@ -74,7 +76,7 @@ def detect_format(path) -> str:
 
 def read_streams(path, *, fmt: str | None = None, dbc=None, column_map: dict | None = None,
                  topic_map: dict | None = None, signal_map: dict | None = None, strict: bool = False,
-                 profile: str | None = None, vehicle=None, trip=None):
+                 profile: str | None = None, vehicle=None, trip=None, bus: str | None = None):
     """Read a log file into raw canonical streams.
 
     Parameters
@@ -99,11 +101,15 @@ def read_streams(path, *, fmt: str | None = None, dbc=None, column_map: dict | N
         Read a test-data format (:mod:`calib.ingest.profiles`); detected from a CSV's header when omitted.
     vehicle, trip : optional
         VED: the vehicle and trip to read.
+    bus : str, optional
+        CAN formats: the bus to decode with the DBC (default: the bus with most frames the DBC knows).
 
     Returns
     -------
     (Streams, LogMeta)
-        Streams in canonical units, time in seconds from the log's first record.
+        Streams in canonical units, time in seconds from the log's first record. ``meta.channel_counts``
+        accounts every channel's samples; a channel that lost more than 1 % of them (non-finite or
+        physically impossible values) is named in one :class:`~calib.errors.ChannelLossWarning`.
 
     Raises
     ------
@@ -113,15 +119,18 @@ def read_streams(path, *, fmt: str | None = None, dbc=None, column_map: dict | N
     """
     streams, meta = _read_streams(path, fmt=fmt, dbc=dbc, column_map=column_map, topic_map=topic_map,
                                   signal_map=signal_map, strict=strict, profile=profile, vehicle=vehicle,
-                                  trip=trip)
+                                  trip=trip, bus=bus)
     if meta.damage:
         if not streams:
             raise LogFormatError(path, "nothing readable: " + meta.damage["summary"])
         warn_damage(path, meta.damage)
+    lost = loss_text(meta)
+    if lost:
+        warnings.warn(ChannelLossWarning(f"{path}: {lost}"), stacklevel=2)
     return streams, meta
 
 
-def _read_streams(path, *, fmt, dbc, column_map, topic_map, signal_map, strict, profile, vehicle, trip):
+def _read_streams(path, *, fmt, dbc, column_map, topic_map, signal_map, strict, profile, vehicle, trip, bus):
     fmt = (fmt or detect_format(path)).lower().lstrip(".")
     if fmt == "log":
         fmt = "candump"
@@ -131,14 +140,17 @@ def _read_streams(path, *, fmt, dbc, column_map, topic_map, signal_map, strict, 
         profile = profile or detect_profile(path)
         if profile:
             return read_profile_streams(path, profile, column_map=column_map, vehicle=vehicle, trip=trip)
-    elif profile:
+    elif bus is not None and fmt not in CAN_FORMATS:
+        raise LogFormatError(path, f"--bus applies to CAN logs, not {fmt}")
+    if profile and fmt != "csv":
         raise LogFormatError(path, f"profile {profile!r} applies to CSV/TSV text files, not {fmt}")
     if fmt == "csv":
         return read_csv_streams(path, column_map=column_map, strict=strict)
     if fmt == "mcap":
         return read_mcap_streams(path, topic_map=topic_map, strict=strict)
     if fmt in CAN_FORMATS:
-        return read_can_streams(path, fmt=fmt, dbc=dbc, signal_map=signal_map, strict=strict)
+        kw = {"bus": bus} if bus is not None else {}
+        return read_can_streams(path, fmt=fmt, dbc=dbc, signal_map=signal_map, strict=strict, **kw)
     if fmt in ("mf4", "mdf"):
         return read_mdf_streams(path, column_map=column_map, strict=strict)
     raise LogFormatError(path, f"unknown log format {fmt!r}", hint=f"one of {', '.join(FORMATS)}")
@@ -147,10 +159,11 @@ def _read_streams(path, *, fmt, dbc, column_map, topic_map, signal_map, strict, 
 def read_log(path, *, fmt: str | None = None, dbc=None, column_map: dict | None = None,
              topic_map: dict | None = None, signal_map: dict | None = None,
              rate_hz: float = 1.0, max_gap_s: float = 5.0, strict: bool = False, profile: str | None = None,
-             vehicle=None, trip=None) -> DriveLog:
+             vehicle=None, trip=None, bus: str | None = None) -> DriveLog:
     """:func:`read_streams` then :func:`to_drivelog` (``strict``: refuse a damaged log)."""
     streams, meta = read_streams(path, fmt=fmt, dbc=dbc, column_map=column_map, topic_map=topic_map,
-                                 signal_map=signal_map, strict=strict, profile=profile, vehicle=vehicle, trip=trip)
+                                 signal_map=signal_map, strict=strict, profile=profile, vehicle=vehicle, trip=trip,
+                                 bus=bus)
     if not streams:
         raise LogFormatError(path, "no samples of any canonical channel in the log")
     return to_drivelog(streams, meta, rate_hz=rate_hz, max_gap_s=max_gap_s)

@@ -6,6 +6,42 @@ import pandas as pd
 
 from calib.drivelog import CHANNELS, DERIVABLE, DriveLog
 
+#: A channel that loses more than this fraction of the samples read is named in a loud warning.
+LOSS_WARN_FRACTION = 0.01
+
+
+def channel_losses(meta) -> dict:
+    """Channels that lost samples where they entered: ``{channel: {"lost", "read", "fraction", "why"}}``.
+
+    ``lost`` counts non-finite and out-of-range samples (merges of samples sharing a time are not losses);
+    ``why`` says what they were and, for impossible values, the first times.
+    """
+    out = {}
+    for ch, c in (getattr(meta, "channel_counts", None) or {}).items():
+        lost = int(c.get("nonfinite", 0)) + int(c.get("out_of_range", 0))
+        if not lost:
+            continue
+        read = max(int(c.get("read", 0)), 1)
+        why = []
+        if c.get("nonfinite"):
+            why.append(f"{c['nonfinite']} not finite (NaN/inf)")
+        if c.get("out_of_range"):
+            lo, hi = c.get("range", [float("nan"), float("nan")])
+            times = ", ".join(f"{t:.1f}" for t in c.get("out_of_range_times_s", []))
+            more = ", ..." if c["out_of_range"] > len(c.get("out_of_range_times_s", [])) else ""
+            why.append(f"{c['out_of_range']} outside [{lo:g}, {hi:g}] {CHANNELS[ch][0]} (at {times}{more} s)")
+        out[ch] = {"lost": lost, "read": int(c.get("read", 0)), "fraction": lost / read, "why": "; ".join(why)}
+    return out
+
+
+def loss_text(meta, threshold: float = LOSS_WARN_FRACTION) -> str:
+    """One line naming every channel that lost more than ``threshold`` of its samples ('' when none did)."""
+    bad = {ch: d for ch, d in channel_losses(meta).items() if d["fraction"] > threshold}
+    if not bad:
+        return ""
+    return "channels lost samples: " + "; ".join(
+        f"{ch} lost {d['lost']} of {d['read']} ({100 * d['fraction']:.1f} %: {d['why']})" for ch, d in bad.items())
+
 
 def _gaps(t: np.ndarray, threshold: float) -> tuple[int, float]:
     if len(t) < 2:
@@ -34,15 +70,23 @@ def channel_report(log: DriveLog, streams: dict | None = None, max_gap_s: float 
         Index ``channel``; columns ``present`` (bool), ``n`` (samples), ``rate_hz`` (median native rate),
         ``gaps`` (count), ``longest_gap_s``, ``min``, ``max``, ``unit``, ``derivable`` (absent, but follows
         from channels that are present: engine power from speed and torque, battery power from V and I).
+        ``read`` (samples in the file), ``merged`` (folded into a mean with another at the same time) and
+        ``lost`` (non-finite or physically impossible, dropped) where the reader accounted them.
         ``attrs["damage"]`` is the log's damage summary (empty for an intact file), ``attrs["speed_source"]``
-        where speed came from.
+        where speed came from, ``attrs["losses"]`` :func:`channel_losses`, ``attrs["estimated"]`` the channels
+        that are estimates (fuel from MAF) and how.
     """
     rows = []
     for ch, (unit, _desc) in CHANNELS.items():
         col = log.data[ch] if ch in log.data.columns else None
         present = col is not None and bool(col.notna().any())
         row = {"channel": ch, "present": present, "n": 0, "rate_hz": np.nan, "gaps": 0,
-               "longest_gap_s": 0.0, "min": np.nan, "max": np.nan, "unit": unit}
+               "longest_gap_s": 0.0, "min": np.nan, "max": np.nan, "unit": unit, "read": 0, "merged": 0,
+               "lost": 0}
+        cnt = log.meta.channel_counts.get(ch)
+        if cnt:
+            row["read"], row["merged"] = int(cnt.get("read", 0)), int(cnt.get("merged", 0))
+            row["lost"] = int(cnt.get("nonfinite", 0)) + int(cnt.get("out_of_range", 0))
         if streams is not None and ch in streams and len(streams[ch]):
             s = streams[ch]
             t = s.index.to_numpy(float)
@@ -69,6 +113,8 @@ def channel_report(log: DriveLog, streams: dict | None = None, max_gap_s: float 
             out.loc[ch, "derivable"] = True
     out.attrs["damage"] = dict(log.meta.damage or {})
     out.attrs["speed_source"] = log.meta.channel_sources.get("speed_mps", "")
+    out.attrs["losses"] = channel_losses(log.meta)
+    out.attrs["estimated"] = dict(log.meta.estimated or {})
     return out
 
 
@@ -98,8 +144,8 @@ def display_report(report: pd.DataFrame) -> pd.DataFrame:
     """The channel report as a reader sees it: present channels only, ranges rounded to the channel's own
     scale (3 significant digits of its largest magnitude), SOC in %, speed in m/s and km/h.
 
-    Returns a DataFrame of strings and integers with columns ``channel, samples, rate Hz, gaps,
-    longest gap s, min, max, unit``.
+    Returns a DataFrame of strings and integers with columns ``channel, samples, lost, rate Hz, gaps,
+    longest gap s, min, max, unit`` (``lost``: samples dropped as non-finite or impossible).
     """
     rows = []
     for ch, r in report.iterrows():
@@ -117,11 +163,11 @@ def display_report(report: pd.DataFrame) -> pd.DataFrame:
             mn, mx = f"{mn} ({_num(lo * f2, d2)})", f"{mx} ({_num(hi * f2, d2)})"
             unit = f"{unit} ({u2})"
         rate = r["rate_hz"]
-        rows.append({"channel": ch, "samples": int(r["n"]),
-                     "rate Hz": f"{rate:.2f}" if np.isfinite(rate) else "-", "gaps": int(r["gaps"]),
+        rows.append({"channel": ch, "samples": int(r["n"]), "lost": int(r.get("lost", 0) or 0),
+                     "rate Hz": (f"{rate:.2f}" if rate >= 0.1 else f"{rate:.2g}") if np.isfinite(rate) else "-", "gaps": int(r["gaps"]),
                      "longest gap s": f"{float(r['longest_gap_s']):.1f}", "min": mn, "max": mx, "unit": unit})
-    return pd.DataFrame(rows, columns=["channel", "samples", "rate Hz", "gaps", "longest gap s", "min", "max",
-                                       "unit"])
+    return pd.DataFrame(rows, columns=["channel", "samples", "lost", "rate Hz", "gaps", "longest gap s", "min",
+                                       "max", "unit"])
 
 
 def format_report(report: pd.DataFrame, title: str = "") -> str:
@@ -129,18 +175,24 @@ def format_report(report: pd.DataFrame, title: str = "") -> str:
     the end)."""
     lines = [title] if title else []
     disp = display_report(report)
-    lines.append(f"{'channel':22s} {'n':>8s} {'rate Hz':>8s} {'gaps':>5s} {'longest':>8s} {'min':>16s} "
-                 f"{'max':>16s}  unit")
+    lines.append(f"{'channel':22s} {'n':>8s} {'lost':>6s} {'rate Hz':>8s} {'gaps':>5s} {'longest':>8s} "
+                 f"{'min':>16s} {'max':>16s}  unit")
     for _, r in disp.iterrows():
-        lines.append(f"{r['channel']:22s} {r['samples']:8d} {r['rate Hz']:>8s} {r['gaps']:5d} "
+        lines.append(f"{r['channel']:22s} {r['samples']:8d} {r['lost']:6d} {r['rate Hz']:>8s} {r['gaps']:5d} "
                      f"{r['longest gap s']:>8s} {r['min']:>16s} {r['max']:>16s}  {r['unit']}")
     missing = [ch for ch, r in report.iterrows() if not r["present"] and not bool(r.get("derivable", False))]
     derived = [ch for ch, r in report.iterrows() if not r["present"] and bool(r.get("derivable", False))]
     if derived:
         lines.append("derivable: " + ", ".join(f"{ch} (from {' x '.join(DERIVABLE[ch])})" for ch in derived))
     src = report.attrs.get("speed_source")
-    if src:
+    if src and "speed_mps" in report.index and bool(report.loc["speed_mps", "present"]):
         lines.append(f"speed from: {src}")
+    for ch, how in (report.attrs.get("estimated") or {}).items():
+        lines.append(f"ESTIMATED {ch}: {how}")
+    losses = report.attrs.get("losses") or {}
+    for ch, d in losses.items():
+        loud = "LOST" if d["fraction"] > LOSS_WARN_FRACTION else "lost"
+        lines.append(f"{loud} {ch}: {d['lost']} of {d['read']} samples ({100 * d['fraction']:.2f} %): {d['why']}")
     dmg = report.attrs.get("damage")
     if dmg:
         lines.append(f"RECOVERED: {dmg.get('summary', 'damaged log')}")

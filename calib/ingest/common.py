@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from calib.drivelog import CHANNELS
+from calib.drivelog import CHANNELS, RANGES
 from calib.errors import LogFormatError
 from calib.units import UnitError, convert, parse_unit
 
@@ -255,20 +255,80 @@ def check_nonempty(path) -> None:
         raise LogFormatError(path, "empty file")
 
 
-def make_series(t, v, channel: str) -> pd.Series:
-    """A stream: finite samples of ``channel`` indexed by ``time_s``, sorted by time, duplicates averaged.
+#: Out-of-range sample times listed per channel in ``LogMeta.channel_counts`` (all are counted).
+MAX_LISTED_TIMES = 5
+
+
+def make_series(t, v, channel: str, meta=None, absent=None) -> pd.Series:
+    """A stream: the finite, physically possible samples of ``channel`` indexed by ``time_s``, sorted by
+    time, samples sharing a time averaged.
 
     Times are rounded to the microsecond (candump's resolution), so the same sample read from formats
     with different clock representations lands at the same time and in the same resampling bin.
+
+    Parameters
+    ----------
+    t, v : array-like
+        Sample times (s) and values in the channel's canonical unit.
+    channel : str
+        Canonical channel; its :data:`calib.drivelog.RANGES` entry bounds the values kept.
+    meta : LogMeta, optional
+        When given, the accounting of this channel (``read``, ``nonfinite``, ``out_of_range``, ``merged``,
+        ``kept``, and the first times of out-of-range values) is added to ``meta.channel_counts[channel]``.
+    absent : array of bool, optional
+        Samples that were never there (an empty CSV cell): not counted as read. Without it every NaN counts
+        as a non-finite reading.
     """
     t = np.round(np.asarray(t, dtype=float), 6)
     v = np.asarray(v, dtype=float)
-    ok = np.isfinite(t) & np.isfinite(v)
-    t, v = t[ok], v[ok]
+    if absent is not None:
+        there = ~np.asarray(absent, dtype=bool)
+        t, v = t[there], v[there]
+    fin = np.isfinite(t) & np.isfinite(v)
+    lo, hi = RANGES.get(channel, (-np.inf, np.inf))
+    inside = fin & (v >= lo) & (v <= hi)
+    out = fin & ~inside
+    t_out = np.sort(t[out])
+    t, v = t[inside], v[inside]
     order = np.argsort(t, kind="stable")
     t, v = t[order], v[order]
+    n_in = len(t)
     if len(t) > 1 and np.any(np.diff(t) == 0):
-        # Two messages at the same log time carry the same signal twice (e.g. two buses): average them.
+        # Two samples at the same log time (one row per channel at one instant, two buses): their mean.
         s = pd.Series(v, index=t).groupby(level=0).mean()
         t, v = s.index.to_numpy(float), s.to_numpy(float)
+    if meta is not None:
+        acc = meta.channel_counts.setdefault(channel, {"read": 0, "nonfinite": 0, "out_of_range": 0,
+                                                        "merged": 0, "kept": 0})
+        acc["read"] += int(len(fin))
+        acc["nonfinite"] += int((~fin).sum())
+        acc["out_of_range"] += int(out.sum())
+        acc["merged"] += int(n_in - len(t))
+        acc["kept"] += int(len(t))
+        if out.any():
+            acc["range"] = [float(lo), float(hi)]
+            times = acc.setdefault("out_of_range_times_s", [])
+            times.extend(float(x) for x in t_out[: max(MAX_LISTED_TIMES - len(times), 0)])
     return pd.Series(v, index=pd.Index(t, name="time_s"), name=channel)
+
+
+#: Stoichiometric air-fuel mass ratio of gasoline (E0; E10 is 14.1): fuel = MAF / AFR at lambda = 1. A
+#: spark-ignition engine runs at lambda = 1 under closed-loop control, but richer at full load and during a
+#: cold start's enrichment and leaner (zero fuel) on overrun cut-off, so fuel from MAF is an estimate.
+AFR_STOICH = 14.7
+
+
+def fuel_from_maf(t, maf_g_per_s, meta, source: str) -> pd.Series:
+    """Fuel rate (g/s) estimated from the intake air mass flow at the stoichiometric ratio.
+
+    The estimate is labelled in ``meta.estimated["fuel_rate_g_per_s"]``, ``meta.channel_sources`` and a
+    note, so that no report presents it as a measured fuel rate.
+    """
+    maf = np.asarray(maf_g_per_s, dtype=float)
+    s = make_series(t, maf / AFR_STOICH, "fuel_rate_g_per_s", meta)
+    how = (f"ESTIMATE from the intake air mass flow ({source}) at the stoichiometric air-fuel ratio "
+           f"{AFR_STOICH:g}: not a measured fuel rate (off during enrichment and fuel cut-off)")
+    meta.estimated["fuel_rate_g_per_s"] = how
+    meta.channel_sources["fuel_rate_g_per_s"] = f"{source} / {AFR_STOICH:g} (estimate)"
+    meta.notes.append(f"warning: fuel_rate_g_per_s is an {how}")
+    return s

@@ -11,6 +11,27 @@ from calib.errors import IptmError, LogFormatError
 MAX_ROWS = 2_000_000
 
 
+#: A channel polled slowly (an OBD PID read every 5-15 s) is interpolated between its own samples up to this many
+#: times its median sampling interval; a longer silence is a dropout and stays empty.
+POLL_GAP_FACTOR = 2.5
+
+
+def native_interval(t: np.ndarray) -> float:
+    """Median interval between a stream's distinct sample times (s); NaN with fewer than two."""
+    if len(t) < 2:
+        return float("nan")
+    d = np.diff(t)
+    d = d[d > 0]
+    return float(np.median(d)) if len(d) else float("nan")
+
+
+def stream_gap_limit(t: np.ndarray, max_gap_s: float) -> float:
+    """The longest gap interpolated across for a stream: ``max_gap_s``, or more for a channel that is
+    polled more slowly than that (:data:`POLL_GAP_FACTOR` times its median interval)."""
+    md = native_interval(t)
+    return max(max_gap_s, POLL_GAP_FACTOR * md) if np.isfinite(md) else max_gap_s
+
+
 def resample_stream(s: pd.Series, grid: np.ndarray, dt: float, max_gap_s: float) -> np.ndarray:
     """Values of one stream on ``grid``.
 
@@ -18,6 +39,8 @@ def resample_stream(s: pd.Series, grid: np.ndarray, dt: float, max_gap_s: float)
     signal is averaged, not decimated, onto 1 Hz), else the linear interpolation between the samples
     either side of it, but only when those two are at most ``max_gap_s`` apart. Outside the first and
     last sample, and inside longer gaps, the value is NaN: nothing is invented.
+
+    Each bin's mean is summed from its own samples, so a value (however large) changes only its own bin.
     """
     t = s.index.to_numpy(dtype=float)
     v = s.to_numpy(dtype=float)
@@ -27,10 +50,15 @@ def resample_stream(s: pd.Series, grid: np.ndarray, dt: float, max_gap_s: float)
     # Bin means over [g - dt/2, g + dt/2).
     lo = np.searchsorted(t, grid - dt / 2, side="left")
     hi = np.searchsorted(t, grid + dt / 2, side="left")
-    csum = np.concatenate([[0.0], np.cumsum(v)])
     n = hi - lo
     has = n > 0
-    out[has] = (csum[hi[has]] - csum[lo[has]]) / n[has]
+    if has.any():
+        # Sum each bin on its own (reduceat over [lo, hi) pairs; a running sum would carry one huge value's
+        # rounding into every later bin).
+        idx = np.empty(2 * int(has.sum()), dtype=np.intp)
+        idx[0::2], idx[1::2] = lo[has], hi[has]
+        sums = np.add.reduceat(np.append(v, 0.0), idx)[0::2]
+        out[has] = sums / n[has]
     # Interpolation for empty bins, within short gaps only.
     if len(t) >= 2:
         need = ~has & (grid >= t[0]) & (grid <= t[-1])
@@ -56,7 +84,8 @@ def to_drivelog(streams: dict, meta: LogMeta, rate_hz: float = 1.0, max_gap_s: f
     rate_hz : float
         Output rate (default 1 Hz).
     max_gap_s : float
-        Gaps between samples longer than this stay NaN (never interpolated across).
+        Gaps between samples longer than this stay NaN (never interpolated across); for a channel sampled
+        more slowly, the limit is :data:`POLL_GAP_FACTOR` times its own median interval.
 
     Returns
     -------
@@ -78,8 +107,10 @@ def to_drivelog(streams: dict, meta: LogMeta, rate_hz: float = 1.0, max_gap_s: f
     cols = {}
     for ch in CHANNELS:
         if ch in streams and len(streams[ch]):
-            cols[ch] = resample_stream(streams[ch], grid, dt, max_gap_s)
+            s = streams[ch]
+            cols[ch] = resample_stream(s, grid, dt, stream_gap_limit(s.index.to_numpy(float), max_gap_s))
     data = pd.DataFrame(cols, index=pd.Index(grid, name="time_s"))
     new_meta = LogMeta.from_dict(meta.to_dict())
-    new_meta.notes = list(meta.notes) + [f"resampled to {rate_hz:g} Hz (bin means; interpolation only across gaps <= {max_gap_s:g} s)"]
+    new_meta.notes = list(meta.notes) + [f"resampled to {rate_hz:g} Hz (bin means; interpolation only across gaps <= {max_gap_s:g} s, "
+                                        f"or {POLL_GAP_FACTOR:g} sampling intervals of a slower channel)"]
     return DriveLog(data=data, meta=new_meta)
