@@ -107,6 +107,15 @@ class LogMeta:
     # is never presented as measured.
     estimated: dict = field(default_factory=dict)
 
+    def lossy_channels(self, threshold: float = 0.01) -> list[str]:
+        """Channels that lost more than ``threshold`` of the samples read (non-finite or impossible values)."""
+        out = []
+        for ch, c in (self.channel_counts or {}).items():
+            lost = int(c.get("nonfinite", 0)) + int(c.get("out_of_range", 0))
+            if lost > threshold * max(int(c.get("read", 0)), 1):
+                out.append(ch)
+        return out
+
     @property
     def recovered(self) -> bool:
         """True when the log was damaged and read only in part."""
@@ -175,7 +184,23 @@ class DriveLog:
         if miss:
             raise MissingChannelsError(miss, purpose, self.meta.source)
 
+    def content_digest(self) -> str:
+        """SHA-256 of the table itself (times, channels, values): the key of anything computed from the log,
+        which the source file's hash alone is not (the same file read with another DBC or map differs)."""
+        h = hashlib.sha256()
+        h.update(",".join(map(str, self.data.columns)).encode())
+        h.update(np.ascontiguousarray(self.data.index.to_numpy(float)).tobytes())
+        h.update(np.ascontiguousarray(self.data.to_numpy(float)).tobytes())
+        h.update(repr(sorted(self.meta.estimated.items())).encode())
+        return h.hexdigest()
+
     def label(self) -> str:
-        """The name, with ``[SYNTHETIC]`` for synthetic logs and ``[RECOVERED]`` for damaged ones."""
+        """The name, with ``[SYNTHETIC]`` for synthetic logs, ``[LOST SAMPLES]`` when a channel lost more than
+        1 % of its samples, ``[ESTIMATED ...]`` naming estimated channels and ``[RECOVERED]`` for damaged
+        logs."""
         label = f"{self.name} [SYNTHETIC]" if self.meta.synthetic else self.name
+        if self.meta.lossy_channels():
+            label += " [LOST SAMPLES]"
+        if self.meta.estimated:
+            label += " [ESTIMATED " + ", ".join(self.meta.estimated) + "]"
         return f"{label} [RECOVERED]" if self.meta.damage else label

@@ -52,7 +52,7 @@ class LoadedLog:
     path: Path
     log: object  # calib.drivelog.DriveLog
     report: pd.DataFrame
-    sha256: str
+    sha256: str  # of the canonical table (DriveLog.content_digest): the key of what is computed from it
 
     @property
     def synthetic(self) -> bool:
@@ -110,6 +110,13 @@ def logs(state) -> dict:
     if LOGS not in state:
         state[LOGS] = {}
     return state[LOGS]
+
+
+def log_trouble(log) -> list[str]:
+    """:func:`calib.ingest.log_warnings`: damage, channels that lost samples, estimated channels."""
+    from calib.ingest import log_warnings
+
+    return log_warnings(log)
 
 
 def any_synthetic(state) -> bool:
@@ -179,11 +186,9 @@ def read_log_cached(path, *, dbc=None, store_root=None):
 
 def add_log_file(state, path, *, dbc=None, name: str | None = None, store_root=None) -> LoadedLog:
     """Read a log file (already on disk) into the session."""
-    from calib.drivelog import file_sha256
-
     path = Path(path)
     log, report = read_log_cached(path, dbc=dbc, store_root=store_root)
-    entry = LoadedLog(name=name or path.name, path=path, log=log, report=report, sha256=file_sha256(path))
+    entry = LoadedLog(name=name or path.name, path=path, log=log, report=report, sha256=log.content_digest())
     logs(state)[entry.name] = entry
     return entry
 

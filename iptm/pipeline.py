@@ -18,11 +18,12 @@ import json
 import shutil
 import sys
 import time
+import warnings
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from calib.errors import IptmError, ScenarioError
+from calib.errors import ChannelLossWarning, IptmError, ScenarioError
 from calib.store import Store, code_version, content_key
 
 DEFAULT_LOG_GLOB = "*.blf"
@@ -131,8 +132,7 @@ def ingest_all(paths, store: Store | None, dbc=None, progress=True, strict=False
     """
     from tqdm import tqdm
 
-    from calib.drivelog import file_sha256
-    from calib.ingest import channel_report, read_canonical, read_log, write_canonical
+    from calib.ingest import channel_report, input_digest, loss_text, read_canonical, read_log, write_canonical
     from calib.ingest.damage import warn_damage
 
     logs = []
@@ -140,7 +140,7 @@ def ingest_all(paths, store: Store | None, dbc=None, progress=True, strict=False
         p = Path(p)
         if not p.is_file():
             raise IptmError(f"{p}: no such log file")
-        key = content_key(file_sha256(p), str(dbc or ""), code_version("calib"))
+        key = content_key(input_digest(p, dbc=dbc), code_version("calib"))
         cached = store.path("ingest", key, "parquet") if store else None
         log = None
         if cached is not None and cached.is_file():
@@ -153,6 +153,8 @@ def ingest_all(paths, store: Store | None, dbc=None, progress=True, strict=False
                     log = None  # read again so that strict raises the damage as an error
                 else:
                     warn_damage(p, log.meta.damage)
+            if log is not None and loss_text(log.meta):
+                warnings.warn(ChannelLossWarning(f"{p}: {loss_text(log.meta)}"), stacklevel=2)
         if log is None:
             log = read_log(p, dbc=dbc, strict=strict)
             if store is not None:
@@ -171,7 +173,7 @@ def calibrate_cached(fit_logs, val_logs, base, store: Store | None, progress=Tru
     from calib.fit.validate import plot_residual_comparison, plot_validation, replay
 
     # "figures-2": measured-vs-simulated on every log (fitted and held out) and the residuals figure
-    key = content_key([lg.meta.sha256 for lg in fit_logs], [lg.meta.sha256 for lg in val_logs],
+    key = content_key([lg.content_digest() for lg in fit_logs], [lg.content_digest() for lg in val_logs],
                       base.to_dict()["parameters"], code_version("calib", "iptm"))
     folder = store.root / "calib" / key if store else None
     if folder is not None and (folder / "done").is_file():
@@ -398,7 +400,7 @@ def run(cfg: RunConfig) -> RunOutcome:
     _say("[4/4] writing the report", cfg.progress)
     from iptm.report import build_report
 
-    run_key = content_key([lg.meta.sha256 for _, lg, _ in ingested], scen.to_dict(), grids.to_dict(),
+    run_key = content_key([lg.content_digest() for _, lg, _ in ingested], scen.to_dict(), grids.to_dict(),
                           list(cfg.strategies))
     report_dir = build_report(
         reports_dir=Path(cfg.reports_dir), run_id=new_run_id(run_key), ingested=ingested, fit_logs=fit_logs,

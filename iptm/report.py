@@ -146,6 +146,11 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
         reports[lg.name] = rep
         rep.to_csv(out / f"channels_{Path(lg.name).stem}.csv", index=False)
     data.table(pd.DataFrame(rows), "fuel and distance as logged (fuel-rate and speed channels integrated)")
+    from calib.ingest import log_warnings
+
+    for _path, lg, _rep in ingested:
+        for t in log_warnings(lg):
+            data.raw(f"<p class='warn'>Warning: {html_escape(lg.label())}: {html_escape(t)}</p>")
     for w in drive_warnings:
         data.raw(f"<p class='warn'>Warning: {html_escape(w)}</p>")
     for name, rep in reports.items():

@@ -47,7 +47,11 @@ def _page():
             notes = [n[len("warning: "):] for n in entry.log.meta.notes if n.startswith("warning: ")]
             msg = f"{entry.label}: {entry.log.duration_s:.0f} s, {len(entry.log.channels())} channels"
             dash.record_upload(state, up.name, True, msg + ("; " + "; ".join(notes) if notes else ""))
-            st.success(msg)
+            trouble = dash.log_trouble(entry.log)
+            if trouble:  # a log that lost data or carries estimates is never announced in green
+                st.warning(msg + ": " + "; ".join(trouble))
+            else:
+                st.success(msg)
         except Exception as exc:  # noqa: BLE001 - any failure is a message in the page, never a crash
             dash.record_upload(state, up.name, False, dash.error_message(exc))
 
@@ -102,6 +106,8 @@ def _page():
     entry = session_logs[sel]
     if entry.synthetic:
         st.warning(f"{entry.name} is SYNTHETIC: simulated by iptm, not measured on a vehicle.")
+    for t in dash.log_trouble(entry.log):
+        st.error(t)
 
     tab_plot, tab_report, tab_meta = st.tabs(["Plot", "Channel report", "Provenance"])
     with tab_report:

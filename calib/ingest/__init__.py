@@ -22,7 +22,8 @@ from calib.errors import ChannelLossWarning, LogFormatError
 from calib.fileio import atomic_path, write_json
 from calib.ingest.canlog import (CAN_FORMATS, DEFAULT_SIGNAL_MAP, PRIUS_DBC, TOYOTA_2017_DBC, decode_can_signals,
                                  read_can_streams)
-from calib.ingest.channels import channel_losses, channel_report, display_report, format_report, loss_text
+from calib.ingest.channels import (channel_losses, channel_report, display_report, format_report, log_warnings,
+                                   loss_text)
 from calib.ingest.csvlog import read_csv_streams, sniff_is_csv
 from calib.ingest.damage import summarize as damage_summary
 from calib.ingest.damage import warn_damage
@@ -39,8 +40,23 @@ __all__ = [
     "FORMATS", "DEFAULT_SIGNAL_MAP", "DEFAULT_TOPIC_MAP", "PRIUS_DBC", "TOYOTA_2017_DBC",
     "detect_format", "read_streams", "to_drivelog", "read_log", "channel_report", "display_report", "format_report",
     "write_canonical", "read_canonical", "load_map", "decode_can_signals", "damage_summary", "channel_losses",
-    "loss_text",
+    "loss_text", "log_warnings", "input_digest",
 ]
+
+
+def input_digest(path, *, dbc=None, maps: dict | None = None) -> str:
+    """SHA-256 over the contents of everything a read of ``path`` depends on: the log, the DBC (the shipped
+    ones when none is given) and the column/topic/signal maps. Caches of ingested logs are keyed on it, so an
+    edited DBC is never served from a copy decoded with the old one."""
+    import hashlib
+
+    from calib.drivelog import file_sha256
+
+    h = hashlib.sha256(file_sha256(path).encode())
+    for d in ([dbc] if dbc else [PRIUS_DBC, TOYOTA_2017_DBC]):
+        h.update(file_sha256(d).encode() if Path(d).is_file() else f"missing:{d}".encode())
+    h.update(json.dumps(maps or {}, sort_keys=True, default=str).encode())
+    return h.hexdigest()
 
 
 def detect_format(path) -> str:

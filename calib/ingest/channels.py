@@ -36,7 +36,7 @@ def channel_losses(meta) -> dict:
 
 def loss_text(meta, threshold: float = LOSS_WARN_FRACTION) -> str:
     """One line naming every channel that lost more than ``threshold`` of its samples ('' when none did)."""
-    bad = {ch: d for ch, d in channel_losses(meta).items() if d["fraction"] > threshold}
+    bad = {ch: d for ch, d in channel_losses(meta).items() if ch in meta.lossy_channels(threshold)}
     if not bad:
         return ""
     return "channels lost samples: " + "; ".join(
@@ -49,6 +49,19 @@ def _gaps(t: np.ndarray, threshold: float) -> tuple[int, float]:
     d = np.diff(t)
     big = d[d > threshold]
     return int(len(big)), float(big.max()) if len(big) else 0.0
+
+
+def log_warnings(log) -> list[str]:
+    """What a user must be told about a log before trusting it, one line each: damage, channels that lost
+    more than 1 % of their samples, estimated channels (empty for a clean, measured log)."""
+    out = []
+    if log.meta.damage:
+        out.append(str(log.meta.damage.get("summary", "recovered a damaged log")))
+    lost = loss_text(log.meta)
+    if lost:
+        out.append(lost)
+    out.extend(f"{ch} is an {how}" for ch, how in (log.meta.estimated or {}).items())
+    return out
 
 
 def channel_report(log: DriveLog, streams: dict | None = None, max_gap_s: float = 5.0) -> pd.DataFrame:

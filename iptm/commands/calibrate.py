@@ -23,6 +23,8 @@ def register(sub):
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--strict", action="store_true",
                    help="refuse damaged logs (default: read what they still hold, say what was lost)")
+    p.add_argument("--dbc", help="DBC for CAN logs (default: the shipped Prius DBC)")
+    p.add_argument("--bus", help="CAN logs: the bus to decode (default: the one with most frames the DBC knows)")
     p.set_defaults(func=run)
 
 
@@ -30,7 +32,7 @@ def _names(s):
     return [n.strip() for n in s.split(",") if n.strip()] if s else None
 
 
-def _read(path, rate, strict=False):
+def _read(path, rate, strict=False, dbc=None, bus=None):
     from pathlib import Path
 
     from calib.ingest import read_canonical, read_log
@@ -38,7 +40,7 @@ def _read(path, rate, strict=False):
     p = Path(path)
     if p.suffix.lower() == ".parquet" or (p.suffix.lower() == ".csv" and p.with_name(p.name + ".meta.json").exists()):
         return read_canonical(p)
-    return read_log(p, rate_hz=rate, strict=strict)
+    return read_log(p, rate_hz=rate, strict=strict, dbc=dbc, bus=bus)
 
 
 def run(args) -> int:
@@ -56,7 +58,8 @@ def run(args) -> int:
     paths = list(args.logs) + list(args.validate)
     logs, val = [], []
     for i, path in enumerate(tqdm(paths, desc="read logs", disable=args.quiet, leave=False, file=sys.stderr)):
-        lg = _read(path, args.rate, getattr(args, "strict", False))
+        lg = _read(path, args.rate, getattr(args, "strict", False), getattr(args, "dbc", None),
+                   getattr(args, "bus", None))
         if not lg.meta.sha256:
             lg.meta.sha256 = file_sha256(path)
         (logs if i < len(args.logs) else val).append(lg)

@@ -32,6 +32,8 @@ def register(subparsers) -> None:
                    help="print the canonical channels, their units and every accepted column name, then exit")
     p.add_argument("--format", dest="fmt", choices=FORMATS, help="force the format (default: detect)")
     p.add_argument("--dbc", help="DBC for CAN logs (default: the shipped Prius DBC)")
+    p.add_argument("--bus", help="CAN logs: the bus to decode with the DBC (default: the one with most frames the "
+                                 "DBC knows; frames of other buses are counted in a note)")
     p.add_argument("--map", dest="map_file",
                    help="TOML/JSON map with [columns] (CSV/MDF), [topics.\"/topic\"] (MCAP), [signals] (CAN)")
     p.add_argument("--profile", choices=("d3", "ved"),
@@ -83,7 +85,7 @@ def run(args) -> int:
         streams, meta = read_streams(src, fmt=args.fmt, dbc=args.dbc, column_map=maps["columns"] or None,
                                      topic_map=maps["topics"] or None, signal_map=maps["signals"] or None,
                                      strict=args.strict, profile=args.profile, vehicle=args.vehicle,
-                                     trip=args.trip)
+                                     trip=args.trip, bus=args.bus)
         if not streams:
             raise IptmError(f"{src}: no samples of any canonical channel")
         log = to_drivelog(streams, meta, rate_hz=args.rate, max_gap_s=args.max_gap)
