@@ -121,17 +121,107 @@ def normalize_unit(unit: str) -> str:
     return ALIASES.get(low, u)
 
 
-def parse_unit(unit: str) -> pint.Unit:
-    """Parse ``unit`` (after alias normalisation) into a pint unit.
+#: Limits of the unit grammar: a unit string is checked against them before pint sees it (pint evaluates
+#: ``km/h**9**9**9`` as a power tower and never returns).
+MAX_UNIT_CHARS = 64
+MAX_UNIT_EXPONENT = 4
+MAX_UNIT_NESTING = 3
+MAX_UNIT_FACTORS = 8
+
+_UNIT_TOKEN = re.compile(r"\s*(?:(?P<pow>\*\*|\^)|(?P<op>[*/-])|(?P<lp>\()|(?P<rp>\))"
+                         r"|(?P<num>[0-9]{1,6}(?:\.[0-9]{1,6})?)|(?P<name>[^\W\d][\w°º]*|[°º%µΩ][\w°º]*))")
+
+
+def check_unit_grammar(unit: str) -> None:
+    """Refuse a unit string that is not a short product of named units with small exponents.
+
+    Grammar: ``term := factor (('*' | '/' | ' ') factor)*``, ``factor := atom (('**' | '^') ['-'] number)?``,
+    ``atom := name | number | '(' term ')'``; at most :data:`MAX_UNIT_CHARS` characters,
+    :data:`MAX_UNIT_FACTORS` factors, exponents of magnitude at most :data:`MAX_UNIT_EXPONENT`, no exponent of
+    an exponent, parentheses nested at most :data:`MAX_UNIT_NESTING` deep.
 
     Raises
     ------
     UnitError
-        Empty or unknown unit.
+        Saying which limit the string breaks.
+    """
+    u = str(unit)
+    if len(u) > MAX_UNIT_CHARS:
+        raise UnitError(f"unit {u[:24]!r}... is {len(u)} characters long (at most {MAX_UNIT_CHARS})")
+    toks, pos = [], 0
+    while pos < len(u):
+        if u[pos:].strip() == "":
+            break
+        m = _UNIT_TOKEN.match(u, pos)
+        if not m or m.end() == pos:
+            raise UnitError(f"unit {u!r}: unexpected character {u[pos:].strip()[:1]!r}")
+        toks.append((m.lastgroup, m.group(m.lastgroup)))
+        pos = m.end()
+    i, depth, factors = 0, 0, 0
+
+    def atom():
+        nonlocal i, depth, factors
+        if i >= len(toks):
+            raise UnitError(f"unit {u!r} ends where a unit was expected")
+        kind, _ = toks[i]
+        if kind == "lp":
+            depth += 1
+            if depth > MAX_UNIT_NESTING:
+                raise UnitError(f"unit {u!r}: parentheses nested deeper than {MAX_UNIT_NESTING}")
+            i += 1
+            term()
+            if i >= len(toks) or toks[i][0] != "rp":
+                raise UnitError(f"unit {u!r}: '(' without ')'")
+            depth -= 1
+            i += 1
+        elif kind in ("name", "num"):
+            factors += 1
+            if factors > MAX_UNIT_FACTORS:
+                raise UnitError(f"unit {u!r} has more than {MAX_UNIT_FACTORS} factors")
+            i += 1
+        else:
+            raise UnitError(f"unit {u!r}: {toks[i][1]!r} where a unit was expected")
+        if i < len(toks) and toks[i][0] == "pow":
+            i += 1
+            if i < len(toks) and toks[i] == ("op", "-"):
+                i += 1
+            if i >= len(toks) or toks[i][0] != "num":
+                raise UnitError(f"unit {u!r}: an exponent must be a plain number")
+            if abs(float(toks[i][1])) > MAX_UNIT_EXPONENT:
+                raise UnitError(f"unit {u!r}: exponent {toks[i][1]} is larger than {MAX_UNIT_EXPONENT}")
+            i += 1
+            if i < len(toks) and toks[i][0] == "pow":
+                raise UnitError(f"unit {u!r}: an exponent of an exponent")
+
+    def term():
+        nonlocal i
+        atom()
+        while i < len(toks) and toks[i][0] != "rp":
+            if toks[i][0] == "op":
+                i += 1
+            atom()  # a space between two units multiplies them ("N m")
+
+    term()
+    if i != len(toks):
+        raise UnitError(f"unit {u!r}: unmatched ')'")
+
+
+def parse_unit(unit: str) -> pint.Unit:
+    """Parse ``unit`` (after alias normalisation) into a pint unit.
+
+    The string is first checked against a small grammar with limits (:func:`check_unit_grammar`), so that no
+    unit string, wherever it comes from (a CSV header, a DBC, a parameter file, a map), can make pint work
+    for long.
+
+    Raises
+    ------
+    UnitError
+        Empty or unknown unit, or one that breaks the grammar's limits.
     """
     if unit is None or not str(unit).strip():
         raise UnitError("empty unit")
     norm = normalize_unit(unit)
+    check_unit_grammar(norm)
     try:
         return ureg.Unit(norm)
     except (pint.errors.UndefinedUnitError, pint.errors.DefinitionSyntaxError, AttributeError,

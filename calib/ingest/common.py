@@ -169,8 +169,8 @@ def check_unit(unit: str, channel: str, path, where: str) -> None:
     """Raise a :class:`LogFormatError` unless ``unit`` converts to the channel's unit."""
     try:
         parse_unit(unit)
-    except UnitError:
-        raise LogFormatError(path, f"unknown unit {unit!r}", where,
+    except UnitError as exc:
+        raise LogFormatError(path, str(exc) if str(exc).startswith("unit ") else f"unknown unit {unit!r}", where,
                              "write a pint unit such as km/h, mph, degC, degF, %, A, V, g/s, L/h") from None
     try:
         convert(1.0, unit, CHANNELS[channel][0])
