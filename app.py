@@ -13,6 +13,17 @@ import streamlit as st  # noqa: E402
 
 st.set_page_config(page_title="iptm - Prius winter workbench", layout="wide")
 
+
+@st.cache_resource
+def _clean_stale_sessions_once() -> int:
+    """Once per server start: remove the upload folders of sessions that ended long ago."""
+    from iptm.dashboard import remove_stale_sessions
+
+    return remove_stale_sessions()
+
+
+_clean_stale_sessions_once()
+
 pages = [
     st.Page("pages/logs.py", title="Logs", icon=":material/upload_file:", default=True),
     st.Page("pages/calibrate.py", title="Calibrate", icon=":material/tune:"),

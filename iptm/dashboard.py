@@ -93,13 +93,54 @@ def _human(n: float) -> str:
 # ---------------------------------------------------------------------------------------------------
 # the session's folder and logs
 # ---------------------------------------------------------------------------------------------------
+#: A session folder untouched for this long belongs to a session that has ended (Streamlit has no
+#: end-of-session hook): it is removed when the app starts and whenever a new session begins.
+SESSION_MAX_IDLE_S = 6 * 3600.0
+
+
+def _session_root() -> Path:
+    root = os.environ.get("IPTM_SESSION_ROOT")
+    return Path(root) if root else Path(tempfile.gettempdir())
+
+
+def remove_stale_sessions(max_idle_s: float = SESSION_MAX_IDLE_S, root=None) -> int:
+    """Remove session folders (``iptm-session-*``) whose newest file is older than ``max_idle_s``.
+
+    Returns how many were removed."""
+    import shutil
+    import time
+
+    root = Path(root) if root is not None else _session_root()
+    now, n = time.time(), 0
+    for d in root.glob("iptm-session-*"):
+        try:
+            newest = max([d.stat().st_mtime] + [f.stat().st_mtime for f in d.rglob("*")])
+        except OSError:
+            continue
+        if now - newest > max_idle_s:
+            shutil.rmtree(d, ignore_errors=True)
+            n += 1
+    return n
+
+
+def end_session(state) -> None:
+    """Remove the session's folder and forget its logs (the page's "end session" and the tests)."""
+    import shutil
+
+    d = state.pop(TMP, None)
+    if d:
+        shutil.rmtree(d, ignore_errors=True)
+    state.pop(LOGS, None)
+
+
 def session_dir(state) -> Path:
-    """The session's private temporary folder (created on first use)."""
+    """The session's private temporary folder (created on first use; stale ones of ended sessions are removed
+    then)."""
     d = state.get(TMP)
     if not d or not Path(d).is_dir():
-        root = os.environ.get("IPTM_SESSION_ROOT") or None
-        if root:
-            Path(root).mkdir(parents=True, exist_ok=True)
+        root = _session_root()
+        root.mkdir(parents=True, exist_ok=True)
+        remove_stale_sessions(root=root)
         d = tempfile.mkdtemp(prefix="iptm-session-", dir=root)
         state[TMP] = d
     return Path(d)
@@ -132,11 +173,42 @@ def remove_log(state, name: str) -> None:
             pass
 
 
+#: Longest file name kept for an upload (the extension is kept whole; file systems allow 255 bytes).
+MAX_NAME_CHARS = 100
+
+
 def safe_name(name: str) -> str:
-    """The file name only (no folders), with characters other than ``[A-Za-z0-9._-]`` replaced."""
+    """The file name only (no folders), with characters other than ``[A-Za-z0-9._-]`` replaced and the stem
+    shortened to fit :data:`MAX_NAME_CHARS`."""
     base = Path(str(name).replace("\\", "/")).name.strip()
     base = re.sub(r"[^A-Za-z0-9._-]", "_", base).lstrip(".")
-    return base or "upload"
+    base = base or "upload"
+    if len(base) > MAX_NAME_CHARS:
+        stem, ext = Path(base).stem, Path(base).suffix[:16]
+        base = stem[: MAX_NAME_CHARS - len(ext)] + ext
+    return base
+
+
+def unique_name(state, fname: str, subdir: str = "uploads") -> str:
+    """``fname``, or ``stem-2.ext``, ``stem-3.ext``... so that no upload of the session replaces another that
+    cleaned to the same name (``log.csv`` twice, ``../../x.csv`` and ``x.csv``)."""
+    taken = set(logs(state)) | {p.name for p in (session_dir(state) / subdir).glob("*")}
+    if fname not in taken:
+        return fname
+    stem, ext = Path(fname).stem, Path(fname).suffix
+    k = 2
+    while f"{stem}-{k}{ext}" in taken:
+        k += 1
+    return f"{stem}-{k}{ext}"
+
+
+_MD_SPECIAL = re.compile(r"([\\`*_\[\]#!|<>~$])")
+
+
+def plain(text) -> str:
+    """``text`` escaped so that Streamlit's Markdown shows it as written: a log's header comment, a file name
+    or an error message is never rendered (no links, no images fetched from another host, no HTML)."""
+    return _MD_SPECIAL.sub(r"\\\1", str(text)).replace("\n", "  \n")
 
 
 def check_size(name: str, size: int, max_bytes: int | None = None) -> None:
@@ -196,7 +268,7 @@ def add_log_file(state, path, *, dbc=None, name: str | None = None, store_root=N
 def add_upload(state, name: str, data: bytes, *, dbc=None, max_bytes: int | None = None,
                store_root=None) -> LoadedLog:
     """Check, save and read an uploaded log. Raises :class:`IptmError` with a one-line message."""
-    fname = safe_name(name)
+    fname = unique_name(state, safe_name(name))
     check_log_extension(fname)
     path = save_upload(state, fname, data, max_bytes=max_bytes)
     try:
@@ -360,9 +432,9 @@ def render_sidebar(state=None) -> None:
             st.caption(f"{len(session_logs)} log(s) loaded in this session")
         synth = [e.name for e in session_logs.values() if e.synthetic]
         if synth:
-            st.warning("SYNTHETIC data: " + ", ".join(synth) + (" was" if len(synth) == 1 else " were")
+            st.warning(plain("SYNTHETIC data: " + ", ".join(synth) + (" was" if len(synth) == 1 else " were")
                        + " simulated by iptm, not measured on a vehicle. Results from synthetic logs demonstrate "
-                       "the workbench; they say nothing about a real car.", icon=":material/science:")
+                       "the workbench; they say nothing about a real car."), icon=":material/science:")
 
 
 _RAW_BYTES = re.compile(r"(\((?:\d{1,3}, ){3,}\d{1,3}\)|b'[^']{4,}'|b\"[^\"]{4,}\")")
@@ -376,7 +448,17 @@ def error_message(exc: BaseException) -> str:
     else:
         first = str(exc).splitlines()[0][:300] if str(exc) else ""
         text = f"unexpected error ({type(exc).__name__}{': ' + first if first else ''})"
-    return _RAW_BYTES.sub("(the file's first bytes are not this format's header)", text)
+    text = _RAW_BYTES.sub("(the file's first bytes are not this format's header)", text)
+    return scrub_paths(text)
+
+
+_ABS_PATH = re.compile(r"(?:[A-Za-z]:)?[\\/](?:[^\s'\"():,;]+[\\/])+([^\s'\"():,;/\\]+)")
+
+
+def scrub_paths(text: str) -> str:
+    """Server paths in a message replaced by the file's own name: a user sees ``log.csv``, never the session
+    folder it was saved in."""
+    return _ABS_PATH.sub(lambda m: m.group(1), str(text))
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -56,12 +56,12 @@ def _page():
                                    key="cal_val_logs")
     for g in dash.drive_groups(state, fit_names) if len(fit_names) > 1 else []:
         if len(g) > 1:
-            st.warning("These logs are the same drive: " + ", ".join(label(n) for n in g)
-                       + ". Fitting on copies counts that drive several times; keep one.")
+            st.warning(dash.plain("These logs are the same drive: " + ", ".join(label(n) for n in g)
+                       + ". Fitting on copies counts that drive several times; keep one."))
     hidden = [n for n, twin in copies.items() if twin is not None]
     if hidden:
-        st.caption("Not offered for validation (same drive as a fitted log): "
-                   + ", ".join(f"{label(n)} = {label(copies[n])}" for n in hidden))
+        st.caption(dash.plain("Not offered for validation (same drive as a fitted log): "
+                   + ", ".join(f"{label(n)} = {label(copies[n])}" for n in hidden)))
 
     allp = dash.calibratable_parameters()
     c3, c4 = st.columns(2)
@@ -87,9 +87,9 @@ def _page():
         try:
             p = dash.save_upload(state, base_file.name, base_file.getvalue(), subdir="params")
             base = ParameterSet.load(p)
-            st.caption(f"base parameters: {base_file.name}")
+            st.caption(dash.plain(f"base parameters: {base_file.name}"))
         except Exception as exc:  # noqa: BLE001
-            st.error(f"Could not use {base_file.name} as base parameters: {dash.error_message(exc)}")
+            st.error(dash.plain(f"Could not use {base_file.name} as base parameters: {dash.error_message(exc)}"))
             base_ok = False
 
     run = st.button("Run calibration", type="primary", disabled=not fit_names or not base_ok, key="cal_run")
@@ -123,7 +123,7 @@ def _page():
             bar.progress(1.0, text=f"done in {res.wall_s:.1f} s")
         except Exception as exc:  # noqa: BLE001 - the page stays usable
             bar.empty()
-            st.error(f"Calibration failed: {dash.error_message(exc)}")
+            st.error(dash.plain(f"Calibration failed: {dash.error_message(exc)}"))
 
     cal = state.get(dash.CALIB)
     if cal is None:

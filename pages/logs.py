@@ -28,9 +28,9 @@ def _page():
         seen.add(("dbc", dbc_file.file_id))
         try:
             p = dash.set_dbc(state, dbc_file.name, dbc_file.getvalue())
-            st.success(f"DBC {p.name} will be used for CAN logs uploaded from now on.")
+            st.success(dash.plain(f"DBC {p.name} will be used for CAN logs uploaded from now on."))
         except Exception as exc:  # noqa: BLE001 - show it, keep the page alive
-            st.error(dash.error_message(exc))
+            st.error(dash.plain(dash.error_message(exc)))
     if dbc_file is None and state.get(dash.DBC):
         state.pop(dash.DBC, None)
 
@@ -49,9 +49,9 @@ def _page():
             dash.record_upload(state, up.name, True, msg + ("; " + "; ".join(notes) if notes else ""))
             trouble = dash.log_trouble(entry.log)
             if trouble:  # a log that lost data or carries estimates is never announced in green
-                st.warning(msg + ": " + "; ".join(trouble))
+                st.warning(dash.plain(msg + ": " + "; ".join(trouble)))
             else:
-                st.success(msg)
+                st.success(dash.plain(msg))
         except Exception as exc:  # noqa: BLE001 - any failure is a message in the page, never a crash
             dash.record_upload(state, up.name, False, dash.error_message(exc))
 
@@ -59,7 +59,7 @@ def _page():
     hist = state.get(dash.UPLOADS, [])
     for h in reversed(hist):
         if h["status"] == "FAILED":
-            st.error(f"Could not load {h['file']}: {h['message']}")
+            st.error(dash.plain(f"Could not load {h['file']}: {h['message']}"))
     if hist:
         with st.expander(f"Uploads of this session ({len(hist)}; "
                          f"{sum(h['status'] == 'FAILED' for h in hist)} failed)", expanded=False):
@@ -74,9 +74,9 @@ def _page():
             with st.spinner("reading the bundled logs..."):
                 try:
                     got = dash.load_bundled(state, include_other_formats=other)
-                    st.success("Loaded " + ", ".join(e.label for e in got))
+                    st.success(dash.plain("Loaded " + ", ".join(e.label for e in got)))
                 except Exception as exc:  # noqa: BLE001
-                    st.error(dash.error_message(exc))
+                    st.error(dash.plain(dash.error_message(exc)))
 
     session_logs = dash.logs(state)
     if not session_logs:
@@ -97,24 +97,24 @@ def _page():
     st.dataframe(overview, hide_index=True, width="stretch")
     for g in dash.drive_groups(state, list(session_logs)):
         if len(g) > 1:
-            st.info("Same drive in several files: " + ", ".join(session_logs[n].label for n in g)
-                    + ". Calibration fits it once and never validates on a copy of a fitted drive.")
+            st.info(dash.plain("Same drive in several files: " + ", ".join(session_logs[n].label for n in g)
+                    + ". Calibration fits it once and never validates on a copy of a fitted drive."))
 
     names = list(session_logs)
     sel = st.selectbox("Log", names, key="logs_selected",
                        format_func=lambda n: session_logs[n].label)
     entry = session_logs[sel]
     if entry.synthetic:
-        st.warning(f"{entry.name} is SYNTHETIC: simulated by iptm, not measured on a vehicle.")
+        st.warning(dash.plain(f"{entry.name} is SYNTHETIC: simulated by iptm, not measured on a vehicle."))
     for t in dash.log_trouble(entry.log):
-        st.error(t)
+        st.error(dash.plain(t))
 
     tab_plot, tab_report, tab_meta = st.tabs(["Plot", "Channel report", "Provenance"])
     with tab_report:
         st.dataframe(display_report(entry.report), hide_index=True, width="stretch")
         for n in entry.log.meta.notes:
             if n.startswith("warning: "):
-                st.warning(n[len("warning: "):])
+                st.warning(dash.plain(n[len("warning: "):]))
         with st.expander("as text"):
             st.code(format_report(entry.report), language=None)
     with tab_plot:

@@ -72,7 +72,7 @@ def _sweep_section(params, scenario, grids, strategies):
                 bar.progress(1.0, text=f"done: {len(df)} rows")
             except Exception as exc:  # noqa: BLE001
                 bar.empty()
-                st.error(f"Sweep failed: {dash.error_message(exc)}")
+                st.error(dash.plain(f"Sweep failed: {dash.error_message(exc)}"))
         if res is not None:
             from optimize.sweep import summary_pivot
 
@@ -104,7 +104,7 @@ def _page():
             try:
                 params = ParameterSet.load(dash.save_upload(state, pf.name, pf.getvalue(), subdir="params"))
             except Exception as exc:  # noqa: BLE001
-                st.error(f"Could not use {pf.name}: {dash.error_message(exc)}")
+                st.error(dash.plain(f"Could not use {pf.name}: {dash.error_message(exc)}"))
                 params_ok = False
 
     # ---- scenario -----------------------------------------------------------------------------------
@@ -128,10 +128,10 @@ def _page():
 
                 p = dash.save_upload(state, cf.name, cf.getvalue(), subdir="cycles")
                 c = load_cycle(str(p))
-                st.caption(f"{cf.name}: {c.describe()['duration_s']:.0f} s, {c.describe()['distance_km']:.2f} km")
+                st.caption(dash.plain(f"{cf.name}: {c.describe()['duration_s']:.0f} s, {c.describe()['distance_km']:.2f} km"))
                 cycle = str(p)
             except Exception as exc:  # noqa: BLE001
-                st.error(f"Could not use {cf.name} as a cycle: {dash.error_message(exc)}")
+                st.error(dash.plain(f"Could not use {cf.name} as a cycle: {dash.error_message(exc)}"))
                 cycle_ok = False
     else:
         if not speed_logs:
@@ -142,7 +142,7 @@ def _page():
             try:
                 cycle = str(dash.cycle_csv_from_log(state, session_logs[ln]))
             except Exception as exc:  # noqa: BLE001
-                st.error(dash.error_message(exc))
+                st.error(dash.plain(dash.error_message(exc)))
                 cycle_ok = False
 
     c1, c2, c3, c4 = st.columns(4)
@@ -178,7 +178,7 @@ def _page():
             grids = DPGrids(soc=gs, tcl=gt, tcab=gc, pbat=gp, qheat=gq)
             state[dash.SCENARIO] = {"scenario": scenario, "grids": grids, "strategies": tuple(strategies)}
         except Exception as exc:  # noqa: BLE001
-            st.error(f"Invalid scenario: {dash.error_message(exc)}")
+            st.error(dash.plain(f"Invalid scenario: {dash.error_message(exc)}"))
 
     ready = params_ok and scenario is not None and bool(strategies)
     if st.button("Run optimisation", type="primary", disabled=not ready, key="opt_run"):
@@ -207,7 +207,7 @@ def _page():
             bar.progress(1.0, text=f"done ({sum(cs.timings.values()):.1f} s of solver time)")
         except Exception as exc:  # noqa: BLE001
             bar.empty()
-            st.error(f"Optimisation failed: {dash.error_message(exc)}")
+            st.error(dash.plain(f"Optimisation failed: {dash.error_message(exc)}"))
 
     if importlib.util.find_spec("optimize.sweep") is not None and params_ok and scenario is not None and strategies:
         _sweep_section(params, scenario, grids, strategies)
@@ -221,8 +221,8 @@ def _page():
     cs = opt["cs"]
     st.subheader("Comparison")
     cy = opt["cycle"]
-    st.caption(f"cycle {cy['name']}: {cy['duration_s']:.0f} s, {cy['distance_km']:.2f} km; ambient "
-               f"{cs.scenario.T_amb:g} degC; grid steps {cs.grids.describe([f for f in FORMULATIONS if f in cs.outcomes])}")
+    st.caption(dash.plain(f"cycle {cy['name']}: {cy['duration_s']:.0f} s, {cy['distance_km']:.2f} km; ambient "
+               f"{cs.scenario.T_amb:g} degC; grid steps {cs.grids.describe([f for f in FORMULATIONS if f in cs.outcomes])}"))
     tbl = cs.table()
     cols = st.columns(3)
     for col, key, ref in ((cols[0], "thermal", "vs_rule"), (cols[1], "thermal_cabin", "vs_rule"),

@@ -56,14 +56,14 @@ def _page():
             bar.progress(1.0, text=f"done in {time.perf_counter() - t0:.1f} s")
         except Exception as exc:  # noqa: BLE001 - the page stays usable
             bar.empty()
-            st.error(f"Report failed: {dash.error_message(exc)}")
+            st.error(dash.plain(f"Report failed: {dash.error_message(exc)}"))
 
     rep = state.get("iptm_report")
     if rep is None:
         st.info("Build the report to download it.")
         return
 
-    st.success(f"Report {Path(rep['dir']).name} built in {rep['wall_s']:.1f} s.")
+    st.success(dash.plain(f"Report {Path(rep['dir']).name} built in {rep['wall_s']:.1f} s."))
     c1, c2 = st.columns(2)
     c1.download_button("Download the HTML report", rep["html"], file_name="report.html", mime="text/html",
                        key="rep_dl_html")

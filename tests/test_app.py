@@ -14,6 +14,11 @@ from streamlit.testing.v1 import AppTest  # noqa: E402
 
 from iptm import dashboard as dash  # noqa: E402
 
+
+def _txt(element) -> str:
+    """An alert's text as the user reads it (user-supplied text is Markdown-escaped on the page)."""
+    return element.value.replace("\\", "")
+
 ROOT = Path(__file__).resolve().parent.parent
 APP = str(ROOT / "app.py")
 TIMEOUT = 240
@@ -44,7 +49,7 @@ def new_app() -> AppTest:
 
 
 def errors(at):
-    return [e.value for e in at.error]
+    return [_txt(e) for e in at.error]
 
 
 def ok(at):
@@ -119,7 +124,7 @@ def test_session_state_helpers(small_csv):
 def test_every_page_renders_without_logs():
     at = new_app()
     assert at.title[0].value == "Logs"
-    assert any("No logs yet" in i.value for i in at.info)
+    assert any("No logs yet" in _txt(i) for i in at.info)
     assert not at.sidebar.warning
     for page, title in (("pages/calibrate.py", "Calibrate"), ("pages/optimize.py", "Optimize"),
                         ("pages/report.py", "Report")):
@@ -133,7 +138,7 @@ def test_upload_channel_report_and_plot(small_csv):
     at = new_app()
     upload(at, "short.csv", small_csv, "text/csv")
     assert not errors(at)
-    assert any("short.csv [SYNTHETIC]" in s.value for s in at.success)
+    assert any("short.csv [SYNTHETIC]" in _txt(s) for s in at.success)
     assert any("SYNTHETIC" in w.value for w in at.sidebar.warning)
     frames = [d.value for d in at.dataframe]
     rep = next(f for f in frames if "channel" in f.columns).set_index("channel")  # the channel report
@@ -175,7 +180,7 @@ def test_bad_uploads_show_messages_and_app_keeps_working(small_csv, monkeypatch)
     assert any("bad.dbc" in m for m in errors(at))
     # ... and the app still works: a good upload, other pages render
     upload(at, "short.csv", small_csv, "text/csv")
-    assert any("short.csv" in s.value for s in at.success)
+    assert any("short.csv" in _txt(s) for s in at.success)
     assert list(at.session_state[dash.LOGS]) == ["short.csv"]
     for page in ("pages/calibrate.py", "pages/optimize.py", "pages/report.py"):
         ok(at.switch_page(page).run())
@@ -379,7 +384,7 @@ def test_copies_of_a_drive_are_not_validated_on():
     at.checkbox(key="bundled_other_formats").check()
     at.button(key="load_bundled").click()
     ok(at.run())
-    assert any("Same drive in several files" in i.value for i in at.info)
+    assert any("Same drive in several files" in _txt(i) for i in at.info)
     ok(at.switch_page("pages/calibrate.py").run())
     fit = at.multiselect(key="cal_fit_logs").value
     val = at.multiselect(key="cal_val_logs")
@@ -392,4 +397,59 @@ def test_copies_of_a_drive_are_not_validated_on():
     assert not any("winter_warm_restart" in o for o in opts), opts  # no copy of a fitted drive is offered
     at.multiselect(key="cal_fit_logs").set_value(["winter_warm_restart.csv", "winter_warm_restart.mcap"])
     ok(at.run())
-    assert any("same drive" in w.value for w in at.warning)
+    assert any("same drive" in _txt(w) for w in at.warning)
+
+
+def test_uploads_with_one_cleaned_name_are_kept_apart(tmp_path, monkeypatch):
+    from iptm import dashboard as dash
+
+    monkeypatch.setenv("IPTM_SESSION_ROOT", str(tmp_path / "sessions"))
+    state = {}
+    data = (Path(__file__).resolve().parents[1] / "logs" / "winter_warm_restart.csv").read_bytes()
+    names = [dash.add_upload(state, n, data, store_root=tmp_path / "cache").name
+             for n in ("log.csv", "log.csv", "../../x.csv", "x.csv")]
+    assert names == ["log.csv", "log-2.csv", "x.csv", "x-2.csv"]
+    assert set(dash.logs(state)) == set(names)
+    dash.end_session(state)
+    assert not list((tmp_path / "sessions").glob("iptm-session-*"))
+
+
+def test_long_names_and_errors_never_show_server_paths(tmp_path, monkeypatch):
+    from calib.errors import IptmError
+    from iptm import dashboard as dash
+
+    monkeypatch.setenv("IPTM_SESSION_ROOT", str(tmp_path / "sessions"))
+    state = {}
+    long = "a" * 300 + ".csv"
+    with pytest.raises(IptmError) as err:
+        dash.add_upload(state, long, b"time [s],speed [km/h]\n0,x\n", store_root=tmp_path / "cache")
+    msg = dash.error_message(err.value)
+    assert str(tmp_path) not in msg and "iptm-session" not in msg
+    assert len(dash.safe_name(long)) <= dash.MAX_NAME_CHARS
+
+
+def test_user_text_is_shown_as_text():
+    from iptm.dashboard import plain
+
+    out = plain("![pixel](http://203.0.113.9/p.png) [link](http://x) <img src=x> **bold**")
+    for raw in ("![", "**"):
+        assert raw not in out
+    assert out.count("[") == out.count("\\[") == 2 and out.count("]") == out.count("\\]") == 2
+    assert out.count("<") == out.count("\\<") == 1
+
+
+def test_stale_session_folders_are_removed(tmp_path):
+    import os
+    import time
+
+    from iptm.dashboard import remove_stale_sessions
+
+    old, new = tmp_path / "iptm-session-old", tmp_path / "iptm-session-new"
+    for d in (old, new):
+        (d / "uploads").mkdir(parents=True)
+        (d / "uploads" / "a.csv").write_text("x")
+    t = time.time() - 7 * 3600
+    for f in (old, old / "uploads", old / "uploads" / "a.csv"):
+        os.utime(f, (t, t))
+    assert remove_stale_sessions(root=tmp_path) == 1
+    assert not old.exists() and new.exists()
