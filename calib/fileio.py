@@ -23,11 +23,31 @@ def _read_umask() -> int:
 _UMASK = _read_umask()
 
 
+#: A temporary file of an atomic write older than this was left by a process that was killed mid-write.
+STALE_TMP_S = 3600.0
+
+
+def _remove_stale_tmp(path: Path) -> None:
+    import time
+
+    now = time.time()
+    for f in path.parent.glob(f".{path.name}.*.tmp"):
+        try:
+            if now - f.stat().st_mtime > STALE_TMP_S:
+                f.unlink()
+        except OSError:
+            pass
+
+
 @contextmanager
 def atomic_path(path):
-    """Yield a temporary path next to ``path``; rename it onto ``path`` only on success."""
+    """Yield a temporary path next to ``path``; rename it onto ``path`` only on success.
+
+    Temporary files of earlier writes of the same path that were killed mid-write (older than
+    :data:`STALE_TMP_S`) are removed first."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    _remove_stale_tmp(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     try:

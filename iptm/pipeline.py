@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import os
+import secrets
 import shutil
 import sys
 import time
@@ -185,8 +187,9 @@ def calibrate_cached(fit_logs, val_logs, base, store: Store | None, progress=Tru
         except (OSError, ValueError, IptmError):
             pass  # damaged cache entry: recompute
     res = calibrate(fit_logs, base=base, validate=val_logs or None, progress=progress)
-    tmp = Path(str(folder) + ".partial") if folder else Path(".iptm-calib.partial")
-    shutil.rmtree(tmp, ignore_errors=True)
+    # a folder of this process's own: two runs calibrating the same logs at once must not share one
+    tag = f".partial-{os.getpid()}-{secrets.token_hex(3)}"
+    tmp = Path(str(folder) + tag) if folder else Path(".iptm-calib" + tag)
     tmp.mkdir(parents=True)
     res.to_artifact(tmp / "calibration.toml")
     from calib.fileio import write_json, write_text
@@ -207,8 +210,15 @@ def calibrate_cached(fit_logs, val_logs, base, store: Store | None, progress=Tru
     if folder is None:
         folder = tmp
     else:
-        shutil.rmtree(folder, ignore_errors=True)
-        tmp.rename(folder)
+        try:
+            tmp.rename(folder)
+        except OSError:
+            if (folder / "done").is_file():
+                # another run filed the same calibration first (the key is the content: the same result)
+                shutil.rmtree(tmp, ignore_errors=True)
+            else:  # a damaged entry left by an interrupted run
+                shutil.rmtree(folder, ignore_errors=True)
+                tmp.rename(folder)
     return (ParameterSet.load(folder / "calibration.toml"), json.loads((folder / "calibration.json").read_text()),
             (folder / "report.txt").read_text(), _figures(folder), folder / "calibration.toml")
 
@@ -332,7 +342,10 @@ def _truth_for(paths):
 
 
 def new_run_id(cfg_key: str) -> str:
-    return _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%d-%H%M%S") + "-" + cfg_key[:6]
+    """Time, the configuration's key and a random part: two identical runs started in the same second get
+    distinct ids (and report folders)."""
+    return (_dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%d-%H%M%S") + "-" + cfg_key[:6] + "-"
+            + secrets.token_hex(2))
 
 
 @dataclass

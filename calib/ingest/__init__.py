@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from calib.drivelog import CHANNELS, DriveLog, LogMeta
+from calib.drivelog import CHANNELS, DriveLog, LogMeta, file_sha256
 from calib.errors import ChannelLossWarning, LogFormatError
 from calib.fileio import atomic_path, write_json
 from calib.ingest.canlog import (CAN_FORMATS, DEFAULT_SIGNAL_MAP, PRIUS_DBC, TOYOTA_2017_DBC, decode_can_signals,
@@ -210,12 +210,17 @@ def write_canonical(log: DriveLog, path) -> Path:
         with atomic_path(path) as tmp:
             pq.write_table(table, tmp)
     elif ext == ".csv":
+        # Two files cannot be renamed into place in one step: the sidecar names the SHA-256 of the table it
+        # belongs to, and is written first, so a write killed between the two leaves a pair that
+        # read_canonical refuses rather than new data with old provenance.
+        from calib.drivelog import file_sha256
+
         with atomic_path(path) as tmp:
             with open(tmp, "w", newline="") as fh:
                 if log.meta.synthetic:
                     fh.write("# SYNTHETIC drive log (canonical table)\n")
                 df.to_csv(fh, float_format="%.10g")
-        write_json(_sidecar(path), log.meta.to_dict())
+            write_json(_sidecar(path), {**log.meta.to_dict(), "table_sha256": file_sha256(tmp)})
     else:
         raise LogFormatError(path, f"cannot write a canonical table as {ext or '(no extension)'}",
                              hint="use .parquet or .csv")
@@ -242,7 +247,11 @@ def read_canonical(path) -> DriveLog:
             side = _sidecar(path)
             if not side.exists():
                 raise LogFormatError(path, f"metadata sidecar {side.name} is missing")
-            meta = LogMeta.from_dict(json.loads(side.read_text()))
+            side_d = json.loads(side.read_text())
+            if side_d.get("table_sha256") not in (None, file_sha256(path)):
+                raise LogFormatError(path, f"metadata sidecar {side.name} belongs to another version of the table "
+                                           "(a write was interrupted)", hint="ingest the log again")
+            meta = LogMeta.from_dict(side_d)
             df = pd.read_csv(path, comment="#")
         else:
             raise LogFormatError(path, f"not a canonical table extension {ext!r}", hint="use .parquet or .csv")
