@@ -44,7 +44,7 @@ def test_partial_file_with_unit_conversion(tmp_path):
     ('[parameters.f_cl]\nvalue = 1.2\n', "must be a table"),
     ('[parameters\n', "not a valid TOML"),
     # unit texts that pint's own parser fails on with a TokenError or a TypeError (found by the fuzz harness)
-    ('[parameters.W_bl_kg_per_s]\nvalue = 0.05\nunit = "kg/swer)"\n', "unknown unit 'kg/swer)'"),
+    ('[parameters.W_bl_kg_per_s]\nvalue = 0.05\nunit = "kg/swer)"\n', "unit 'kg/swer)': unmatched ')'"),
     ('[parameters.fuel_scale]\nvalue = 1.0\nunit = "di-ensionless"\n', "unknown unit 'di-ensionless'"),
 ])
 def test_invalid_files_give_one_clear_error(tmp_path, body, words):
@@ -72,8 +72,8 @@ def test_value_in_another_unit_keeps_canonical_bounds(tmp_path):
     assert p.unit == "kg" and p.value == pytest.approx(3375 * 0.45359237)
     assert p.bounds == (lo, hi)
     # bounds in another unit only when the file says so
-    f.write_text('[parameters.m_kg]\nvalue = 3375\nunit = "lb"\nbounds = [2000, 6000]\nbounds_unit = "lb"\n')
-    assert ParameterSet.load(f).param("m_kg").bounds == pytest.approx((2000 * 0.45359237, 6000 * 0.45359237))
+    f.write_text('[parameters.m_kg]\nvalue = 3375\nunit = "lb"\nbounds = [2300, 5000]\nbounds_unit = "lb"\n')
+    assert ParameterSet.load(f).param("m_kg").bounds == pytest.approx((2300 * 0.45359237, 5000 * 0.45359237))
     f.write_text('[parameters.m_kg]\nvalue = 9000\nunit = "lb"\n')
     with pytest.raises(ParameterError, match=r"outside its bounds \[.*\] kg"):
         ParameterSet.load(f)
@@ -99,3 +99,36 @@ def test_table_status_is_per_entry(tmp_path):
     back = ParameterSet.load(tmp_path / "c.toml").param("U_oc_V")
     assert back.entry_status == st and back.status_text() == p.status_text()
     assert default_parameters().param("m_kg").status_text() == "prior"
+
+
+@pytest.mark.parametrize("entry, msg", [
+    ('value = -1500\nbounds = [-1e9, 1e9]', "never widen"),
+    ('value = 1500\nbounds = [0, 1e300]', "never widen"),
+    ('value = 1500\nbounds = [1600, 1200]', "low < high"),
+    ('value = 1500\nbounds = [1000, inf]', "finite"),
+    ('value = 1500\nprior_sd = -5', "positive finite"),
+    ('value = 1500\nprior_sd = 0', "positive finite"),
+    ('value = 1500\nprior_sd = nan', "positive finite"),
+    ('value = 1500\nprior_sd = "abc"', "positive finite"),
+    ('valeu = 1500', "did you mean 'value'"),
+    ('value = nan', "not a finite number"),
+    ('value = 1500\nunit = "kg**9**9**9"', "exponent 9"),
+])
+def test_a_file_cannot_widen_physics(tmp_path, entry, msg):
+    f = tmp_path / "p.toml"
+    f.write_text(f"[parameters.m_kg]\n{entry}\n")
+    with pytest.raises(ParameterError, match=msg):
+        ParameterSet.load(f)
+
+
+def test_zero_capacity_or_efficiency_is_refused_not_divided_by(tmp_path):
+    f = tmp_path / "p.toml"
+    for name in ("C_bat_Ah", "eta_em", "C_eng_J_per_K"):
+        f.write_text(f"[parameters.{name}]\nvalue = 0\n")
+        with pytest.raises(ParameterError, match="outside its bounds"):
+            ParameterSet.load(f)
+
+
+def test_an_unknown_parameter_suggests_the_closest():
+    with pytest.raises(ParameterError, match="did you mean C_bat_Ah"):
+        ParameterSet.from_dict({"parameters": {"C_bat_Ahh": 6.5}})

@@ -477,12 +477,26 @@ class ParameterSet:
             raise ParameterError(f"{origin}: expected a [parameters] table")
         new.meta.update(d.get("meta", {}))
         new.meta["file"] = origin
+        limits = physical_limits()
         for name, entry in d.get("parameters", {}).items():
             if name not in new:
-                raise ParameterError(f"{origin}: unknown parameter {name!r} (known: {', '.join(new.names())})")
+                import difflib
+
+                close = difflib.get_close_matches(str(name), new.names(), n=3, cutoff=0.6)
+                hint = f"did you mean {' or '.join(close)}?" if close else "`iptm params` lists the parameters"
+                raise ParameterError(f"{origin}: unknown parameter {name!r} ({hint})")
             p = new.param(name)
             if not isinstance(entry, dict):
                 entry = {"value": entry}
+            unknown = [k for k in entry if k not in ENTRY_FIELDS]
+            if unknown:
+                import difflib
+
+                k = unknown[0]
+                close = difflib.get_close_matches(str(k), ENTRY_FIELDS, n=1, cutoff=0.6)
+                raise ParameterError(f"{origin}: parameter {name}: unknown field {k!r}"
+                                     + (f" (did you mean {close[0]!r}?)" if close else
+                                        f" (fields: {', '.join(ENTRY_FIELDS)})"))
             if "value" not in entry:
                 raise ParameterError(f"{origin}: parameter {name} has no value")
             val = entry["value"]
@@ -515,6 +529,8 @@ class ParameterSet:
             for key in ("prior_sd", "prior_value", "informed"):
                 if key in entry:
                     setattr(p, key, entry[key])
+            if "prior_sd" in entry:
+                _check_prior_sd(entry["prior_sd"], p, origin)
             if "bounds" in entry:
                 b = entry["bounds"]
                 if not (isinstance(b, list) and len(b) == 2):
@@ -522,7 +538,15 @@ class ParameterSet:
                 # Bounds belong to the parameter and are in its canonical unit (what save() writes), whatever
                 # unit the value is given in; ``bounds_unit`` states another unit explicitly.
                 bu = entry.get("bounds_unit", p.unit)
-                p.bounds = tuple(float(v) for v in _convert(b, bu, p.unit, f"{origin}: bounds of {name}"))
+                lo, hi = (float(v) for v in _convert(b, bu, p.unit, f"{origin}: bounds of {name}"))
+                llo, lhi = limits[name]
+                if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+                    raise ParameterError(f"{origin}: bounds of {name} must be two finite numbers, low < high; got {b}")
+                if lo < llo or hi > lhi:
+                    raise ParameterError(f"{origin}: bounds of {name} [{lo:g}, {hi:g}] {p.unit} go beyond its physical "
+                                         f"limits [{llo:g}, {lhi:g}] {p.unit}: a parameter file may narrow the "
+                                         "bounds, never widen them")
+                p.bounds = (lo, hi)
         try:
             new.validate()
         except ParameterError as exc:
@@ -538,6 +562,34 @@ class ParameterSet:
             rows.append({"name": p.name, "value": p.value, "unit": p.unit, "stderr": p.stderr,
                          "status": p.status, "source": p.source, "note": p.note})
         return pd.DataFrame(rows)
+
+
+#: The fields a parameter entry of a file may have (anything else is a typo, named with the closest field).
+ENTRY_FIELDS = ("value", "unit", "bounds", "bounds_unit", "vary", "x", "x_unit", "x_name", "source", "description",
+                "status", "note", "stderr", "logs", "entry_status", "prior_sd", "prior_value", "informed")
+
+_LIMITS: dict | None = None
+
+
+def physical_limits() -> dict:
+    """``{name: (low, high)}``: the bounds of the default parameter set, which are physical limits owned by the
+    code (no zero capacity, no efficiency above 1, no negative mass). A file may narrow a parameter's bounds
+    within them, never widen them."""
+    global _LIMITS
+    if _LIMITS is None:
+        ps = default_parameters()
+        _LIMITS = {n: tuple(ps.param(n).bounds) for n in ps.names()}
+    return _LIMITS
+
+
+def _check_prior_sd(sd, p, origin) -> None:
+    """A prior sd is a positive finite number (one per entry for a table)."""
+    vals = sd if isinstance(sd, list) else [sd]
+    if p.is_table and isinstance(sd, list) and len(sd) != len(p.value):
+        raise ParameterError(f"{origin}: prior_sd of {p.name} must give one value per table entry ({len(p.value)})")
+    for v in vals:
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+            raise ParameterError(f"{origin}: prior_sd of {p.name} must be a positive finite number, got {v!r}")
 
 
 def _strip_none(o):
