@@ -80,7 +80,7 @@ def test_prius_candump_has_every_channel(tmp_path):
     p = write_streams(streams, meta, tmp_path / "d.candump", "candump")
     s, m = read_streams(p)
     assert set(s) == set(streams)
-    assert m.synthetic and m.channel_sources["soc"] == "BATTERY_STATE.SOC"
+    assert m.synthetic and m.channel_sources["soc"] == "can0:BATTERY_STATE.SOC"
 
 
 def test_jitter_sorted_and_noted(tmp_path):
@@ -108,7 +108,7 @@ def test_user_signal_map(tmp_path):
 def test_rav4_speed_is_the_four_wheel_mean_not_the_dashboard():
     """Speed comes from the wheels when all four are logged; checked against cantools' own decode."""
     s, m = read_streams(RAV4, dbc=TOYOTA_DBC)
-    assert m.channel_sources["speed_mps"].startswith("mean of WHEEL_SPEEDS.")
+    assert m.channel_sources["speed_mps"].startswith("mean of can0:WHEEL_SPEEDS.")
     assert any("four wheel speeds" in n for n in m.notes)
     db = cantools.database.load_file(str(TOYOTA_DBC), strict=False)
     msg = db.get_message_by_name("WHEEL_SPEEDS")
@@ -140,6 +140,6 @@ def test_dashboard_speed_is_the_fallback_without_wheels(tmp_path):
     with open(RAV4) as fh, open(p, "w") as out:
         out.writelines(line for line in fh if " 0AA#" not in line)
     s, m = read_streams(p, dbc=TOYOTA_DBC)
-    assert m.channel_sources["speed_mps"] == "SPEED.SPEED"
+    assert m.channel_sources["speed_mps"] == "can0:SPEED.SPEED"
     log = read_log(p, dbc=TOYOTA_DBC)
-    assert "speed from: SPEED.SPEED" in format_report(channel_report(log, s))
+    assert "speed from: can0:SPEED.SPEED" in format_report(channel_report(log, s))

@@ -10,6 +10,12 @@ Signal -> channel map: keys ``"MESSAGE.SIGNAL"`` (or ``"SIGNAL"`` when unique in
 ``"channel"`` or ``"channel [unit]"`` (the unit overrides the DBC's). :data:`DEFAULT_SIGNAL_MAP` covers
 our Prius DBC (``calib/data/can/prius_iptm.dbc``) and opendbc's ``toyota_2017.dbc`` (SPEED, ENGINE_RPM).
 
+Identity: a frame is a DBC message's only when its frame type (standard 11-bit / extended 29-bit) is the
+message's, and the DBC is decoded on one bus (candump interface, ASC/BLF/TRC channel): the one with most of
+its messages unless ``bus=`` names another. Frames of other buses and 29-bit look-alikes of 11-bit IDs are
+counted and named in ``LogMeta.notes``, never merged. OBD-II service 01 responses (:mod:`calib.ingest.obd`)
+are read besides the DBC's messages.
+
 "Signal not available": an all-ones raw value (unsigned) or the most negative raw value (signed) that
 decodes outside the signal's declared [min|max] range is dropped, not kept as a number.
 """
@@ -24,8 +30,10 @@ import numpy as np
 
 from calib.drivelog import LogMeta, file_sha256
 from calib.errors import LogFormatError
+from calib.ingest import obd as _obd
 from calib.ingest.common import (
     check_nonempty,
+    fuel_from_maf,
     check_unit,
     make_series,
     parse_target,
@@ -35,6 +43,7 @@ from calib.ingest.common import (
     to_channel_unit,
 )
 from calib.ingest.damage import Damage, quiet_libraries
+from calib.units import GASOLINE_DENSITY_KG_PER_L, convert
 
 #: Our Prius DBC, shipped with the package.
 PRIUS_DBC = Path(str(resources.files("calib") / "data" / "can" / "prius_iptm.dbc"))
@@ -155,13 +164,30 @@ class _Acc:
         self.pos.append(pos)
 
 
-class FrameCollector:
-    """Keep the frames whose ID the DBC decodes into a wanted signal; hand damaged ones to ``damage``."""
+#: Frame kinds (:meth:`FrameCollector.kind`): not kept, a DBC message, an OBD-II response, an ID whose value
+#: is a DBC message's but of the other frame type (standard/extended), an OBD-II request.
+OTHER, DBC_FRAME, OBD_RESPONSE, TYPE_MISMATCH, OBD_REQUEST = 0, 1, _obd.RESPONSE, 3, _obd.REQUEST
 
-    def __init__(self, wanted_ids, damage: Damage | None = None):
-        self.wanted = set(wanted_ids)
-        self.acc: dict[int, _Acc] = {}
-        self.long: dict[int, list] = {}  # frames longer than 8 bytes (CAN FD), kept whole
+
+class FrameCollector:
+    """Keep the frames a DBC message or an OBD-II response needs, per bus; hand damaged ones to ``damage``.
+
+    A frame's identity is (bus, frame type, ID): ``acc`` and ``long`` are keyed ``(bus, extended, id)``.
+    ``dbc_ids`` are ``(id, extended)`` pairs. With ``bus`` given, frames of other buses are only counted
+    (``elsewhere``), except the log-information message, which labels the whole log.
+    """
+
+    def __init__(self, dbc_ids, damage: Damage | None = None, bus: str | None = None, obd: bool = True):
+        self.dbc_ids = set(dbc_ids)
+        self._dbc_values = {i for i, _ in self.dbc_ids}
+        self.obd = obd
+        self.bus = bus
+        self._kinds: dict[tuple[int, bool], int] = {}
+        self.acc: dict[tuple, _Acc] = {}
+        self.long: dict[tuple, list] = {}  # frames longer than 8 bytes (CAN FD), kept whole
+        self.mismatch: dict[tuple, int] = {}  # (bus, extended, id) -> frames of the wrong frame type
+        self.elsewhere: dict[tuple, int] = {}  # (bus, kind) -> frames not kept because bus= names another
+        self.requests: dict[str, int] = {}  # bus -> OBD-II requests
         self.t_first = math.inf
         self.t_prev = -math.inf
         self.n_frames = 0
@@ -172,16 +198,32 @@ class FrameCollector:
         # The last accepted frame, so that a garbled timestamp that jumped forward can be taken back.
         self._t_before_last = -math.inf
         self._last_stored = None
+        self._last_stored_long = False
         self._last_where = ""
 
+    def kind(self, can_id: int, extended: bool) -> int:
+        """What a frame of this ID and type is to this log (cached)."""
+        k = self._kinds.get((can_id, extended))
+        if k is None:
+            if (can_id, extended) in self.dbc_ids:
+                k = DBC_FRAME
+            elif self.obd and _obd.classify(can_id, extended):
+                k = _obd.classify(can_id, extended)
+            elif can_id in self._dbc_values:
+                k = TYPE_MISMATCH
+            else:
+                k = OTHER
+            self._kinds[(can_id, extended)] = k
+        return k
+
     def _unstore_last(self):
-        cid = self._last_stored
-        if cid is None:
+        key = self._last_stored
+        if key is None:
             return
-        if cid in self.long and self.long[cid] and self._last_stored_long:
-            self.long[cid].pop()
+        if self._last_stored_long:
+            self.long[key].pop()
         else:
-            acc = self.acc[cid]
+            acc = self.acc[key]
             acc.t.pop()
             del acc.data[-8:]
             acc.dlc.pop()
@@ -254,18 +296,28 @@ class FrameCollector:
                         self._t_before_last)
         self.t_prev = self._t_before_last
 
-    def frame(self, t: float, can_id: int, data: bytes, pos: int):
-        if can_id not in self.wanted:
+    def frame(self, t: float, bus: str, can_id: int, extended: bool, kind: int, data: bytes, pos: int):
+        """Keep (or count) one frame of a non-zero ``kind`` whose time :meth:`time` accepted."""
+        if kind == TYPE_MISMATCH:
+            key = (bus, extended, can_id)
+            self.mismatch[key] = self.mismatch.get(key, 0) + 1
             return
+        if kind == OBD_REQUEST:
+            self.requests[bus] = self.requests.get(bus, 0) + 1
+            return
+        if self.bus is not None and bus != self.bus and not (kind == DBC_FRAME and can_id == LOG_INFO_ID):
+            self.elsewhere[(bus, kind)] = self.elsewhere.get((bus, kind), 0) + 1
+            return
+        key = (bus, extended, can_id)
         if len(data) > 8:
-            self.long.setdefault(can_id, []).append((t, bytes(data), pos))
-            self._last_stored, self._last_stored_long = can_id, True
+            self.long.setdefault(key, []).append((t, bytes(data), pos))
+            self._last_stored, self._last_stored_long = key, True
             return
-        acc = self.acc.get(can_id)
+        acc = self.acc.get(key)
         if acc is None:
-            acc = self.acc[can_id] = _Acc()
+            acc = self.acc[key] = _Acc()
         acc.add(t, data, pos)
-        self._last_stored, self._last_stored_long = can_id, False
+        self._last_stored, self._last_stored_long = key, False
 
 
 def _parse_candump(path, col: FrameCollector, ids_cache: dict):
@@ -275,7 +327,7 @@ def _parse_candump(path, col: FrameCollector, ids_cache: dict):
         sniff_text(path, "candump")
     else:
         sniff_text_lenient(path, "candump")
-    wanted = col.wanted
+    kind = col.kind
 
     def bad(problem, lineno, hint=None):
         dmg.bad(LogFormatError(path, problem, f"line {lineno}", hint), col.t_prev)
@@ -305,8 +357,8 @@ def _parse_candump(path, col: FrameCollector, ids_cache: dict):
                     bad(f"bad timestamp {_show(parts[0])}", lineno)
                     continue
                 idstr, sep, payload = parts[2].partition("#")
-                can_id = ids_cache.get(idstr)
-                if can_id is None:
+                ident = ids_cache.get(idstr)
+                if ident is None:
                     if not sep or not idstr or len(idstr) > 8:
                         bad(f"bad frame {_show(parts[2])}", lineno)
                         continue
@@ -315,8 +367,10 @@ def _parse_candump(path, col: FrameCollector, ids_cache: dict):
                     except ValueError:
                         bad(f"bad CAN ID {_show(idstr)}", lineno)
                         continue
-                    ids_cache[idstr] = can_id
-                if can_id not in wanted:
+                    # candump writes standard IDs with 3 hex digits and extended (29-bit) ones with 8.
+                    ext = len(idstr) > 3
+                    ident = ids_cache[idstr] = (can_id, ext, kind(can_id, ext))
+                if not ident[2]:
                     col.time(t, path, f"line {lineno}")
                     continue
                 if payload[:1] == "R":
@@ -330,7 +384,7 @@ def _parse_candump(path, col: FrameCollector, ids_cache: dict):
                     bad(f"bad frame data {_show(payload)}", lineno)
                     continue
                 if col.time(t, path, f"line {lineno}"):
-                    col.frame(t, can_id, data, lineno)
+                    col.frame(t, parts[1], ident[0], ident[1], ident[2], data, lineno)
         except UnicodeDecodeError:
             raise LogFormatError(path, "binary data in a candump text log", f"after line {lineno}") from None
 
@@ -383,7 +437,11 @@ def _parse_python_can(path, fmt: str, col: FrameCollector):
                         continue
                     if item.is_remote_frame:
                         continue
-                    col.frame(float(item.timestamp), int(item.arbitration_id), bytes(item.data), pos)
+                    can_id, ext = int(item.arbitration_id), bool(item.is_extended_id)
+                    k = col.kind(can_id, ext)
+                    if k:
+                        col.frame(float(item.timestamp), _bus_name(fmt, item.channel), can_id, ext, k,
+                                  bytes(item.data), pos)
             if fmt == "blf" and header_size and actual < header_size and not reader.hit_truncation:
                 dmg.truncated(actual, header_size, col.t_prev, f"file is {actual} of the {header_size} bytes its header gives")
         for text in chatter:
@@ -396,6 +454,16 @@ def _parse_python_can(path, fmt: str, col: FrameCollector):
         if dmg.strict or col.n_frames == 0:
             raise err from None
         dmg.bad(err, col.t_prev)  # the reader cannot go on: the rest of the file is lost
+
+
+def _bus_name(fmt: str, channel) -> str:
+    """A python-can message's bus as its file writes it: ASC and BLF count channels from 1 (python-can
+    from 0), TRC as written."""
+    if channel is None:
+        return "1"  # a file format without channels: one bus
+    if isinstance(channel, int) and fmt in ("asc", "blf"):
+        return str(channel + 1)
+    return str(channel)
 
 
 def _signal_is_vectorisable(msg, sig) -> bool:
@@ -452,7 +520,8 @@ def extract_signal(data: np.ndarray, sig) -> np.ndarray:
     return np.where(sna, np.nan, phys)
 
 
-def decode_can_signals(path, *, fmt: str, dbc=None, signals=None, signal_map=None, strict: bool = False):
+def decode_can_signals(path, *, fmt: str, dbc=None, signals=None, signal_map=None, strict: bool = False,
+                       bus=None):
     """Decode DBC signals from a CAN log into arrays.
 
     Parameters
@@ -469,14 +538,19 @@ def decode_can_signals(path, *, fmt: str, dbc=None, signals=None, signal_map=Non
         Extra/overriding ``MESSAGE.SIGNAL -> channel`` entries (used when ``signals`` is None).
     strict : bool
         Raise at the first damaged line/record instead of skipping it (see :mod:`calib.ingest.damage`).
+    bus : str, optional
+        The bus to decode the DBC on (candump interface ``can0``; ASC/BLF/TRC channel number as the file
+        writes it, from 1). Default: the bus that carries most frames of the DBC's messages.
 
     Returns
     -------
     result : dict
         ``{"signals": {(message, signal): (t, values)}, "t0": first frame time, "n_frames": int,
         "n_backsteps": int, "max_backstep": float, "map": resolved map, "db": cantools db,
-        "damage": dict (empty for an intact log)}``;
-        ``t`` is seconds from the first frame of the log.
+        "damage": dict (empty for an intact log), "bus": the bus decoded, "dbc_frames_per_bus": dict,
+        "obd": calib.ingest.obd.ObdDecoded or None, "obd_bus": str or None, "notes": list}``;
+        ``t`` is seconds from the first frame of the log. A frame is a DBC message's only when its bus
+        is the one decoded and its frame type (standard/extended) is the message's.
 
     Raises
     ------
@@ -508,10 +582,11 @@ def decode_can_signals(path, *, fmt: str, dbc=None, signals=None, signal_map=Non
     msgs = {}
     for m, _ in wanted_pairs:
         msg = db.get_message_by_name(m)
-        msgs[msg.frame_id] = msg
+        msgs[(msg.frame_id, bool(msg.is_extended_frame))] = msg
 
+    bus = None if bus is None else str(bus)
     dmg = Damage(path, strict=strict, unit="line" if fmt in ("candump", "asc", "trc") else "record")
-    col = FrameCollector(msgs, dmg)
+    col = FrameCollector(msgs, dmg, bus=bus)
     if fmt == "candump":
         _parse_candump(path, col, {})
     elif fmt in ("asc", "blf", "trc"):
@@ -522,17 +597,49 @@ def decode_can_signals(path, *, fmt: str, dbc=None, signals=None, signal_map=Non
     if col.n_frames == 0:
         extra = f" ({dmg.n} damaged {dmg.unit}(s) skipped, first at {dmg.where[0]})" if dmg.n else ""
         raise LogFormatError(path, "no CAN frames in the file" + extra)
-    if not (set(col.acc) | set(col.long)) - {LOG_INFO_ID}:
-        ids = ", ".join(f"0x{i:X}" for i in sorted(msgs))
+
+    notes: list[str] = []
+    dbc_n, obd_n = _frames_per_bus(col)
+    if bus is not None and bus not in dbc_n and bus not in obd_n:
+        seen = _fmt_bus_counts({b: dbc_n.get(b, 0) + obd_n.get(b, 0) for b in set(dbc_n) | set(obd_n)})
+        raise LogFormatError(path, f"no frame of DBC {dbc_path.name} and no OBD-II response on bus {bus!r}",
+                             hint=f"buses with such frames: {seen}" if seen else "check the bus name")
+    if not dbc_n and not obd_n:
+        ids = ", ".join(_id_text(i, e) for i, e in sorted(msgs) if i != LOG_INFO_ID)
+        wrong = sum(col.mismatch.values())
+        extra = (f"; {wrong:,} frame(s) carry one of these ID values with the other frame type "
+                 "(standard 11-bit vs extended 29-bit), which is not the same message") if wrong else ""
         raise LogFormatError(path, f"no frame matches the DBC {dbc_path.name}: none of its decoded messages "
-                                   f"({ids}) is on this bus", hint="pass the DBC for this vehicle with --dbc")
+                                   f"({ids}) is on this bus, and no OBD-II response either{extra}",
+                             hint="pass the DBC for this vehicle with --dbc")
+    chosen = bus if bus is not None else _busiest(dbc_n)
+    if chosen is not None and chosen in dbc_n:
+        tied = sorted(b for b, n in dbc_n.items() if n == dbc_n[chosen] and b != chosen)
+        how = "chosen with --bus" if bus is not None else (
+            "the only bus with its messages" if len(dbc_n) == 1 else
+            f"as many as bus {', '.join(tied)}: the first by name; say which with --bus" if tied else
+            "the bus with most of its messages")
+        notes.append(f"DBC {dbc_path.name} decoded on bus {chosen} ({dbc_n[chosen]:,} frames, {how})")
+    else:
+        notes.append(f"no frame matches the DBC {dbc_path.name}" + (f" on bus {chosen}" if chosen else "")
+                     + ": only OBD-II responses decoded")
+    for b, n in sorted(dbc_n.items()):
+        if b != chosen:
+            notes.append(f"bus {b}: {n:,} frames with DBC IDs not decoded; pass --bus {b} to read that bus")
+    for (b, ext, cid), n in sorted(col.mismatch.items()):
+        other = msgs.get((cid, not ext))
+        notes.append(f"bus {b}: {n:,} {_frame_type(ext)} frames with ID {_id_text(cid, ext)} not decoded: the DBC's "
+                     f"{other.name if other else 'message'} with that ID value is a {_frame_type(not ext)} frame")
 
     out = {}
-    for can_id, msg in msgs.items():
+    for (can_id, ext), msg in msgs.items():
         pairs = [p for p in wanted_pairs if p[0] == msg.name]
-        acc = col.acc.get(can_id)
+        # The log-information message labels the whole log: taken from any bus.
+        keys = [k for k in col.acc if k[1:] == (ext, can_id) and (k[0] == chosen or can_id == LOG_INFO_ID)]
+        long_keys = [k for k in col.long if k[1:] == (ext, can_id) and (k[0] == chosen or can_id == LOG_INFO_ID)]
         rows = []
-        if acc is not None:
+        for key in keys:
+            acc = col.acc[key]
             t = np.frombuffer(acc.t, dtype=float) - col.t_first
             data = np.frombuffer(bytes(acc.data), dtype=np.uint8).reshape(-1, 8)
             dlc = np.frombuffer(acc.dlc, dtype=np.uint8)
@@ -548,8 +655,8 @@ def decode_can_signals(path, *, fmt: str, dbc=None, signals=None, signal_map=Non
                     if len(short):
                         k = int(short[0])
                         where = (f"line {pos[k]}" if fmt in ("candump", "asc", "trc") else f"message {pos[k]}")
-                        err = LogFormatError(path, f"frame 0x{can_id:X} has {int(dlc[k])} data bytes but DBC message "
-                                                   f"{msg.name} needs {need} for {sname}", where,
+                        err = LogFormatError(path, f"frame {_id_text(can_id, ext)} has {int(dlc[k])} data bytes but "
+                                                   f"DBC message {msg.name} needs {need} for {sname}", where,
                                              "is this the right DBC for the log?")
                         if 2 * len(short) > len(dlc):
                             raise err  # most frames too short: the DBC does not fit, not damage
@@ -563,15 +670,68 @@ def decode_can_signals(path, *, fmt: str, dbc=None, signals=None, signal_map=Non
                     tt, vv = _decode_slow(path, fmt, msg, sname, t, data, dlc, pos, dmg)
                     ts.append(tt)
                     vs.append(vv)
-            for t, data, pos in col.long.get(can_id, []):
-                tt, vv = _decode_slow_one(path, fmt, msg, sname, t - col.t_first, data, pos, dmg)
-                ts.append(tt)
-                vs.append(vv)
+            for key in long_keys:
+                for t, data, pos in col.long[key]:
+                    tt, vv = _decode_slow_one(path, fmt, msg, sname, t - col.t_first, data, pos, dmg)
+                    ts.append(tt)
+                    vs.append(vv)
             if ts:
                 out[(msg.name, sname)] = (np.concatenate(ts), np.concatenate(vs))
-    return {"signals": out, "t0": col.t_first, "synthetic_comment": col.synthetic_comment, "n_frames": col.n_frames, "n_backsteps": col.n_backsteps,
-            "max_backstep": col.max_backstep, "map": smap, "db": db, "dbc_path": dbc_path,
-            "damage": dmg.finish(col.t_first, col.t_prev)}
+
+    obd, obd_bus = None, None
+    if obd_n:
+        obd_bus = bus if bus is not None else (chosen if chosen in obd_n else _busiest(obd_n))
+        frames = {}
+        for (b, ext, can_id), acc in col.acc.items():
+            if b == obd_bus and col.kind(can_id, ext) == OBD_RESPONSE:
+                frames[(ext, can_id)] = (np.frombuffer(acc.t, dtype=float) - col.t_first,
+                                         np.frombuffer(bytes(acc.data), dtype=np.uint8).reshape(-1, 8),
+                                         np.frombuffer(acc.dlc, dtype=np.uint8))
+        if frames:
+            obd = _obd.decode_obd(frames)
+            notes.append(f"OBD-II responses decoded on bus {obd_bus}: {obd.n_responses:,} response frames"
+                         + (f", {col.requests[obd_bus]:,} requests (no data)" if col.requests.get(obd_bus) else ""))
+        for b, n in sorted(obd_n.items()):
+            if b != obd_bus:
+                notes.append(f"bus {b}: {n:,} OBD-II response frames not decoded; pass --bus {b} to read that bus")
+    return {"signals": out, "t0": col.t_first, "synthetic_comment": col.synthetic_comment, "n_frames": col.n_frames,
+            "n_backsteps": col.n_backsteps, "max_backstep": col.max_backstep, "map": smap, "db": db,
+            "dbc_path": dbc_path, "damage": dmg.finish(col.t_first, col.t_prev), "bus": chosen,
+            "dbc_frames_per_bus": dbc_n, "obd": obd, "obd_bus": obd_bus, "notes": notes}
+
+
+def _frames_per_bus(col: FrameCollector) -> tuple[dict, dict]:
+    """Frames of DBC messages (the log-information message aside) and OBD-II responses, per bus."""
+    dbc_n: dict[str, int] = {}
+    obd_n: dict[str, int] = {}
+    sizes = [(k, len(a.t)) for k, a in col.acc.items()] + [(k, len(v)) for k, v in col.long.items()]
+    for (b, ext, can_id), n in sizes:
+        kind = col.kind(can_id, ext)
+        if kind == DBC_FRAME and can_id != LOG_INFO_ID:
+            dbc_n[b] = dbc_n.get(b, 0) + n
+        elif kind == OBD_RESPONSE:
+            obd_n[b] = obd_n.get(b, 0) + n
+    for (b, kind), n in col.elsewhere.items():
+        target = dbc_n if kind == DBC_FRAME else obd_n
+        target[b] = target.get(b, 0) + n
+    return dbc_n, obd_n
+
+
+def _busiest(counts: dict) -> str | None:
+    """The bus with most frames (ties: the first name in order)."""
+    return min(counts, key=lambda b: (-counts[b], b)) if counts else None
+
+
+def _fmt_bus_counts(counts: dict) -> str:
+    return ", ".join(f"{b} ({n:,} frames)" for b, n in sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
+
+
+def _id_text(can_id: int, extended: bool) -> str:
+    return f"0x{can_id:08X}" if extended else f"0x{can_id:03X}"
+
+
+def _frame_type(extended: bool) -> str:
+    return "extended (29-bit)" if extended else "standard (11-bit)"
 
 
 def _decode_slow(path, fmt, msg, sname, t, data, dlc, pos, dmg=None):
@@ -632,26 +792,32 @@ def _speed_from_wheels(wheels: dict, parts: dict, meta) -> None:
             meta.notes.append(f"speed from the dashboard signal {meta.channel_sources['speed_mps']}")
         return
     dash = meta.channel_sources.get("speed_mps")
-    parts["speed_mps"] = [mean]
+    parts["speed_mps"] = [(mean[0], mean[1], None)]
     meta.channel_sources["speed_mps"] = "mean of " + ", ".join(wheels[w][2] for w in WHEEL_TARGETS)
     meta.original_units["speed_mps"] = wheels[WHEEL_TARGETS[0]][3]
     meta.notes.append("speed from the mean of the four wheel speeds"
                       + (f" (dashboard {dash} is the fallback, not used)" if dash else ""))
 
 
-def read_can_streams(path, *, fmt: str, dbc=None, signal_map=None, strict: bool = False):
+def read_can_streams(path, *, fmt: str, dbc=None, signal_map=None, strict: bool = False, bus=None):
     """Read a CAN log into canonical streams (see :func:`decode_can_signals`).
+
+    The DBC is decoded on one bus (``bus``, else the one with most of its messages); OBD-II service 01
+    responses (:mod:`calib.ingest.obd`) add the channels the DBC does not give. ``meta.channel_sources``
+    names the bus (``"can0:SPEED.SPEED"``); ``meta.notes`` says which bus was read and what other buses,
+    frame-type collisions and OBD-II responses were left out.
 
     Returns
     -------
     (Streams, LogMeta)
         ``meta.damage`` says what a damaged log lost (empty when intact).
     """
-    res = decode_can_signals(path, fmt=fmt, dbc=dbc, signal_map=signal_map, strict=strict)
+    res = decode_can_signals(path, fmt=fmt, dbc=dbc, signal_map=signal_map, strict=strict, bus=bus)
     dbc_path = res["dbc_path"]
     meta = LogMeta(source=str(path), sha256=file_sha256(path), format=fmt)
     meta.damage = res["damage"]
     meta.notes.append(f"decoded with DBC {dbc_path.name}")
+    meta.notes.extend(res["notes"])
     if res["n_backsteps"]:
         meta.notes.append(f"{res['n_backsteps']} frame(s) out of time order by up to "
                           f"{res['max_backstep'] * 1e3:.1f} ms were sorted")
@@ -663,6 +829,7 @@ def read_can_streams(path, *, fmt: str, dbc=None, signal_map=None, strict: bool 
     info = res["signals"].get(("IPTM_LOG_INFO", "SYNTHETIC"))
     if res["synthetic_comment"] or (info is not None and np.any(info[1] == 1)):
         meta.synthetic = True
+    chosen = res["bus"]
     parts: dict[str, list] = {}
     wheels: dict[str, tuple] = {}
     for (m, s), (ch, unit) in res["map"].items():
@@ -673,17 +840,65 @@ def read_can_streams(path, *, fmt: str, dbc=None, signal_map=None, strict: bool 
         src_unit = unit or sig.unit
         if not src_unit:
             raise LogFormatError(dbc_path, f"signal {m}.{s} has no unit", hint="give one in the signal map: 'channel [unit]'")
+        # NaN from an integer signal is its "not available" value: no sample, not a bad reading.
+        absent = np.isnan(v) if not sig.is_float else None
         if ch in WHEEL_TARGETS:
-            wheels[ch] = (t, to_channel_unit(v, src_unit, "speed_mps", dbc_path, f"signal {m}.{s}"), f"{m}.{s}", src_unit)
+            wheels[ch] = (t, to_channel_unit(v, src_unit, "speed_mps", dbc_path, f"signal {m}.{s}"),
+                          f"{chosen}:{m}.{s}", src_unit)
             continue
         v = to_channel_unit(v, src_unit, ch, dbc_path, f"signal {m}.{s}")
-        parts.setdefault(ch, []).append((t, v))
-        meta.channel_sources.setdefault(ch, f"{m}.{s}")
+        parts.setdefault(ch, []).append((t, v, absent))
+        meta.channel_sources.setdefault(ch, f"{chosen}:{m}.{s}")
         meta.original_units.setdefault(ch, src_unit)
     _speed_from_wheels(wheels, parts, meta)
     streams = {}
+    extra = _obd_parts(res, parts, meta) if res["obd"] is not None else {}
     for ch, chunks in parts.items():
-        s = make_series(np.concatenate([c[0] for c in chunks]), np.concatenate([c[1] for c in chunks]), ch)
+        absent = None
+        if any(c[2] is not None for c in chunks):
+            absent = np.concatenate([c[2] if c[2] is not None else np.zeros(len(c[0]), bool) for c in chunks])
+        s = make_series(np.concatenate([c[0] for c in chunks]), np.concatenate([c[1] for c in chunks]), ch,
+                        meta=meta, absent=absent)
+        if len(s):
+            streams[ch] = s
+    for ch, s in extra.items():
         if len(s):
             streams[ch] = s
     return streams, meta
+
+
+def _obd_parts(res, parts: dict, meta) -> dict:
+    """Add the OBD-II channels the DBC did not give to ``parts``; the fuel estimate from MAF is returned
+    as a finished stream (it is built and labelled by :func:`calib.ingest.common.fuel_from_maf`)."""
+    obd, bus = res["obd"], res["obd_bus"]
+    meta.notes.extend(obd.notes)
+    extra = {}
+    for pid, (t, v, label) in sorted(obd.series.items()):
+        _, ch, what = _obd.PIDS[pid]
+        src = f"{bus}:{label}"
+        unit = obd.units[pid]
+        if pid == _obd.PID_FUEL_LEVEL:
+            ok = np.isfinite(v)
+            rng = f", {np.min(v[ok]):.0f}-{np.max(v[ok]):.0f} {unit}" if ok.any() else ""
+            meta.notes.append(f"{src} ({what}): {len(v):,} samples{rng}; not a canonical channel, not used")
+            continue
+        if pid == _obd.PID_MAF:
+            if "fuel_rate_g_per_s" in parts or _obd.PID_FUEL_RATE in obd.series:
+                used = meta.channel_sources.get("fuel_rate_g_per_s") or f"{bus}:{obd.series[_obd.PID_FUEL_RATE][2]}"
+                meta.notes.append(f"{src} ({what}): {len(v):,} samples not used: fuel comes from {used}")
+            else:
+                extra["fuel_rate_g_per_s"] = fuel_from_maf(t, convert(v, unit, "g/s"), meta, src)
+            continue
+        if ch in parts:
+            meta.notes.append(f"{src} ({what}, {len(v):,} samples) not used: {ch} comes from "
+                              f"{meta.channel_sources.get(ch, 'the DBC')}")
+            continue
+        parts[ch] = [(t, to_channel_unit(v, unit, ch, _obd.OBD2_DBC, label), None)]
+        meta.channel_sources[ch] = src
+        meta.original_units[ch] = unit
+        if pid == _obd.PID_FUEL_RATE:
+            meta.notes.append(f"fuel_rate_g_per_s from {src}: the engine ECU's own computed fuel rate (from its "
+                              f"injection), not a flow-meter measurement; L/h converted at "
+                              f"{GASOLINE_DENSITY_KG_PER_L} kg/L gasoline")
+    return extra
+
