@@ -916,3 +916,28 @@ def test_an_unknown_engine_is_refused_by_name(params):
 
     with pytest.raises(IptmError, match="engine 'fast': choose one of fused, fused-exact, generic"):
         solve_thermal(params, DPScenario(duration_s=5.0), engine="fast")
+
+
+@pytest.mark.parametrize("field, value, msg", [
+    ("duration_s", float("nan"), "finite"), ("T_amb", float("nan"), "finite"), ("duration_s", -5.0, "positive"),
+    ("Q_heat_min", 2000.0, "Q_heat_min must be below Q_heat_max"), ("soc_max", 1.5, "inside"),
+])
+def test_scenario_fields_are_checked_where_they_enter(field, value, msg):
+    from calib.errors import ScenarioError
+    from optimize.formulations.scenario import DPScenario
+
+    with pytest.raises(ScenarioError, match=msg):
+        DPScenario(**{field: value})
+
+
+def test_oversized_grids_are_refused_before_allocation():
+    from calib.errors import ScenarioError
+    from calib.model.params import default_parameters
+    from optimize.formulations.scenario import DPGrids, DPScenario
+    from optimize.formulations.solve import build_problem
+
+    ps, scen = default_parameters(), DPScenario(duration_s=10)
+    with pytest.raises(ScenarioError, match="SOC grid .* points"):
+        build_problem(ps, scen, DPGrids(soc=1e-7), 1)
+    with pytest.raises(ScenarioError, match="too large: .* states"):
+        build_problem(ps, scen, DPGrids(soc=0.001, tcl=0.1, tcab=0.1, pbat=50, qheat=5), 3)

@@ -74,6 +74,20 @@ class DPScenario:
     cont_soc_band: float | None = None
 
     def __post_init__(self):
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if f.name in ("cycle", "terminal", "cont_cycle") or v is None:
+                continue
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise ScenarioError(f"scenario field {f.name} = {v!r}: give a finite number")
+        if self.duration_s is not None and not self.duration_s > 0:
+            raise ScenarioError(f"scenario field duration_s = {self.duration_s!r}: give a positive number of seconds")
+        for lo, hi in (("soc_min", "soc_max"), ("T_cl_min", "T_cl_max"), ("Q_heat_min", "Q_heat_max")):
+            if not getattr(self, lo) < getattr(self, hi):
+                raise ScenarioError(f"scenario fields {lo} = {getattr(self, lo):g} and {hi} = {getattr(self, hi):g}: "
+                                    f"{lo} must be below {hi}")
+        if not (0.0 <= self.soc_min and self.soc_max <= 1.0):
+            raise ScenarioError(f"scenario SOC window [{self.soc_min:g}, {self.soc_max:g}] must lie inside [0, 1]")
         if self.terminal not in TERMINALS:
             raise ScenarioError(f"terminal {self.terminal!r}: choose one of {', '.join(TERMINALS)}")
         if self.cont_soc_band is not None and not self.cont_soc_band >= 0:
@@ -226,9 +240,20 @@ def parse_grid_spec(spec: str | None, base=None):
     return g.with_steps(**vals) if isinstance(g, FormulationGrids) else replace(g, **vals)
 
 
-def _grid(lo, hi, step):
-    n = int(math.floor((hi - lo) / step + 1e-9)) + 1
+#: Most points on one grid axis (a SOC step of 1e-7 would ask for millions before anything is solved).
+MAX_AXIS_POINTS = 20_000
+
+
+def _grid(lo, hi, step, name: str = "grid"):
+    if not (math.isfinite(lo) and math.isfinite(hi) and math.isfinite(step) and step > 0):
+        raise ScenarioError(f"{name} {lo}:{step}:{hi}: the ends and the step must be finite, the step positive")
+    span = (hi - lo) / step
+    if span + 1 > MAX_AXIS_POINTS:
+        raise ScenarioError(f"{name} {lo:g}:{step:g}:{hi:g} would have {span + 1:.3g} points (at most "
+                            f"{MAX_AXIS_POINTS}): use a larger step")
+    n = int(math.floor(span + 1e-9)) + 1
     if n < 2:
-        raise ScenarioError(f"grid {lo}:{step}:{hi} has fewer than two points")
+        raise ScenarioError(f"{name} {lo:g}:{step:g}:{hi:g} has fewer than two points: the step is larger than "
+                            "the range")
     return lo + step * np.arange(n)
 

@@ -246,7 +246,7 @@ def _terminal_cost(mp, scen: DPScenario, nx: int, cab_soft=None, cab_offset: flo
 
 
 def _power_controls(mp, grids: DPGrids) -> np.ndarray:
-    P_bat = _grid(mp.P_bat_min, mp.P_bat_max, grids.pbat)
+    P_bat = _grid(mp.P_bat_min, mp.P_bat_max, grids.pbat, "battery-power grid (P_bat_min_W:pbat:P_bat_max_W)")
     rows = [(OFF, 0.0), (IDLE, 0.0)] + [(ON, pb - mp.P_aux) for pb in P_bat]
     return np.array(rows, dtype=np.float64)
 
@@ -295,6 +295,34 @@ class _Built:
     mp: object = None
 
 
+#: Budgets of one DP problem, checked before anything is allocated (environment variables override them):
+#: states (IPTM_DP_MAX_STATES) and state-control pairs per step (IPTM_DP_MAX_PAIRS). The paper's grids
+#: and their halving (the convergence check) stay well inside; the dashboard's finest sliders do not.
+DP_MAX_STATES = 20_000_000
+DP_MAX_PAIRS = 2e10
+
+
+def check_problem_size(axis_sizes, n_controls: int, n_steps: int) -> dict:
+    """Refuse a problem whose states or state-control pairs per step exceed the budgets, with the figures.
+
+    Returns the estimate ``{"states", "controls", "pairs_per_step", "value_MB"}``."""
+    import os
+
+    states = int(np.prod([int(n) for n in axis_sizes]))
+    pairs = float(states) * float(n_controls)
+    est = {"states": states, "controls": int(n_controls), "pairs_per_step": pairs,
+           "value_MB": 2 * states * 8 / 1e6}
+    max_states = float(os.environ.get("IPTM_DP_MAX_STATES", DP_MAX_STATES))
+    max_pairs = float(os.environ.get("IPTM_DP_MAX_PAIRS", DP_MAX_PAIRS))
+    if states > max_states or pairs > max_pairs:
+        raise ScenarioError(
+            f"the DP problem is too large: {states:,} states ({' x '.join(str(int(n)) for n in axis_sizes)}) x "
+            f"{n_controls:,} controls = {pairs:.3g} evaluations per step over {n_steps} steps (budgets: "
+            f"{max_states:.3g} states, {max_pairs:.3g} per step): use larger grid steps, or raise "
+            "IPTM_DP_MAX_STATES / IPTM_DP_MAX_PAIRS")
+    return est
+
+
 def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: float | None = None,
                   warm: bool = False, cycle=None, interp: str = INTERP,
                   cabin: str = "absolute", soc: str = SOC_STATE, hold: bool | None = None) -> _Built:
@@ -329,8 +357,8 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
     N, Ts = cyc.n_steps, cyc.Ts
     if not (scen.soc_min <= scen.soc0 <= scen.soc_max):
         raise ScenarioError(f"soc0 {scen.soc0} outside the SOC grid [{scen.soc_min}, {scen.soc_max}]")
-    phys = _grid(scen.soc_min, scen.soc_max, grids.soc)
-    tclg = _grid(scen.T_cl_min, scen.T_cl_max, grids.tcl)
+    phys = _grid(scen.soc_min, scen.soc_max, grids.soc, "SOC grid (soc_min:soc:soc_max)")
+    tclg = _grid(scen.T_cl_min, scen.T_cl_max, grids.tcl, "coolant grid (T_cl_min:tcl:T_cl_max)")
     fclg, lossg = _t_cl_tables(mp, tclg, scen.T_amb)
     pc = _power_controls(mp, grids)
     P_trac = _traction(mp, cyc)
@@ -393,14 +421,14 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
             lo = math.floor(float(np.min(lb)) + 1e-9)
         if hi - lo < grids.tcab:
             hi = lo + grids.tcab
-        tcabg = _grid(lo, hi, grids.tcab)
+        tcabg = _grid(lo, hi, grids.tcab, "cabin grid (tcab)")
         if tcabg[-1] < hi - 1e-9:
             tcabg = np.append(tcabg, tcabg[-1] + grids.tcab)
         grid_list.append(tcabg)
         bounds.append((t_cab - off[-1], None) if scen.terminal == "match" else (None, None))
         cab_soft = (float(ref[-1]), float(scen.cab_terminal_g_per_K))
         x0.append(scen.T_cab0 - off[0])
-        Q = _grid(scen.Q_heat_min, scen.Q_heat_max, grids.qheat)
+        Q = _grid(scen.Q_heat_min, scen.Q_heat_max, grids.qheat, "heater grid (Q_heat_min:qheat:Q_heat_max)")
         extra.update(T_cab_lb_min=float(np.min(lb)), T_cab_ub=float(tcabg[-1] + np.min(off)),
                      T_cab_terminal_min=float(ref[-1]), T_cab_grid_lo=float(tcabg[0]),
                      T_cab_grid_step=float(grids.tcab), Q_heat_step=float(grids.qheat), cabin_state=cabin,
@@ -434,6 +462,7 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
     if nx == 3:
         # clipped to the grid's ends, a hold heat beyond them is what a grid control already delivers
         p[_C_QLO], p[_C_QHI], p[_C_HOLD] = q_range[0], q_range[1], 1.0 if hold else 0.0
+    check_problem_size([g.size for g in grid_list], controls.shape[0], N)
     prob = DPProblem(grids=grid_list, controls=controls, N=N, transition=hev_transition, w=w, params=p,
                      terminal_bounds=bounds, terminal_cost=terminal, boundary="levelset", clip=True,
                      level_tol=LEVEL_TOL, precompute=hev_precompute,
