@@ -39,6 +39,8 @@ ALIASES: dict[str, str] = {
     "m/sec": "m/s",
     "mps": "m/s",
     "°c": "degC",
+    "℃": "degC",
+    "℉": "degF",
     "ºc": "degC",
     "deg c": "degC",
     "degc": "degC",

@@ -31,12 +31,12 @@ def test_written_csv_has_human_headers_and_synthetic_first_line(tmp_path):
 
 def test_units_converted_through_pint(tmp_path):
     p = _write(tmp_path, "time [ms],speed [mph],fuel_rate [L/h],ambient_temp [degF],soc [%],other\n"
-                         "0,0,3.6,32,50,x\n1000,10,0,212,50.5,y\n2000,20,1.8,50,51,z\n")
+                         "0,0,3.6,32,50,x\n1000,10,0,104,50.5,y\n2000,20,1.8,50,51,z\n")
     s, m = read_streams(p)
     np.testing.assert_allclose(s["speed_mps"].index, [0, 1, 2])
     np.testing.assert_allclose(s["speed_mps"], [0, 4.4704, 8.9408])
     np.testing.assert_allclose(s["fuel_rate_g_per_s"], [0.74, 0, 0.37])
-    np.testing.assert_allclose(s["ambient_temp_degC"], [0, 100, 10], atol=1e-9)
+    np.testing.assert_allclose(s["ambient_temp_degC"], [0, 40, 10], atol=1e-9)
     np.testing.assert_allclose(s["soc"], [0.5, 0.505, 0.51])
     assert any("ignored columns: other" in n for n in m.notes)
     assert not m.synthetic

@@ -2,7 +2,7 @@
 import pytest
 
 from calib.errors import IptmError, LogFormatError
-from calib.ingest import read_log
+from calib.ingest import read_log, read_streams
 from calib.ingest.fabricate import fabricate_streams
 from calib.ingest.writers import write_streams
 
@@ -57,14 +57,18 @@ def test_csv_unit_of_wrong_dimension(tmp_path):
     assert "does not fit channel speed_mps" in _err(p)
 
 
-def test_csv_non_monotonic_and_duplicate_time(tmp_path):
+def test_csv_time_far_out_of_order_is_an_error_jitter_and_repeats_are_not(tmp_path):
     p = tmp_path / "nm.csv"
-    p.write_text("# x\ntime [s],speed [m/s]\n0,1\n1,1\n0.5,1\n")
-    assert "line 5" in _err(p, strict=True) and "backwards" in _err(p, strict=True)
-    p = tmp_path / "dup.csv"
-    p.write_text("time [s],speed [m/s]\n0,1\n1,1\n1,2\n")
+    p.write_text("# x\ntime [s],speed [m/s]\n0,1\n1,1\n2,1\n0.5,1\n")
     msg = _err(p, strict=True)
-    assert "line 4" in msg and "duplicate time" in msg
+    assert "line 6" in msg and "backwards by 1.500 s" in msg
+    # A repeated time is two samples at one instant (their mean), a step back under 1 s is clock jitter.
+    p = tmp_path / "dup.csv"
+    p.write_text("time [s],speed [m/s]\n0,1\n1,1\n1,2\n0.6,4\n")
+    streams, meta = read_streams(p, strict=True)
+    assert streams["speed_mps"].index.tolist() == [0.0, 0.6, 1.0]
+    assert streams["speed_mps"].tolist() == [1.0, 4.0, 1.5]
+    assert meta.channel_counts["speed_mps"]["merged"] == 1 and not meta.damage
 
 
 def test_dbc_that_does_not_match_the_frames(tmp_path):

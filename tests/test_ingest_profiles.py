@@ -82,12 +82,24 @@ def test_d3_user_map_adds_a_channel(tmp_path):
 
 def test_d3_rejects_time_going_backwards(tmp_path):
     f = tmp_path / "d3.txt"
-    write_d3(f, n=30)
+    write_d3(f, n=60)
     lines = f.read_text().splitlines()
-    lines[10], lines[11] = lines[11], lines[10]
+    lines[10], lines[40] = lines[40], lines[10]  # 3 s apart: the clock truly runs backwards
     f.write_text("\n".join(lines) + "\n")
-    with pytest.raises(LogFormatError, match="backwards"):
+    with pytest.raises(LogFormatError, match=r"line 12.*backwards by 2\.9"):
         read_streams(f, profile="d3")
+
+
+def test_d3_jitter_is_sorted(tmp_path):
+    f = tmp_path / "d3.txt"
+    write_d3(f, n=60)
+    ref, _ = read_streams(f, profile="d3")
+    lines = f.read_text().splitlines()
+    lines[10], lines[11] = lines[11], lines[10]  # 0.1 s apart: clock jitter, not damage
+    f.write_text("\n".join(lines) + "\n")
+    streams, _ = read_streams(f, profile="d3")
+    for ch, s in ref.items():
+        assert streams[ch].equals(s), ch
 
 
 def test_ved_needs_a_selection_when_the_file_holds_many_trips(tmp_path):

@@ -126,7 +126,7 @@ def valid_csv(draw):
     jitter = [0.0] + draw(st.lists(st.floats(-0.4, 0.4), min_size=n - 2, max_size=n - 2)) + [0.0]
     t = [k + j for k, j in enumerate(jitter)]
     unit = draw(st.sampled_from(sorted(SPEED_UNITS)))
-    speed = draw(st.lists(st.floats(0, 200, allow_nan=False), min_size=n, max_size=n))
+    speed = draw(st.lists(st.floats(0, 80, allow_nan=False), min_size=n, max_size=n))  # inside every unit's range
     soc = draw(st.lists(st.floats(0, 100, allow_nan=False), min_size=n, max_size=n))
     cool = draw(st.lists(st.floats(-40, 120, allow_nan=False), min_size=n, max_size=n))
     cols = [("time [s]", t), (f"speed [{unit}]", speed), ("soc [%]", soc), ("coolant_temp [degC]", cool)]

@@ -113,7 +113,7 @@ def read_streams(path, *, fmt: str | None = None, dbc=None, column_map: dict | N
         Refuse a damaged log (the first garbled line/record, or a truncation, is a LogFormatError).
         By default a damaged log is read as far as it can be trusted, ``meta.damage`` says what was
         lost and one :class:`~calib.errors.LogDamageWarning` is issued.
-    profile : {"d3", "ved"}, optional
+    profile : {"d3", "ved", "torque", "carscanner"}, optional
         Read a test-data format (:mod:`calib.ingest.profiles`); detected from a CSV's header when omitted.
     vehicle, trip : optional
         VED: the vehicle and trip to read.
@@ -155,7 +155,8 @@ def _read_streams(path, *, fmt, dbc, column_map, topic_map, signal_map, strict, 
 
         profile = profile or detect_profile(path)
         if profile:
-            return read_profile_streams(path, profile, column_map=column_map, vehicle=vehicle, trip=trip)
+            return read_profile_streams(path, profile, column_map=column_map, vehicle=vehicle, trip=trip,
+                                        strict=strict)
     elif bus is not None and fmt not in CAN_FORMATS:
         raise LogFormatError(path, f"--bus applies to CAN logs, not {fmt}")
     if profile and fmt != "csv":

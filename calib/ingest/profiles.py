@@ -14,12 +14,22 @@
   ``OAT[DegC]``, ``Fuel Rate[L/hr]``, ``Heater Power[Watts]``, ``HV Battery Current[A]``,
   ``HV Battery SOC[%]``, ``HV Battery Voltage[V]``, ``Engine RPM[RPM]``; irregular, about 1 Hz, with gaps.
   One (vehicle, trip) is read at a time: ``vehicle=``/``trip=`` (``--vehicle``/``--trip``); a file with
-  one trip needs neither. Fuel in L/h becomes g/s through the gasoline density of :mod:`calib.units`.
+  one trip needs neither. Fuel in L/h becomes g/s through the gasoline density of :mod:`calib.units`. A
+  trip without fuel-rate samples (VED logs no fuel rate for many of its cars) gets a fuel rate estimated
+  from ``MAF[g/sec]`` at the stoichiometric ratio, labelled as an estimate
+  (:func:`calib.ingest.common.fuel_from_maf`).
   ``Heater Power`` in VED is the electric cabin heater of plug-in vehicles; it is read as heat delivered
   to the cabin (a note says so).
 
 :func:`detect_profile` recognises both from their header line, so ``iptm ingest`` picks them up without
 ``--profile`` when the file is unambiguous. A user column map (``--map``) overrides single columns.
+
+Time order: a D3 file's time may step back by up to :data:`~calib.ingest.csvlog.MAX_BACKSTEP_S` (jitter,
+sorted); a larger step back is an error naming the line. Empty cells are no sample; ``inf`` is a
+non-finite reading, dropped and counted in ``meta.channel_counts``.
+
+The OBD-app exports (``torque``, ``carscanner``, :mod:`calib.ingest.obdcsv`) are read by the CSV reader,
+which recognises them from their header; :func:`read_profile_streams` accepts their names too.
 """
 from __future__ import annotations
 
@@ -31,7 +41,9 @@ import pandas as pd
 
 from calib.drivelog import LogMeta, file_sha256
 from calib.errors import LogFormatError
-from calib.ingest.common import make_series, parse_target, to_channel_unit
+from calib.ingest.common import fuel_from_maf, make_series, parse_target, to_channel_unit
+from calib.ingest.csvlog import MAX_BACKSTEP_S
+from calib.ingest.obdcsv import APPS
 
 
 @dataclass(frozen=True)
@@ -49,6 +61,7 @@ class Profile:
     vehicle_column: str | None = None
     trip_column: str | None = None
     notes: tuple = ()
+    maf_column: tuple | None = None  # (column, unit) of the intake air mass flow: fuel estimate without fuel
 
 
 D3 = Profile(
@@ -84,7 +97,7 @@ VED = Profile(
     signature=("VehId", "Trip", "Timestamp(ms)"),
     unmapped={"DayNum": "day number of the trip (selection and start time only)",
               "VehId": "vehicle id (selection)", "Trip": "trip id (selection)"},
-    vehicle_column="VehId", trip_column="Trip",
+    vehicle_column="VehId", trip_column="Trip", maf_column=("MAF[g/sec]", "g/s"),
     notes=("Heater Power[Watts] (electric cabin heater) read as heat delivered to the cabin",
            "HV Battery Current[A] read with + = discharge as logged; check the sign on a known charge event"),
 )
@@ -117,14 +130,19 @@ def detect_profile(path) -> str | None:
 
 
 def _numeric(s: pd.Series, path, col: str, first_line: int) -> np.ndarray:
+    return _cells(s, path, col, first_line)[0]
+
+
+def _cells(s: pd.Series, path, col: str, first_line: int) -> tuple[np.ndarray, np.ndarray]:
+    """Values and the mask of empty cells (no sample); ``inf`` is a (non-finite) reading."""
     txt = s.astype(str).str.strip()
-    empty = txt.isin(["", "nan", "NaN", "NA", "null", "None"])
-    num = pd.to_numeric(txt.where(~empty, None), errors="coerce").to_numpy(dtype=float)
-    bad = np.flatnonzero(np.isnan(num) & ~empty.to_numpy())
+    empty = txt.isin(["", "nan", "NaN", "NA", "null", "None"]).to_numpy()
+    num = np.array(pd.to_numeric(txt.where(~empty, None), errors="coerce"), dtype=float)
+    bad = np.flatnonzero(np.isnan(num) & ~empty)
     if len(bad):
         i = int(bad[0])
         raise LogFormatError(path, f"not a number: {txt.iloc[i][:40]!r}", f"line {first_line + i}, column {col!r}")
-    return num
+    return num, empty
 
 
 def _pick(values: pd.Series, want, what: str, path, flag: str):
@@ -145,13 +163,13 @@ def _pick(values: pd.Series, want, what: str, path, flag: str):
 
 
 def read_profile_streams(path, profile: str | Profile, *, column_map: dict | None = None,
-                         vehicle=None, trip=None) -> tuple[dict, LogMeta]:
+                         vehicle=None, trip=None, strict: bool = False) -> tuple[dict, LogMeta]:
     """Read a file in a profile's format into canonical streams.
 
     Parameters
     ----------
     path : str or Path
-    profile : "d3", "ved" or a :class:`Profile`
+    profile : "d3", "ved", "torque", "carscanner" or a :class:`Profile`
     column_map : dict, optional
         ``{column: "channel [unit]"}`` overriding or adding to the profile's map.
     vehicle, trip : optional
@@ -167,9 +185,14 @@ def read_profile_streams(path, profile: str | Profile, *, column_map: dict | Non
         Not the profile's format (signature columns missing), no time column, non-numeric cells, time
         going backwards, no matching or an ambiguous vehicle/trip selection.
     """
+    if isinstance(profile, str) and profile in APPS:
+        from calib.ingest.csvlog import read_csv_streams
+
+        return read_csv_streams(path, column_map=column_map, app=profile, strict=strict)
     prof = PROFILES.get(profile) if isinstance(profile, str) else profile
     if prof is None:
-        raise LogFormatError(path, f"unknown profile {profile!r}", hint=f"one of {', '.join(PROFILES)}")
+        raise LogFormatError(path, f"unknown profile {profile!r}",
+                             hint=f"one of {', '.join(list(PROFILES) + list(APPS))}")
     p = Path(path)
     if not p.exists():
         raise LogFormatError(path, "no such file")
@@ -226,11 +249,14 @@ def read_profile_streams(path, profile: str | Profile, *, column_map: dict | Non
         order = np.argsort(np.where(ok_t, t, np.inf), kind="stable")
     else:
         order = np.arange(len(t))
-        d = np.diff(t[ok_t])
-        if np.any(d < 0):
-            j = int(np.flatnonzero(ok_t)[int(np.flatnonzero(d < 0)[0]) + 1])
-            raise LogFormatError(path, f"time goes backwards: {t_raw[j]!r}", f"line {first_line + int(idx[j])}",
-                                 "times must increase")
+        tt = t[ok_t]
+        back = np.concatenate([[0.0], np.maximum.accumulate(tt)[:-1] - tt[1:]]) if len(tt) else tt
+        if np.any(back > MAX_BACKSTEP_S):
+            k = int(np.flatnonzero(back > MAX_BACKSTEP_S)[0])
+            j = int(np.flatnonzero(ok_t)[k])
+            raise LogFormatError(path, f"time goes backwards by {back[k]:.3f} s: {t_raw[j]!r}",
+                                 f"line {first_line + int(idx[j])}",
+                                 f"times may repeat, or step back by up to {MAX_BACKSTEP_S:g} s (jitter, sorted)")
     t, ok_t, sub = t[order], ok_t[order], sub.iloc[order]
     if not ok_t.any():
         raise LogFormatError(path, "no time values", f"column {prof.time_column!r}")
@@ -244,6 +270,8 @@ def read_profile_streams(path, profile: str | Profile, *, column_map: dict | Non
     for col in sub.columns:
         if col == prof.time_column:
             continue
+        if prof.maf_column and col == prof.maf_column[0] and col not in cmap:
+            continue
         if col not in cmap:
             if col in prof.unmapped:
                 meta.notes.append(f"column {col!r} not used: {prof.unmapped[col]}")
@@ -256,13 +284,23 @@ def read_profile_streams(path, profile: str | Profile, *, column_map: dict | Non
         if ch in seen:
             raise LogFormatError(path, f"columns {seen[ch]!r} and {col!r} both map to channel {ch}", "line 1")
         seen[ch] = col
-        v = _numeric(sub[col], path, col, first_line)
+        v, empty = _cells(sub[col], path, col, first_line)
         v = to_channel_unit(v, unit, ch, path, f"column {col!r}")
-        s = make_series(t[ok_t], v[ok_t], ch)
+        s = make_series(t[ok_t], v[ok_t], ch, meta=meta, absent=empty[ok_t])
         if len(s):
             streams[ch] = s
             meta.channel_sources[ch] = col
             meta.original_units[ch] = unit
+    if prof.maf_column and prof.maf_column[0] in sub.columns and "fuel_rate_g_per_s" not in streams:
+        col, unit = prof.maf_column
+        maf, empty = _cells(sub[col], path, col, first_line)
+        there = ok_t & ~empty
+        if there.any():
+            fuel = fuel_from_maf(t[there], to_channel_unit_time(maf[there], unit, "g/s"), meta, col)
+            if len(fuel):
+                streams["fuel_rate_g_per_s"] = fuel
+    elif prof.maf_column and prof.maf_column[0] in sub.columns:
+        meta.notes.append(f"column {prof.maf_column[0]!r} not used: the log has a fuel rate")
     absent = [c for c in cmap if c not in sub.columns and c not in (column_map or {})]
     if absent:
         meta.notes.append(f"profile columns not in this file: {', '.join(absent)}")
@@ -275,10 +313,11 @@ def read_profile_streams(path, profile: str | Profile, *, column_map: dict | Non
     return streams, meta
 
 
-def to_channel_unit_time(t_raw, unit: str) -> np.ndarray:
+def to_channel_unit_time(values, unit: str, to: str = "s") -> np.ndarray:
+    """``values`` in ``unit`` converted to ``to`` (seconds by default)."""
     from calib.units import convert
 
-    return np.asarray(convert(np.asarray(t_raw, float), unit, "s"), dtype=float)
+    return np.asarray(convert(np.asarray(values, float), unit, to), dtype=float)
 
 
 __all__ = ["Profile", "PROFILES", "D3", "VED", "detect_profile", "read_profile_streams"]

@@ -36,9 +36,10 @@ def register(subparsers) -> None:
                                  "DBC knows; frames of other buses are counted in a note)")
     p.add_argument("--map", dest="map_file",
                    help="TOML/JSON map with [columns] (CSV/MDF), [topics.\"/topic\"] (MCAP), [signals] (CAN)")
-    p.add_argument("--profile", choices=("d3", "ved"),
-                   help="test-data format: d3 (Argonne dynamometer .txt), ved (Vehicle Energy Dataset CSV); "
-                        "detected from the header when omitted")
+    p.add_argument("--profile", choices=("d3", "ved", "torque", "carscanner"),
+                   help="test-data or app format: d3 (Argonne dynamometer .txt), ved (Vehicle Energy Dataset CSV), "
+                        "torque (Torque Pro CSV export), carscanner (Car Scanner CSV export); detected from the "
+                        "header when omitted")
     p.add_argument("--vehicle", help="VED: vehicle id (VehId) to read")
     p.add_argument("--trip", help="VED: trip id to read")
     p.add_argument("--rate", type=float, default=1.0, help="output rate, Hz (default 1)")
