@@ -9,20 +9,22 @@ which bytes), so the caller can count it, say what was lost, or raise it under `
 BLF: the file is a sequence of ``LOBJ`` objects, mostly zlib-compressed ``LOG_CONTAINER`` objects holding
 the frames. A container that ends with the file (a logger that lost power) is inflated as far as it
 goes; a complete container whose zlib stream fails its check is dropped whole (its frames cannot be
-trusted); an object header that is not ``LOBJ`` is skipped by searching for the next one.
+trusted); an object header that is not ``LOBJ`` is skipped by searching for the next one. A container
+is inflated in bounded steps, never past its declared uncompressed size nor the file's inflate budget
+(:mod:`calib.ingest.limits`); one that would is dropped by name.
 """
 from __future__ import annotations
 
 import os
 import re
 import struct
-import zlib
 from dataclasses import dataclass
 
 import can
 from can.io import blf as _blf
 
 from calib.errors import LogFormatError
+from calib.ingest.limits import InflateBudget, InflateRefused, Overflow, inflate_zlib
 
 _ASC_TRIGGER = re.compile(r"begin\s+triggerblock\s+\w+\s+(?P<datetime_string>.+)", re.IGNORECASE)
 _ASC_END = re.compile(r"end\s+triggerblock", re.IGNORECASE)
@@ -230,21 +232,26 @@ class RecoveringBLFReader(can.BLFReader):
                 pos = nxt
                 continue
             if obj_type == _blf.LOG_CONTAINER:
+                refused = None  # why a container was not inflated (limits of calib.ingest.limits)
                 if len(body) < _blf.LOG_CONTAINER_STRUCT.size:
                     data, ok = b"", False
                 else:
-                    method, _ = _blf.LOG_CONTAINER_STRUCT.unpack_from(body)
+                    method, declared = _blf.LOG_CONTAINER_STRUCT.unpack_from(body)
                     cdata = body[_blf.LOG_CONTAINER_STRUCT.size:]
                     if method == _blf.NO_COMPRESSION:
                         data, ok = cdata, True
                     elif method == _blf.ZLIB_DEFLATE:
-                        data, ok = _inflate(cdata, complete=not cut)
+                        try:
+                            data, ok = _inflate(cdata, not cut, declared, InflateBudget.of(self, self._path))
+                        except InflateRefused as exc:
+                            data, ok, refused = b"", False, exc.problem
                     else:
                         data, ok = b"", False
                 if ok:
                     yield from self._parse_container_recovering(data, pos)
-                elif not cut:
-                    yield self._bad("corrupt compressed container dropped", pos, pos + obj_size)
+                elif refused or not cut:
+                    yield self._bad(f"container at byte {pos} {refused}" if refused else
+                                    "corrupt compressed container dropped", pos, min(pos + obj_size, self._actual_size))
                     self._tail = b""
             if cut:
                 self.hit_truncation = True
@@ -309,19 +316,27 @@ class RecoveringBLFReader(can.BLFReader):
         self._tail = data[start + self._pos:]
 
 
-def _inflate(cdata: bytes, complete: bool) -> tuple[bytes, bool]:
-    """Inflate a zlib stream in pieces: (output, ok). A cut stream gives what it holds (ok)."""
-    z = zlib.decompressobj()
-    out = []
+def _inflate(cdata: bytes, complete: bool, declared: int = 0, budget: InflateBudget | None = None
+             ) -> tuple[bytes, bool]:
+    """Inflate a container's zlib stream in bounded steps: (output, ok). A cut stream gives what it holds (ok).
+
+    The output is capped by the container's ``declared`` uncompressed size (0: not declared) and by what is
+    left of the file's ``budget`` (see :mod:`calib.ingest.limits`).
+
+    Raises
+    ------
+    InflateRefused
+        The declared size is over the budget, or the stream inflates past its cap.
+    """
+    budget = budget if budget is not None else InflateBudget("")
+    cap = budget.cap(declared)
     try:
-        for i in range(0, len(cdata), 1 << 16):
-            out.append(z.decompress(cdata[i:i + (1 << 16)]))
-        if complete:
-            out.append(z.flush())
-            return b"".join(out), z.eof
-        return b"".join(out), True
-    except zlib.error:
-        return b"", False
+        out, ok = inflate_zlib(cdata, cap, complete)
+    except Overflow:
+        budget.spend(cap)
+        raise budget.overflow(declared) from None
+    budget.spend(len(out))
+    return bytes(out), ok
 
 
 def _show(line: str) -> str:

@@ -47,6 +47,8 @@ def register(sub):
 
 
 def _scenario(args):
+    """The scenario (file, then command-line options), and the file's ``[grids]`` and ``[run]`` when it has
+    them (None otherwise): a scenario file of ``iptm run`` means the same here."""
     import json
     import tomllib
     from pathlib import Path
@@ -54,22 +56,35 @@ def _scenario(args):
     from calib.errors import ScenarioError
     from optimize.formulations.scenario import DPScenario
 
-    d = {}
+    d, grids, strategies = {}, None, None
     if args.scenario:
         path = Path(args.scenario)
         if not path.is_file():
             raise ScenarioError(f"scenario file {path} not found")
         try:
             d = tomllib.loads(path.read_text()) if path.suffix != ".json" else json.loads(path.read_text())
-        except (tomllib.TOMLDecodeError, json.JSONDecodeError) as exc:
+        except (tomllib.TOMLDecodeError, json.JSONDecodeError, UnicodeDecodeError) as exc:
             raise ScenarioError(f"{path}: not valid TOML/JSON ({exc})") from None
-        d = d.get("scenario", d)
+        if not isinstance(d, dict):
+            raise ScenarioError(f"{path}: expected a table of scenario fields")
+        if "scenario" in d:
+            from iptm.pipeline import load_scenario
+
+            if path.suffix == ".json":
+                raise ScenarioError(f"{path}: sections [scenario], [grids], [run] are read from TOML files")
+            scen0, g, strat, cycle_log = load_scenario(path)
+            if cycle_log is not None:
+                raise ScenarioError(f"{path}: [scenario] cycle = \"from log\" takes the trace of a run's log: use "
+                                    "`iptm run --scenario`, or give `iptm optimize` a cycle name or CSV")
+            grids = g if "grids" in d else None
+            strategies = strat if "run" in d else None
+            d = scen0.to_dict()
     for opt, name in (("cycle", "cycle"), ("duration", "duration_s"), ("ambient", "T_amb"), ("soc0", "soc0"),
                       ("tcl0", "T_cl0"), ("tcab0", "T_cab0"), ("heater", "Q_heat"), ("terminal", "terminal")):
         v = getattr(args, opt)
         if v is not None:
             d[name] = v
-    return DPScenario.from_dict(d)
+    return DPScenario.from_dict(d), grids, strategies
 
 
 def run(args) -> int:
@@ -79,10 +94,13 @@ def run(args) -> int:
     from optimize.formulations.scenario import DEFAULT_GRIDS, FORMULATIONS, parse_grid_spec
 
     ps = load_params(args.params)
-    scen = _scenario(args)
-    grids = parse_grid_spec(args.grid, DEFAULT_GRIDS)
+    scen, file_grids, file_strategies = _scenario(args)
+    grids = parse_grid_spec(args.grid, file_grids or DEFAULT_GRIDS)
     allf = ("rule", "baseline", "thermal", "thermal_cabin")
-    chosen = allf if args.formulation == "all" else tuple(s.strip() for s in args.formulation.split(","))
+    if args.formulation == "all" and file_strategies is not None:
+        chosen = tuple(file_strategies)  # the scenario file's [run] strategies
+    else:
+        chosen = allf if args.formulation == "all" else tuple(s.strip() for s in args.formulation.split(","))
     bad = [c for c in chosen if c not in allf]
     if bad:
         raise ScenarioError(f"unknown formulation {bad[0]!r}; choose from {', '.join(allf)} or all")
