@@ -25,6 +25,17 @@ def _solve(key, _params, _scenario, _grids, strategy):
     return run_case_study(_params, _scenario, strategies=(strategy,), progress=False, grids=_grids)
 
 
+@st.cache_data(show_spinner=False, max_entries=64)
+def _estimate(key, _params, _scenario, _grids, strategy):
+    """The problem's size before it is solved (or the refusal with its figures), cached by content."""
+    from optimize.formulations import estimate_problem
+
+    try:
+        return estimate_problem(strategy, _params, _scenario, _grids), None
+    except Exception as exc:  # noqa: BLE001 - shown on the page, the button disabled
+        return None, dash.error_message(exc)
+
+
 from calib.model.cycles import available_cycles  # noqa: E402
 from calib.model.params import ParameterSet, default_parameters  # noqa: E402
 from optimize.formulations.scenario import FORMULATIONS, DPGrids, DPScenario  # noqa: E402
@@ -181,6 +192,21 @@ def _page():
             st.error(dash.plain(f"Invalid scenario: {dash.error_message(exc)}"))
 
     ready = params_ok and scenario is not None and bool(strategies)
+    if ready:
+        # the size of each DP before the button: a grid that would take hours or exhaust memory is refused
+        # here, with its figures, not after minutes of work
+        ekey = content_key(params.to_dict()["parameters"], dash.scenario_key(scenario), grids.to_dict())
+        lines = []
+        for s in [s for s in STRATS if s in strategies and s in FORMULATIONS]:
+            est, err = _estimate(content_key(ekey, s), params, scenario, grids, s)
+            if err:
+                st.error(dash.plain(f"{STRATS[s]}: {err}"))
+                ready = False
+            else:
+                lines.append(f"{STRATS[s]}: {est['states']:,} states x {est['controls']:,} controls x "
+                             f"{est['steps']:,} steps = {est['evaluations'] / 1e9:.2g} G evaluations")
+        if lines:
+            st.caption("Problem size: " + "; ".join(lines))
     if st.button("Run optimisation", type="primary", disabled=not ready, key="opt_run"):
         order = [s for s in STRATS if s in strategies]
         # one bar per strategy, named, with its state count when solved: a single bar's time-left estimate

@@ -941,3 +941,21 @@ def test_oversized_grids_are_refused_before_allocation():
         build_problem(ps, scen, DPGrids(soc=1e-7), 1)
     with pytest.raises(ScenarioError, match="too large: .* states"):
         build_problem(ps, scen, DPGrids(soc=0.001, tcl=0.1, tcab=0.1, pbat=50, qheat=5), 3)
+
+
+def test_estimate_matches_the_built_problem_and_refuses_the_dashboards_finest_sliders():
+    from calib.errors import ScenarioError
+    from calib.model.params import default_parameters
+    from optimize.formulations import estimate_problem
+    from optimize.formulations.scenario import DPGrids, DPScenario
+    from optimize.formulations.solve import build_problem
+
+    ps, scen = default_parameters(), DPScenario(duration_s=30)
+    g = DPGrids(soc=0.02, tcl=2, tcab=2, pbat=1000, qheat=100)
+    est = estimate_problem("thermal_cabin", ps, scen, g)
+    b = build_problem(ps, scen, g, 3)
+    assert est["states"] == int(np.prod([x.size for x in b.prob.grids]))
+    assert est["controls"] == b.prob.controls.shape[0] and est["steps"] == b.prob.N
+    with pytest.raises(ScenarioError, match=r"too large: 12,4\d\d,\d\d\d states .* 6\d,\d\d\d controls"):
+        estimate_problem("thermal_cabin", ps, DPScenario(duration_s=10),
+                         DPGrids(soc=0.001, tcl=0.1, tcab=0.1, pbat=50, qheat=10))

@@ -76,10 +76,10 @@ Common choices
 """
 from optimize.formulations.scenario import (BASELINE_CONVERGED_GRIDS, CABIN_CONVERGED_GRIDS, DEFAULT_GRIDS, FORMULATIONS,
                                             TERMINALS, DPGrids, DPScenario, FormulationGrids, parse_grid_spec)
-from optimize.formulations.solve import (DPOutcome, dp_objective, peak_rss_mb, resimulate, solve_baseline, solve_formulation,
+from optimize.formulations.solve import (DPOutcome, dp_objective, estimate_problem, peak_rss_mb, resimulate, solve_baseline, solve_formulation,
                     solve_thermal, solve_thermal_cabin)
 
 __all__ = ["DPScenario", "DPGrids", "FormulationGrids", "DEFAULT_GRIDS", "BASELINE_CONVERGED_GRIDS", "CABIN_CONVERGED_GRIDS",
            "DPOutcome", "parse_grid_spec", "solve_baseline", "solve_thermal",
            "solve_thermal_cabin", "solve_formulation", "FORMULATIONS", "TERMINALS", "resimulate", "peak_rss_mb",
-           "dp_objective"]
+           "dp_objective", "estimate_problem"]

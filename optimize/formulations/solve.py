@@ -455,6 +455,7 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
     cfg[_C_NX], cfg[_C_NQ], cfg[_C_TAMB], cfg[_C_TS] = nx, nq, scen.T_amb, Ts
     cfg[_C_TBAT], cfg[_C_WBL] = mp.T_bat_ref, mp.W_bl
     ms = np.array([float(getattr(mp, n)) for n in _MS])
+    check_problem_size([g.size for g in grid_list], controls.shape[0], N)  # before the tables are allocated
     big = build_tables(mp, pc, socg, P_trac, float(Ts), float(mp.T_bat_ref), soff)
     c = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
     p = pack_params(cfg, ms, [socg, fclg, lossg, c(mp.soc_bp), c(mp.U_oc), c(mp.soc_bp_R), c(mp.R_int),
@@ -462,7 +463,6 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
     if nx == 3:
         # clipped to the grid's ends, a hold heat beyond them is what a grid control already delivers
         p[_C_QLO], p[_C_QHI], p[_C_HOLD] = q_range[0], q_range[1], 1.0 if hold else 0.0
-    check_problem_size([g.size for g in grid_list], controls.shape[0], N)
     prob = DPProblem(grids=grid_list, controls=controls, N=N, transition=hev_transition, w=w, params=p,
                      terminal_bounds=bounds, terminal_cost=terminal, boundary="levelset", clip=True,
                      level_tol=LEVEL_TOL, precompute=hev_precompute,
@@ -592,6 +592,21 @@ def solve_thermal_cabin(params, scenario: DPScenario | None = None, grids=None, 
     out.extra["heater_hold_pct"] = 100.0 * float(held.mean())
     out.extra["grid_artefacts"] = trajectory_checks(out)
     return out
+
+
+def estimate_problem(name: str, params, scenario=None, grids=None) -> dict:
+    """The size of a formulation's problem before it is solved: ``{"states", "controls", "pairs_per_step",
+    "steps", "evaluations"}``, built as the solver builds it (the same grids and state coordinates) but not
+    solved. Raises :class:`ScenarioError` with the figures when it exceeds the budgets
+    (:func:`check_problem_size`)."""
+    nx = {"baseline": 1, "thermal": 2, "thermal_cabin": 3}.get(name)
+    if nx is None:
+        raise ScenarioError(f"unknown formulation {name!r}; choose from baseline, thermal, thermal_cabin")
+    scen = scenario or DPScenario()
+    b = build_problem(params, scen, FormulationGrids.coerce(grids).of(name), nx, warm=nx == 1)
+    est = check_problem_size([g.size for g in b.prob.grids], b.prob.controls.shape[0], b.prob.N)
+    est.update(steps=int(b.prob.N), evaluations=est["pairs_per_step"] * b.prob.N)
+    return est
 
 
 def solve_formulation(name: str, params, scenario=None, grids=None, **kw) -> DPOutcome:
