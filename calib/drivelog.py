@@ -106,6 +106,9 @@ class LogMeta:
     # channel -> how it was estimated when the log does not measure it (fuel from MAF, say): such a channel
     # is never presented as measured.
     estimated: dict = field(default_factory=dict)
+    # channel -> [[start, stop), ...] rows of the canonical table whose value was interpolated between samples
+    # (no sample fell in the row's bin): fitters that must not treat a filled value as a reading skip them.
+    interpolated_rows: dict = field(default_factory=dict)
 
     def lossy_channels(self, threshold: float = 0.01) -> list[str]:
         """Channels that lost more than ``threshold`` of the samples read (non-finite or impossible values)."""
@@ -183,6 +186,30 @@ class DriveLog:
         miss = self.missing(channels)
         if miss:
             raise MissingChannelsError(miss, purpose, self.meta.source)
+
+    @property
+    def sampled(self) -> dict:
+        """``{channel: bool per row}`` for channels with interpolated rows: True where the row holds a logged
+        sample (``LogMeta.interpolated_rows``). Channels not listed have a sample in every finite row."""
+        out = {}
+        for ch, runs in (self.meta.interpolated_rows or {}).items():
+            if ch not in self.data.columns:
+                continue
+            m = np.isfinite(self.data[ch].to_numpy(float))
+            for a, b in runs:
+                m[int(a):int(b)] = False
+            out[ch] = m
+        return out
+
+    @sampled.setter
+    def sampled(self, masks: dict) -> None:
+        """Record which rows hold a logged sample (``{channel: bool per row}``, e.g. for a table built by hand)."""
+        runs = {}
+        for ch, m in (masks or {}).items():
+            filled = np.isfinite(self.data[ch].to_numpy(float)) & ~np.asarray(m, dtype=bool)
+            edges = np.flatnonzero(np.diff(np.concatenate([[0], filled.astype(np.int8), [0]])))
+            runs[ch] = edges.reshape(-1, 2).tolist()
+        self.meta.interpolated_rows = runs
 
     def content_digest(self) -> str:
         """SHA-256 of the table itself (times, channels, values): the key of anything computed from the log,

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from calib.fit.replay import CHANNEL_METRICS, _fill
+from calib.fit.replay import CHANNEL_METRICS
 
 __all__ = ["plot_simulation", "plot_validation", "plot_residuals", "plot_residual_comparison", "plot_calibration",
            "finish_figure"]
@@ -131,11 +131,10 @@ def plot_validation(rep, path=None, title=None):
         a.set_ylabel(lab)
         a.grid(alpha=0.3)
     ax[0].legend(loc="best", fontsize=8)
-    dt = float(np.median(np.diff(rep.t))) if rep.t.size > 1 else 1.0
-    if "fuel_rate" in rep.measured:
-        ax[4].plot(t, np.cumsum(_fill(rep.measured["fuel_rate"], 0.0)) * dt, "k-", lw=0.8, label="measured")
-    if "fuel_rate" in rep.simulated:
-        ax[4].plot(t, np.cumsum(np.nan_to_num(rep.simulated["fuel_rate"])) * dt, "r--", lw=1.0, label="simulated")
+    cum = rep.cumulative_fuel() if hasattr(rep, "cumulative_fuel") else None
+    if cum is not None:  # both over the same seconds: a second neither knows adds to neither
+        ax[4].plot(t, cum[0], "k-", lw=0.8, label="measured")
+        ax[4].plot(t, cum[1], "r--", lw=1.0, label="simulated")
     for a, (k, _lab) in zip(ax, panels + [("fuel_rate", "")]):
         if k in rep.refused:
             a.text(0.5, 0.5, f"not simulated: {rep.refused[k]}"[:110], transform=a.transAxes, ha="center",

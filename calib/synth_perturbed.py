@@ -87,6 +87,13 @@ class Drive:
     T_set: float = 21.0
     drop_channels: list = field(default_factory=list)
     description: str = ""
+    #: Engine power (W) while the cold engine idles, the generator charging the battery (a warm-up at
+    #: standstill); 0: idling unloaded.
+    idle_charge_W: float = 0.0
+    #: The controller's warm-up rule holds while the coolant is below this (degC).
+    warm_until_degC: float = 35.0
+    #: Whether the climate control runs (False: heater and blower off).
+    climate: bool = True
 
 
 #: Two calibration drives (cold starts, about 1 h together) and a held-out warm restart.
@@ -100,6 +107,21 @@ HELD_OUT = [
     Drive("perturbed_warm_restart_udds", "udds", -6.0, 55.0, 9.0, 0.0, 0.56,
           description="restart at -6 degC after a short stop (coolant 55 degC, cabin 9 degC), UDDS (23 min)"),
 ]
+
+
+def parked(seconds: int):
+    """A standstill "cycle" of ``seconds`` at 1 s (the car parked throughout)."""
+    from calib.model.cycles import Cycle
+
+    return Cycle(f"parked {seconds} s", np.arange(seconds + 1, dtype=float), np.zeros(seconds + 1))
+
+
+#: A parked cold start at idle, logged as OBD tools log it (:func:`synthesise_perturbed_obd`): -1 degC, the
+#: engine idling 7 minutes with the generator charging the battery at 3.5 kW (its warm-up at standstill; the
+#: coolant reaches 41-51 degC over seeds 1-4, 45 degC with seed 2), the climate control off.
+PARKED_WARMUP = Drive("perturbed_parked_warmup", parked(420), -1.0, -1.0, -1.0, -1.0, 0.46,
+                      description="parked cold start at -1 degC, 7 min idling (3.5 kW charging), climate control off",
+                      idle_charge_W=3500.0, warm_until_degC=70.0, climate=False)
 
 
 def draw_plant(seed: int, spread: float = 0.15) -> dict:
@@ -156,7 +178,7 @@ def simulate_plant(p: dict, drive: Drive) -> dict:
         P_trac = F * vm
         # controller: load levelling with a warm-up rule (engine on while driving with a cold engine,
         # idling at a stop below 35 degC so the heater gets heat)
-        cold = T_cl[k] < 35.0
+        cold = T_cl[k] < drive.warm_until_degC
         if on:
             on_time += dt
             if P_trac <= 0.0 or (P_trac < 3000.0 and on_time > 10.0 and not cold and soc[k] > 0.47):
@@ -174,8 +196,8 @@ def simulate_plant(p: dict, drive: Drive) -> dict:
         if on:
             P_em = P_trac - p["eta_mech"] * P_e
         else:
-            P_e = 0.0
-            P_em = max(P_trac, -22e3 if soc[k] < 0.8 else 0.0)  # a full battery takes no regeneration
+            P_e = drive.idle_charge_W if idle else 0.0  # a cold idle may drive the generator
+            P_em = max(P_trac, -22e3 if soc[k] < 0.8 else 0.0) - p["eta_mech"] * P_e  # a full battery takes no regeneration
         P_bat = (P_em / p["eta_em"] if P_em >= 0 else P_em * p["eta_em"]) + p["P_aux_W"]
         if P_bat < -27e3 and on:  # charge limit: throttle back the engine
             P_e = max(P_e + (P_bat + 27e3) * p["eta_em"] / p["eta_mech"], 3000.0)
@@ -185,8 +207,9 @@ def simulate_plant(p: dict, drive: Drive) -> dict:
             W_true = P_e / (float(eta_engine(p, P_e)) * LHV) * float(f_cold(p, T_cl[k]))
             n_e = float(n_engine_rpm(p, P_e))
         elif idle:
-            W_true = p["W_idle_g_per_s"] * float(f_cold(p, T_cl[k]))
-            n_e = p["n_idle_rpm"]
+            W_load = P_e / (float(eta_engine(p, P_e)) * LHV) if P_e > 0.0 else 0.0
+            W_true = max(W_load, p["W_idle_g_per_s"]) * float(f_cold(p, T_cl[k]))
+            n_e = max(p["n_idle_rpm"], float(n_engine_rpm(p, P_e))) if P_e > 0.0 else p["n_idle_rpm"]
         else:
             W_true, n_e = 0.0, 0.0
         U, R = float(ocv(p, soc[k])), float(r_int(p, soc[k], T_bat[k]))
@@ -195,7 +218,7 @@ def simulate_plant(p: dict, drive: Drive) -> dict:
         # climate control: blower stage and heat request from the cabin error; the core passes at most
         # eps W_bl cp (T_cl - T_amb) (fresh air)
         err = drive.T_set - T_cab[k]
-        W_bl = 0.09 if err > 8 else (0.06 if err > 2 else 0.035)
+        W_bl = (0.09 if err > 8 else (0.06 if err > 2 else 0.035)) if drive.climate else 0.0
         Q_req = min(max(700.0 + 450.0 * err, 0.0), 4500.0)
         Q_heat = min(Q_req, max(p["eps_hc"] * W_bl * CP_AIR * (T_cl[k] - T_amb), 0.0))
         Q_fuel = LHV * W_true
@@ -209,7 +232,7 @@ def simulate_plant(p: dict, drive: Drive) -> dict:
         T_cab[k + 1] = T_cab[k] + dt * dT_cab
         T_bat[k + 1] = T_bat[k] + dt * (R * I * I - 2.0 * (T_bat[k] - T_amb)) / 60e3
         for key, val in (("P_e", P_e), ("n_e", n_e), ("W_f", W_true), ("P_bat", P_bat), ("I", I), ("V", U - R * I),
-                         ("Q_heat", Q_heat), ("W_bl", W_bl), ("vent", T_amb + Q_heat / (W_bl * CP_AIR))):
+                         ("Q_heat", Q_heat), ("W_bl", W_bl), ("vent", T_amb + Q_heat / (W_bl * CP_AIR) if W_bl > 0 else T_amb)):
             fl[key][k] = val
     # coolant sensor: first-order lag
     T_sens = np.empty(N + 1)
@@ -345,6 +368,80 @@ def synthesise_perturbed(drive: Drive, plant: dict, seed: int = 0, drop_channels
     return tr, streams, meta
 
 
+#: What an OBD-II tool polls, in turn (Mode 01 PIDs, SAE J1979): canonical channel, PID and the resolution
+#: of its encoding. Fuel is not polled: it comes from the MAF as a labelled estimate.
+OBD_PIDS = (("coolant_temp_degC", 0x05, 1.0), ("engine_speed_rpm", 0x0C, 0.25), ("speed_mps", 0x0D, 1.0 / 3.6),
+            ("maf_g_per_s", 0x10, 0.01), ("ambient_temp_degC", 0x46, 1.0))
+#: Seconds one OBD request takes to be answered (uniform): with five PIDs in turn each is read every 5-15 s.
+OBD_QUERY_S = (1.0, 3.0)
+#: Battery channels an OBD tool reads from the car's CAN broadcast (10 Hz).
+OBD_CAN_SENSORS: dict[str, Sensor] = {
+    "bat_current_A": Sensor(10.0, 0.4, 0.1, True),
+    "bat_voltage_V": Sensor(10.0, 0.3, 1.0, True),
+    "soc": Sensor(10.0, 0.0, 0.005, False),
+}
+
+
+def synthesise_perturbed_obd(drive: Drive, plant: dict, seed: int = 0):
+    """Simulate a drive on the perturbed plant and log it as an OBD-II tool does.
+
+    The tool polls :data:`OBD_PIDS` in turn, each answer taking :data:`OBD_QUERY_S` (so each PID comes every
+    5-15 s, quantised as its encoding is: coolant and ambient in whole degC, speed in whole km/h); the fuel
+    rate is the MAF over the stoichiometric ratio (:func:`calib.ingest.common.fuel_from_maf`, labelled an
+    estimate in the metadata), the plant burning at lambda 1 with the MAF sensor reading the plant's
+    ``fuel_meter_bias`` high; battery current, voltage and SOC come from the CAN broadcast at 10 Hz. There is
+    no heater, vent, blower, cabin, engine torque or engine power channel.
+
+    Returns ``(true, streams, meta)`` like :func:`synthesise_perturbed`.
+    """
+    from calib.drivelog import CHANNELS, LogMeta
+    from calib.ingest.common import AFR_STOICH, fuel_from_maf, make_series
+
+    tr = simulate_plant(plant, drive)
+    t = tr["t"]
+    rng = np.random.default_rng(seed)
+    bias = 1.0 + plant["fuel_meter_bias"]
+    meta = LogMeta(source=f"SYNTHETIC_{drive.name}_obd", format="synthetic", vehicle_id="SYNTHETIC-PERTURBED-HEV",
+                   synthetic=True,
+                   notes=[f"SYNTHETIC log from the perturbed-structure plant (calib.synth_perturbed) as an OBD-II tool "
+                          f"logs it (PIDs polled in turn, battery from CAN): {drive.description or drive.name}; "
+                          f"seed {seed}", f"true fuel {tr['fuel_g']:.1f} g"])
+
+    def at(kind, vals, ts):
+        if kind == "state":
+            return np.interp(ts, t, vals)
+        return vals[np.minimum((ts - t[0]).astype(int), len(vals) - 1)]
+
+    true_of = {"coolant_temp_degC": ("state", tr["T_cl_sensor"]), "engine_speed_rpm": ("flow", tr["n_e"]),
+               "speed_mps": ("state", tr["v"]), "maf_g_per_s": ("flow", AFR_STOICH * bias * tr["W_f"]),
+               "ambient_temp_degC": ("state", np.full(t.size, tr["T_amb"]))}
+    polled = {c: [] for c, _, _ in OBD_PIDS}
+    tq = rng.uniform(0.0, 2.0)
+    i = 0
+    while tq < t[-1]:
+        tq += rng.uniform(*OBD_QUERY_S)
+        if tq >= t[-1]:
+            break
+        polled[OBD_PIDS[i % len(OBD_PIDS)][0]].append(tq)
+        i += 1
+    streams = {}
+    for ch, pid, q in OBD_PIDS:
+        ts = np.array(polled[ch])
+        x = np.round(at(*true_of[ch], ts) / q) * q
+        if ch == "maf_g_per_s":
+            streams["fuel_rate_g_per_s"] = fuel_from_maf(ts, x, meta, f"OBD PID 0x{pid:02X} (MAF)")
+        else:
+            streams[ch] = make_series(ts, x, ch, meta)
+            meta.channel_sources[ch] = f"OBD PID 0x{pid:02X}"
+    can = sample_signals(t, {"bat_current_A": ("flow", tr["I"]), "bat_voltage_V": ("flow", tr["V"]),
+                             "soc": ("state", tr["soc"])}, OBD_CAN_SENSORS, rng)
+    for ch, sr in can.items():
+        streams[ch] = make_series(sr.index.to_numpy(float), sr.to_numpy(float), ch, meta)
+        meta.channel_sources[ch] = "CAN broadcast (10 Hz)"
+    meta.original_units = {c: CHANNELS[c][0] for c in streams}
+    return tr, streams, meta
+
+
 def perturbed_logs(seed: int, drives=None, drop_channels=()):
     """DriveLogs (1 Hz) of ``drives`` (default calibration + held-out) for one seed; returns (logs, plant)."""
     from calib.ingest import to_drivelog
@@ -384,6 +481,7 @@ def write_perturbed_logs(out_dir, seed: int = 0, drives=None, progress=print) ->
     return info
 
 
-__all__ = ["PLANT", "Drive", "CALIBRATION", "HELD_OUT", "ENGINE_CHANNELS", "HEATER_CHANNELS", "draw_plant",
+__all__ = ["PLANT", "Drive", "CALIBRATION", "PARKED_WARMUP", "parked", "OBD_PIDS", "synthesise_perturbed_obd",
+           "HELD_OUT", "ENGINE_CHANNELS", "HEATER_CHANNELS", "draw_plant",
            "simulate_plant", "comparable_truth", "SCORED", "param_at", "truth_at", "score", "synthesise_perturbed",
            "perturbed_logs", "write_perturbed_logs"]

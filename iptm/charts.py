@@ -60,16 +60,14 @@ VALIDATION_PANELS = [("soc", "SOC [-]"), ("coolant_temp", "coolant [degC]"), ("c
 def validation_frame(rep) -> pd.DataFrame:
     """Measured and simulated series of a replay in long form (cumulative fuel included)."""
     parts = []
-    dt = float(np.median(np.diff(rep.t))) if rep.t.size > 1 else 1.0
     for key, _ in VALIDATION_PANELS[:-1]:
         for kind, src in (("measured", rep.measured), ("simulated", rep.simulated)):
             if key in src and key in rep.measured:
                 parts.append(_long(rep.t, src[key], key, kind, "series", kind))
-    if "fuel_rate" in rep.measured:
-        m = np.nan_to_num(np.asarray(rep.measured["fuel_rate"], float))
-        s = np.nan_to_num(np.asarray(rep.simulated["fuel_rate"], float))
-        parts.append(_long(rep.t, np.cumsum(m) * dt, "cumulative_fuel", "measured", "series", "measured"))
-        parts.append(_long(rep.t, np.cumsum(s) * dt, "cumulative_fuel", "simulated", "series", "simulated"))
+    cum = rep.cumulative_fuel() if "fuel_rate" in rep.measured else None
+    if cum is not None:  # both over the same seconds (calib.fit.validate.Replay.cumulative_fuel)
+        parts.append(_long(rep.t, cum[0], "cumulative_fuel", "measured", "series", "measured"))
+        parts.append(_long(rep.t, cum[1], "cumulative_fuel", "simulated", "series", "simulated"))
     return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(
         columns=["time_s", "value", "panel", "series", "kind"])
 

@@ -31,6 +31,7 @@ import math
 import numpy as np
 from scipy.optimize import minimize_scalar
 
+from calib.fit.replay import fill_short, gap_limit, known_runs, logged_column
 from calib.fit.toolkit import (WEAK_INFORMED, ParamEstimate, SubsystemFit, combine_with_prior, inflation, not_fitted,
                                prior_only, usable_logs)
 from calib.model.params import prior_sd_of
@@ -61,17 +62,15 @@ def _gather(logs, T_ref):
         d = lg.data
         I = d["bat_current_A"].to_numpy(float)
         V = d["bat_voltage_V"].to_numpy(float)
-        s = d["soc"].to_numpy(float)
+        s = logged_column(lg, "soc")  # the SOC's own samples (crossings between logged values only)
         T = d["bat_temp_degC"].to_numpy(float) if "bat_temp_degC" in d and d["bat_temp_degC"].notna().any() \
             else np.full(I.size, np.nan)
         T_given = np.isfinite(T).any()
-        if T_given:
-            idx = np.arange(T.size)
-            okT = np.isfinite(T)
-            T = np.interp(idx, idx[okT], T[okT])
-        else:
-            T = np.full(I.size, T_ref)
-        rows.append(dict(name=lg.label(), I=I, V=V, soc=s, T=T, T_logged=T_given, dt=lg.dt))
+        # temperature and SOC are slow regressors: bridged across short gaps, unknown across long ones (those
+        # samples leave the table fit); the SOC's own samples stay for the Coulomb counting
+        T = fill_short(T, lg.dt) if T_given else np.full(I.size, T_ref)
+        rows.append(dict(name=lg.label(), I=I, V=V, soc=s, soc_f=fill_short(s, lg.dt), T=T, T_logged=T_given,
+                         dt=lg.dt))
     return rows
 
 
@@ -91,11 +90,11 @@ def _table_fit(rows, bpU, bpR, U0, R0, tc, T_ref, varyU, varyR, h=0.0, varyH=Fal
     (else fixed at ``h``); returns (U, R, cov, resid per log, sse, n, h); the hysteresis is cov's last row."""
     A_parts, y_parts, seg_len = [], [], []
     for r in rows:
-        ok = steady(r["I"]) & np.isfinite(r["V"]) & np.isfinite(r["soc"])
+        ok = steady(r["I"]) & np.isfinite(r["V"]) & np.isfinite(r["soc_f"]) & np.isfinite(r["T"])
         if varyH:
             ok &= np.abs(r["I"]) > I_SIGN_A
-        HU = hat_basis(r["soc"][ok], bpU)
-        HR = hat_basis(r["soc"][ok], bpR)
+        HU = hat_basis(r["soc_f"][ok], bpU)
+        HR = hat_basis(r["soc_f"][ok], bpR)
         gI = (np.exp(-tc * (r["T"][ok] - T_ref)) * r["I"][ok])[:, None]
         sg = np.sign(r["I"][ok])[:, None]
         y = r["V"][ok] - HU[:, ~varyU] @ U0[~varyU] + (HR[:, ~varyR] * gI) @ R0[~varyR] + (0.0 if varyH else h) * sg[:, 0]
@@ -134,22 +133,23 @@ def _capacity(rows):
     for an unquantised signal every sample is a crossing and this is ordinary Coulomb counting.
     """
     X_parts, y_parts, segs_len = [], [], []
-    L = len(rows)
+    # the charge is counted only across the current's short gaps: a long one ends a run, and each run has
+    # its own intercept (the charge moved in the gap is unknown)
+    runs = []
+    for r in rows:
+        I = fill_short(r["I"], r["dt"])
+        runs += [(r, I, a, b) for a, b in known_runs(np.isfinite(I), 2)]
+    L = len(runs)
     n_cross = 0
-    for i, r in enumerate(rows):
-        I = r["I"].copy()
-        idx = np.arange(I.size)
-        okI = np.isfinite(I)
-        if okI.sum() < 2:
-            continue
-        I = np.interp(idx, idx[okI], I[okI])
-        Q = np.concatenate([[0.0], np.cumsum(0.5 * (I[1:] + I[:-1]) * r["dt"])])  # A s
-        s = r["soc"]
-        k = np.flatnonzero(np.isfinite(s[:-1]) & np.isfinite(s[1:]) & (s[1:] != s[:-1]))
+    for i, (r, I, a, b) in enumerate(runs):
+        Ir = I[a:b]
+        Q = np.concatenate([[0.0], np.cumsum(0.5 * (Ir[1:] + Ir[:-1]) * r["dt"])])  # A s
+        s = r["soc"][a:b]
+        k, k2 = soc_crossings(s, r["dt"])
         if k.size < 3:
             continue
-        yv = 0.5 * (s[k] + s[k + 1])
-        Qc = 0.5 * (Q[k] + Q[k + 1])
+        yv = 0.5 * (s[k] + s[k2])
+        Qc = 0.5 * (Q[k] + Q[k2])
         X = np.zeros((k.size, L + 1))
         X[:, i] = 1.0
         X[:, L] = -Qc / 3600.0  # slope b = 1/C_Ah
@@ -158,7 +158,7 @@ def _capacity(rows):
         segs_len.append(k.size)
         n_cross += k.size
     if not X_parts:
-        return None, None, None, None, 0
+        return None, None, None, None, 0, L
     X = np.vstack(X_parts)
     y = np.concatenate(y_parts)
     keep = np.any(X[:, :L] != 0, axis=0).tolist() + [True]
@@ -170,11 +170,25 @@ def _capacity(rows):
     try:
         cov = s2 * np.linalg.inv(X.T @ X)
     except np.linalg.LinAlgError:
-        return None, None, None, None, n_cross
+        return None, None, None, None, n_cross, L
     segs = np.split(res, np.cumsum(segs_len)[:-1])
     f = inflation(segs, X.shape[1])
     b, sb = theta[-1], math.sqrt(cov[-1, -1]) * f
-    return b, sb, segs, f, n_cross
+    return b, sb, segs, f, n_cross, L
+
+
+def soc_crossings(s, dt=1.0):
+    """Pairs ``(k, k2)`` of consecutive logged SOC samples (``k2`` the next finite bin after ``k``, at most
+    the SOC's short-gap limit later, :func:`calib.fit.replay.gap_limit`) whose values differ: the SOC crossed
+    the midpoint of the two levels between them. For a SOC logged in every bin these are neighbours; for one
+    polled every few seconds, the samples either side of each poll interval."""
+    s = np.asarray(s, float)
+    f = np.flatnonzero(np.isfinite(s))
+    if f.size < 2:
+        return np.zeros(0, int), np.zeros(0, int)
+    k, k2 = f[:-1], f[1:]
+    keep = (s[k2] != s[k]) & ((k2 - k) * dt <= gap_limit(s, dt) + 1e-9)
+    return k[keep], k2[keep]
 
 
 def _join_prior(U, U0, est):
@@ -226,6 +240,10 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
     fit.logs = [lg.label() for lg in use] + [r["name"] for r in inferred]
     for lg in use:
         fit.used[lg.label()] = {"current": "bat_current_A", "voltage": "bat_voltage_V", "soc": "soc"}
+        n_gap = int((~np.isfinite(fill_short(lg.data["bat_current_A"].to_numpy(float), lg.dt))).sum())
+        if n_gap:
+            fit.used[lg.label()]["left out"] = (f"{n_gap * lg.dt:.0f} s where the current is unknown (no sample within "
+                                                "its short-gap limit): no charge is counted there")
     T_ref = float(base["T_bat_ref_degC"])
     rows = _gather(use, T_ref)
     pU, pR = base.param("U_oc_V"), base.param("R_int_ohm")
@@ -233,8 +251,8 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
     U0, R0 = np.array(pU.value, float), np.array(pR.value, float)
     tc = float(base["R_int_tc_per_K"])
     # coverage
-    oks = [np.isfinite(r["soc"]) & np.isfinite(r["V"]) & steady(r["I"]) for r in rows]
-    socs = np.concatenate([r["soc"][ok] for r, ok in zip(rows, oks)])
+    oks = [np.isfinite(r["soc_f"]) & np.isfinite(r["V"]) & steady(r["I"]) & np.isfinite(r["T"]) for r in rows]
+    socs = np.concatenate([r["soc_f"][ok] for r, ok in zip(rows, oks)])
     Is = np.concatenate([r["I"][ok] for r, ok in zip(rows, oks)])
     coverU = hat_basis(socs, bpU).sum(axis=0)
     HR = hat_basis(socs, bpR)
@@ -255,7 +273,7 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
     tf = lambda c: _table_fit(rows, bpU, bpR, U0, R0, c, T_ref, varyU, varyR, h0, varyH)  # noqa: E731
 
     # temperature coefficient (profile), only with a wide enough temperature span
-    T_all = np.concatenate([r["T"] for r in rows])
+    T_all = np.concatenate([r["T"][np.isfinite(r["T"])] for r in rows])
     T_span = float(np.nanmax(T_all) - np.nanmin(T_all)) if any(r["T_logged"] for r in rows) else 0.0
     tc_est = None
     tc_sd = float(prior_sd_of(base.param("R_int_tc_per_K")))
@@ -392,7 +410,7 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
 def _fit_capacity(fit, rows, inferred, base):
     """C_bat by Coulomb counting over the logs with current (and those with current inferred from power)."""
     Cp = float(base["C_bat_Ah"])
-    b, sb, segs, fcap, n_cross = _capacity(rows + inferred)
+    b, sb, segs, fcap, n_cross, n_runs = _capacity(rows + inferred)
     span = max((np.nanmax(r["soc"]) - np.nanmin(r["soc"])) for r in rows + inferred)
     Csd = float(prior_sd_of(base.param("C_bat_Ah")))
     if b is None or not (b > 0):
@@ -401,18 +419,21 @@ def _fit_capacity(fit, rows, inferred, base):
         C = 1.0 / b
         se = math.hypot(C * sb / b, I_CAL_REL_SD * C)
         fit.metrics.update(capacity_soc_span=float(span), capacity_se_inflation=fcap,
-                           capacity_soc_crossings=n_cross)
+                           capacity_soc_crossings=n_cross, capacity_runs=n_runs)
         src = "Coulomb counting" + (f" (current inferred from bat_power_W and the OCV/resistance tables in "
                                     f"{len(inferred)} log(s))" if inferred else "")
+        restart = (f"; the count restarts after {n_runs - len(rows + inferred)} long gap(s) of the current, each run "
+                   "with its own initial SOC" if n_runs > len(rows + inferred) else "")
         fit.estimates["C_bat_Ah"] = combine_with_prior("C_bat_Ah", C, se, Cp, Csd,
-                                                       f"{src} over SOC span {span:.3f} ({n_cross} level crossings)")
+                                                       f"{src} over SOC span {span:.3f} ({n_cross} level crossings)"
+                                                       f"{restart}")
 
 
 def _inferred_current_rows(logs, use, base, fit, which="prior"):
     """Rows for Coulomb counting from logs with battery power and SOC but no current: the current is eq. 1
     solved for I with the OCV/resistance tables of ``base`` (``which``: prior or fitted; stated in
     ``fit.used``)."""
-    from calib.fit.replay import _fill, current_from_power, log_arrays
+    from calib.fit.replay import current_from_power, log_arrays
 
     mp = base.model_params()
     names = {lg.label() for lg in use}
@@ -423,11 +444,14 @@ def _inferred_current_rows(logs, use, base, fit, which="prior"):
         la = log_arrays(lg, mp, cabin_balance=False)
         if not la.battery_source:
             continue
-        T = _fill(la.ch["bat_temp_degC"], mp.T_bat_ref)
-        I = current_from_power(mp, _fill(la.ch["soc"], 0.6), _fill(la.P_bat, 0.0), T)
-        I[~np.isfinite(la.P_bat)] = np.nan
-        out.append(dict(name=lg.label(), I=I, V=np.full(I.size, np.nan), soc=la.ch["soc"], T=T, T_logged=False,
-                        dt=lg.dt))
+        T_logged = bool(np.isfinite(la.ch["bat_temp_degC"]).any())
+        T = fill_short(la.ch["bat_temp_degC"], la.dt) if T_logged else np.full(la.t.size, mp.T_bat_ref)
+        soc_f = fill_short(la.ch["soc"], la.dt)
+        I = current_from_power(mp, np.nan_to_num(soc_f, nan=0.6), np.nan_to_num(la.P_bat), np.nan_to_num(T, nan=mp.T_bat_ref))
+        # no current where its power, SOC or temperature is unknown (a long gap): the charge count stops there
+        I[~(np.isfinite(la.P_bat) & np.isfinite(soc_f) & np.isfinite(T))] = np.nan
+        out.append(dict(name=lg.label(), I=I, V=np.full(I.size, np.nan), soc=la.logged("soc"), soc_f=soc_f, T=T,
+                        T_logged=False, dt=lg.dt))
         fit.used[lg.label()] = {"current": f"inferred from {la.battery_source} and the {which} OCV/resistance "
                                            "tables (capacity only)", "soc": "soc"}
         fit.skipped.pop(lg.label(), None)
@@ -445,7 +469,7 @@ SOC_NOISE_SD = 0.002
 
 def _power_rows(logs, base, fit):
     """Rows for the power/SOC balance: logs with battery power (logged, as the replay takes it) and SOC."""
-    from calib.fit.replay import _fill, log_arrays
+    from calib.fit.replay import log_arrays
 
     mp = base.model_params()
     out = []
@@ -456,10 +480,17 @@ def _power_rows(logs, base, fit):
         if not la.battery_source or not np.isfinite(la.P_bat).any():
             continue
         T_logged = bool(np.isfinite(la.ch["bat_temp_degC"]).any())
-        out.append(dict(name=lg.label(), P=_fill(la.P_bat, 0.0), soc=la.ch["soc"], soc_f=_fill(la.ch["soc"], 0.6),
-                        T=_fill(la.ch["bat_temp_degC"], mp.T_bat_ref), T_logged=T_logged, dt=float(lg.dt),
-                        source=la.battery_source))
-        fit.skipped.pop(lg.label(), None)
+        T = fill_short(la.ch["bat_temp_degC"], la.dt) if T_logged else np.full(la.t.size, mp.T_bat_ref)
+        soc_f = fill_short(la.ch["soc"], la.dt)
+        # the SOC balance integrates the current only across short gaps of its inputs: each run of known power,
+        # SOC and temperature is its own row, with its own initial SOC
+        runs = known_runs(np.isfinite(la.P_bat) & np.isfinite(soc_f) & np.isfinite(T), 2)
+        for a, b in runs:
+            out.append(dict(name=lg.label(), P=la.P_bat[a:b], soc=la.logged("soc")[a:b], soc_f=soc_f[a:b], T=T[a:b],
+                            T_logged=T_logged, dt=float(lg.dt), source=la.battery_source,
+                            left_out_s=float((la.t.size - sum(y - x for x, y in runs)) * la.dt)))
+        if runs:
+            fit.skipped.pop(lg.label(), None)
     return out
 
 
@@ -495,12 +526,16 @@ def _fit_from_power(fit, rows, base, names):
 
     import lmfit
 
-    fit.logs = [r["name"] for r in rows]
+    fit.logs = list(dict.fromkeys(r["name"] for r in rows))
     for r in rows:
         fit.used[r["name"]] = {"power": r["source"], "soc": "soc",
                                "current": f"inferred from {r['source']} by eq. 1 solved for I (prior OCV table, fitted "
                                           "resistance level and hysteresis)", "battery temperature": "bat_temp_degC" if r["T_logged"]
                                else "not logged: T_bat_ref assumed"}
+        if r["left_out_s"] > 0:
+            fit.used[r["name"]]["left out"] = (f"{r['left_out_s']:.0f} s where the battery power, SOC or temperature is "
+                                               "unknown (no sample within its short-gap limit); the SOC balance restarts "
+                                               "after each such gap")
     pR = base.param("R_int_ohm")
     R0 = np.array(pR.value, float)
     R_rel_sd = float(np.median(np.array(prior_sd_of(pR), float) / R0))
@@ -521,8 +556,8 @@ def _fit_from_power(fit, rows, base, names):
     cand = [n for n in BALANCE if vary[n]]
     for r in rows:
         s = r["soc"]
-        k = np.flatnonzero(np.isfinite(s[:-1]) & np.isfinite(s[1:]) & (s[1:] != s[:-1]))
-        r["k"], r["y"] = k, 0.5 * (s[k] + s[k + 1])
+        k, k2 = soc_crossings(s, r["dt"])
+        r["k"], r["k2"], r["y"] = k, k2, 0.5 * (s[k] + s[k2])
     rows = [r for r in rows if r["k"].size >= 3]
     if not rows or not cand:
         fit.logs = []
@@ -547,14 +582,13 @@ def _fit_from_power(fit, rows, base, names):
             I = current_from_power_table(gain * r["P"], r["soc_f"], r["T"], base, v["R_scale"], v["R_int_tc_per_K"],
                                          v["U_hyst_V"])
             Q = np.concatenate([[0.0], np.cumsum(I[:-1] * r["dt"])])  # A s, as the replay steps
-            k = r["k"]
-            out.append(v[f"soc0_{i}"] - 0.5 * (Q[k] + Q[k + 1]) / (3600.0 * v["C_bat_Ah"]) - r["y"])
+            out.append(v[f"soc0_{i}"] - 0.5 * (Q[r["k"]] + Q[r["k2"]]) / (3600.0 * v["C_bat_Ah"]) - r["y"])
         return out
 
     out = map_fit(make_params, segments, cand, prior={n: prior[n] for n in cand}, prior_sd={n: psd[n] for n in cand},
                   noise_sd=SOC_NOISE_SD, perturbed=[lambda ps: segments(ps, 1.0 + INPUT_REL_SD)], floor=1e-4)
     src = (f"SOC balance of battery power ({', '.join(sorted({r['source'] for r in rows}))}) against the logged "
-           f"SOC over {len(rows)} log(s), {sum(r['k'].size for r in rows)} SOC level crossings")
+           f"SOC over {len({r['name'] for r in rows})} log(s), {sum(r['k'].size for r in rows)} SOC level crossings")
     ps = out["params"]
     if "C_bat_Ah" in names:
         fit.estimates["C_bat_Ah"] = (posterior_estimate("C_bat_Ah", out, src + "; capacity at the prior OCV table "

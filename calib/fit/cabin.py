@@ -16,6 +16,12 @@
   are needed. The standard error includes a 0.5 K offset uncertainty of the coolant and vent sensors; the
   estimate is combined with the prior (precision weighting). A heater heat inferred from the cabin
   balance is never used here (it would be circular).
+
+Sparse inputs: the heater heat and the ambient are bridged across short gaps only
+(:func:`calib.fit.replay.fill_short`); a bin where either is unknown is left out and the replay restarts
+after it from its own initial cabin temperature (:func:`calib.fit.replay.input_segments`). With
+``heater="off"`` a log with cabin and ambient temperature but no heater channel is fitted with the heater
+declared off (zero heat), and ``used`` says so.
 """
 from __future__ import annotations
 
@@ -24,7 +30,7 @@ import numpy as np
 from calib.fit.toolkit import (T_SENSOR_SD, INPUT_REL_SD, MIN_SAMPLES, SubsystemFit, combine_with_prior, confounded_pairs, inflation,
                                map_fit, not_fitted, output_error_params, posterior_estimate, prior_only, usable_logs)
 from calib.model.params import prior_sd_of
-from calib.fit.replay import _fill, cabin_replay, first_valid_mean, log_arrays
+from calib.fit.replay import HEATER_OFF, cabin_replay, fill_short, first_valid_mean, input_segments, log_arrays
 
 NEEDS = ("cabin_temp_degC", "ambient_temp_degC")  # + heater_power_W or vent_temp_degC + blower_flow_kg_per_s
 NEEDS_EPS = ("vent_temp_degC", "coolant_temp_degC", "blower_flow_kg_per_s", "ambient_temp_degC")
@@ -39,7 +45,8 @@ def _eps(use, base, fit, dT_cl=0.0, dT_vent=0.0, _propagate=True):
             continue
         la = log_arrays(lg, mp)
         c = la.ch
-        T_in = mp.recirc * _fill(c["cabin_temp_degC"], 0.0) + (1 - mp.recirc) * c["ambient_temp_degC"] \
+        # a cabin gap leaves the inlet air unknown there (NaN: the sample is not a candidate)
+        T_in = mp.recirc * fill_short(c["cabin_temp_degC"], la.dt) + (1 - mp.recirc) * c["ambient_temp_degC"] \
             if lg.has("cabin_temp_degC") else c["ambient_temp_degC"]
         x = c["coolant_temp_degC"] + dT_cl - T_in
         y = c["vent_temp_degC"] + dT_vent - T_in
@@ -82,7 +89,7 @@ def _eps(use, base, fit, dT_cl=0.0, dT_vent=0.0, _propagate=True):
     return (eps, se, nb), ""
 
 
-def fit_cabin(logs, base, *, allowed=None) -> SubsystemFit:
+def fit_cabin(logs, base, *, allowed=None, heater=None) -> SubsystemFit:
     """Fit the cabin parameters and the heater-core effectiveness.
 
     Parameters
@@ -90,6 +97,9 @@ def fit_cabin(logs, base, *, allowed=None) -> SubsystemFit:
     logs : list of DriveLog
     base : ParameterSet
     allowed : set of str, optional
+    heater : None, "off" or "estimate"
+        ``"off"``: logs without a heater channel are fitted with the heater declared off (zero heat);
+        otherwise such logs are skipped (an estimated heater heat would leave the cabin balance undetermined).
 
     Returns
     -------
@@ -100,8 +110,11 @@ def fit_cabin(logs, base, *, allowed=None) -> SubsystemFit:
     names = [n for n in PARAMS if n in allowed]
     if not names:
         return fit
-    use, fit.skipped = usable_logs(logs, NEEDS, fit.subsystem,
-                                   any_of=(("heater_power_W",), ("vent_temp_degC", "blower_flow_kg_per_s")))
+    if heater == "off":
+        use, fit.skipped = usable_logs(logs, NEEDS, fit.subsystem)
+    else:
+        use, fit.skipped = usable_logs(logs, NEEDS, fit.subsystem,
+                                       any_of=(("heater_power_W",), ("vent_temp_degC", "blower_flow_kg_per_s")))
     if "eps_hc" in allowed:
         e, why = _eps(logs, base, fit)
         p0 = float(base["eps_hc"])
@@ -127,16 +140,38 @@ def fit_cabin(logs, base, *, allowed=None) -> SubsystemFit:
         not_fitted(fit, base, cand, msg)
         fit.estimates.update(keep)
         return fit
-    fit.logs = [lg.label() for lg in use]
     mp0 = base.model_params()
     data = []
     for i, lg in enumerate(use):
-        la = log_arrays(lg, mp0, cabin_balance=False)
-        fit.used[lg.label()] = {"heater heat": la.heater_source}
+        la = log_arrays(lg, mp0, cabin_balance=False, heater="off" if heater == "off" else None)
         c = la.ch
-        T = c["cabin_temp_degC"]
-        data.append(dict(T=T, ok=np.isfinite(T), dt=la.dt, T_amb=_fill(c["ambient_temp_degC"], 0.0),
-                         Q=np.maximum(_fill(la.Q_heat, 0.0), 0.0), T0=first_valid_mean(T, 5, 0.0), name=f"Tc0_{i}"))
+        T = la.logged("cabin_temp_degC")
+        T_amb = fill_short(c["ambient_temp_degC"], la.dt)
+        Q = np.maximum(la.Q_heat, 0.0)
+        segs = input_segments(np.isfinite(T_amb) & np.isfinite(Q), T, la.dt)
+        if not segs:
+            fit.skipped[lg.label()] = ("no run of at least 60 s with the heater heat and the ambient known and the "
+                                       "cabin logged (each bridged across short gaps only)")
+            continue
+        used = {"heater heat": la.heater_source}
+        n_out = int(T.size - sum(b - a for a, b in segs))
+        if n_out:
+            used["left out"] = (f"{n_out * la.dt:.0f} s where the heater heat or the ambient is unknown, or runs "
+                                f"shorter than 60 s; the replay restarts after each such gap ({len(segs)} run(s))")
+        fit.used[lg.label()] = used
+        for j, (a, b) in enumerate(segs):
+            Tj = T[a:b]
+            data.append(dict(T=Tj, ok=np.isfinite(Tj), dt=la.dt, T_amb=T_amb[a:b], Q=Q[a:b],
+                             T0=first_valid_mean(Tj, 5, 0.0), name=f"Tc0_{i}" if j == 0 else f"Tc0_{i}_{j}"))
+    if not data:
+        msg = ("cabin parameters not fitted: no log has a run of known heater heat and ambient ("
+               + "; ".join(f"{k}: {v}" for k, v in fit.skipped.items()) + ")")
+        keep = dict(fit.estimates)
+        not_fitted(fit, base, cand, msg)
+        fit.estimates.update(keep)
+        fit.logs = []
+        return fit
+    fit.logs = list(fit.used)
     bnd = {n: base.param(n).bounds for n in cand}
     prior = {n: float(base[n]) for n in cand}
     psd = {n: float(prior_sd_of(base.param(n))) for n in cand}
@@ -159,6 +194,8 @@ def fit_cabin(logs, base, *, allowed=None) -> SubsystemFit:
     fit.confounded = confounded_pairs(out["correl"])
     fit.nuisance = {d["name"]: float(res[d["name"]].value) for d in data}
     for n in cand:
-        fit.estimates[n] = posterior_estimate(n, out, f"MAP fit of the cabin temperature over {len(use)} log(s)",
+        fit.estimates[n] = posterior_estimate(n, out, f"MAP fit of the cabin temperature over {len(fit.logs)} log(s)"
+                                              + ("; heater declared off where not logged" if any(
+                                                  u["heater heat"] == HEATER_OFF for u in fit.used.values()) else ""),
                                               prior[n])
     return fit

@@ -28,6 +28,16 @@ motor's share of the battery power); the battery power logged or as voltage x cu
 logged, from vent temperature and blower flow, or inferred from the cabin balance. Each fit states in
 ``SubsystemFit.used`` what it used per log, and what it inferred.
 
+Sparse channels and unknown inputs
+----------------------------------
+A channel polled every few seconds is used where it has samples: the fitters bridge an input across its
+short gaps only (:func:`calib.fit.replay.fill_short`: up to 2.5 times its own sampling interval, at least
+5 s) and leave a bin whose input is unknown out of the fit (the output-error replays restart after it); the
+engine mode comes from every cue a log has, engine speed, fuel rate (measured or from the MAF) and engine
+power (:func:`calib.fit.replay.running_cue`), so a bin is never "engine off" for want of a sample. The
+heater heat of a log without a heater channel is declared off or estimated (``heater=``; the engine-thermal
+fit's ``used`` says which), so a parked warm-up at idle logged by an OBD tool is a calibration drive.
+
 Estimation: maximum a posteriori
 --------------------------------
 Every parameter has a prior value and a prior sd (``Parameter.prior_sd``, defaults in
@@ -95,6 +105,7 @@ class CalibrationResult:
     version: str
     advice: list = None
     diagnostics: dict = None  # {"fitted": {log: ...}, "held_out": {log: ...}} (see calib.fit.validate.diagnostics)
+    data_warnings: list = None  # each subsystem that used a channel which lost samples or is an estimate
 
     def plot(self, path=None, title=None):
         """How much the data informed each fitted parameter (``1 - posterior sd / prior sd``), by subsystem
@@ -108,7 +119,8 @@ class CalibrationResult:
         sec = {"software": f"iptm/calib {self.version}", "date_utc": self.date, "wall_s": round(self.wall_s, 3),
                "method": "maximum a posteriori (data misfit in noise sd + Gaussian prior penalty)",
                "criteria": {"weak_informed": WEAK_INFORMED, "confounded_abs_r": CONFOUNDED},
-               "logs": self.logs, "subsystems": {}, "advice": list(self.advice or [])}
+               "logs": self.logs, "subsystems": {}, "advice": list(self.advice or []),
+               "data_warnings": list(self.data_warnings or [])}
         for name, f in self.fits.items():
             d = {"logs": list(f.logs), "metrics": _clean(f.metrics), "message": f.message}
             if f.skipped:
@@ -166,6 +178,8 @@ class CalibrationResult:
         informed it; what each fit used; confounded pairs; advice; validation and residual diagnostics."""
         L = [f"Calibration ({self.date}, calib {self.version}) from {len(self.logs)} log(s) in {self.wall_s:.1f} s",
              "Maximum a posteriori: value +- posterior sd; prior +- prior sd; informed = 1 - posterior sd / prior sd"]
+        for w in self.data_warnings or []:
+            L.append(f"WARNING {w}")
         for lg in self.logs:
             L.append(f"  log {lg['name']}{' [SYNTHETIC]' if lg['synthetic'] else ''}: {lg['duration_s']:.0f} s, "
                      f"sha256 {lg['sha256'][:12] or '-'}")
@@ -264,7 +278,8 @@ def _log_info(lg) -> dict:
             "channels": lg.channels()}
 
 
-def calibrate(logs, *, base=None, fit=None, fix=None, validate=None, progress=True, diagnose=True) -> CalibrationResult:
+def calibrate(logs, *, base=None, fit=None, fix=None, validate=None, progress=True, diagnose=True,
+              heater=None) -> CalibrationResult:
     """Calibrate the model from drive logs.
 
     Parameters
@@ -285,6 +300,12 @@ def calibrate(logs, *, base=None, fit=None, fix=None, validate=None, progress=Tr
     diagnose : bool
         Replay the fitted and the held-out logs and compute residual diagnostics
         (:func:`calib.fit.validate.diagnostics`).
+    heater : None, "off" or "estimate"
+        The heater heat of logs without a heater channel (``heater_power_W``, or vent temperature and blower
+        flow): ``"off"`` declares it zero (the heater did not run; the cabin fit and the replays then use
+        zero too); ``"estimate"`` estimates it in the engine-thermal fit as an unknown draw with a wide prior
+        (never inferred from the cabin balance); None (default) infers it from the cabin balance where the
+        cabin temperature is logged and estimates it where not. Each fit's ``used`` says which.
 
     Returns
     -------
@@ -305,10 +326,16 @@ def calibrate(logs, *, base=None, fit=None, fix=None, validate=None, progress=Tr
     from calib.fit.validate import diagnostics, replay
     from calib.fit.validate import validate as run_validation
 
+    from calib.fit.replay import HEATER_CHOICES
+
     t0 = time.perf_counter()
     logs = list(logs)
     if not logs:
         raise IptmError("calibrate: no logs given")
+    if heater not in HEATER_CHOICES:
+        raise IptmError(f"calibrate: heater={heater!r}; give 'off' (the heater did not run in logs without a heater "
+                        "channel), 'estimate' (estimate its heat) or None (infer it from the cabin where logged, else "
+                        "estimate it)")
     base = (base or default_parameters()).copy()
     known = set(base.names())
     sel = set(fit) if fit is not None else None
@@ -327,7 +354,7 @@ def calibrate(logs, *, base=None, fit=None, fix=None, validate=None, progress=Tr
     bar = tqdm(total=len(steps) + (1 if validate else 0), desc="calibrate", disable=not progress, leave=False)
     for name, fn in steps:
         bar.set_postfix_str(name)
-        f = fn(logs, work, allowed=allowed)
+        f = fn(logs, work, allowed=allowed, **({"heater": heater} if name in ("thermal", "cabin") else {}))
         fits[name] = f
         _merge(work, f, allowed, fixed)
         bar.update(1)
@@ -343,18 +370,45 @@ def calibrate(logs, *, base=None, fit=None, fix=None, validate=None, progress=Tr
     diag = {"fitted": {}, "held_out": {}}
     if validate:
         bar.set_postfix_str("validation")
-        val = run_validation(validate, work)
+        val = run_validation(validate, work, heater=heater)
         bar.update(1)
     if diagnose:
         for kind, group in (("fitted", logs), ("held_out", validate or [])):
             for lg in group:
-                rep = replay(lg, work)
+                rep = replay(lg, work, heater=heater)
                 diag[kind][rep.name] = diagnostics(rep)
     bar.close()
     return CalibrationResult(params=work, fits=fits, validation=val, logs=[_log_info(lg) for lg in logs],
                              validation_logs=[_log_info(lg) for lg in (validate or [])],
                              wall_s=time.perf_counter() - t0, date=stamp, version=__version__,
-                             advice=advise(fits), diagnostics=diag if diagnose else None)
+                             advice=advise(fits), diagnostics=diag if diagnose else None,
+                             data_warnings=data_warnings(fits, logs))
+
+
+def data_warnings(fits: dict, logs) -> list[str]:
+    """One line per subsystem and log where the fit used a channel that lost more than 1 % of its samples
+    (non-finite or impossible values) or that is an estimate (fuel from MAF): the reader of a calibration
+    sees which estimates rest on such data."""
+    from calib.drivelog import CHANNELS
+    from calib.ingest.channels import channel_losses
+
+    by_label = {lg.label(): lg for lg in logs}
+    out = []
+    for name, f in fits.items():
+        for label in f.logs:
+            lg = by_label.get(label)
+            if lg is None:
+                continue
+            said = " ".join(str(v) for v in (f.used.get(label) or {}).values())
+            chans = set(f.needs) | {ch for ch in CHANNELS if ch in said}
+            losses = channel_losses(lg.meta)
+            for ch in sorted(chans & set(lg.meta.lossy_channels())):
+                d = losses[ch]
+                out.append(f"[{name}] used {ch} of {label}, which lost {d['lost']} of {d['read']} samples "
+                           f"({100 * d['fraction']:.1f} %: {d['why']})")
+            for ch in sorted(chans & set(lg.meta.estimated or {})):
+                out.append(f"[{name}] used {ch} of {label}, which is an {lg.meta.estimated[ch]}")
+    return out
 
 
 def _merge(ps, fit: SubsystemFit, allowed, fixed):

@@ -18,6 +18,12 @@ and ``W_idle f_cl(T_cl)`` idling (:func:`calib.model.equations.fuel_rate`). Esti
   the change of slope (:data:`F_SLOPE_SD` per K). Entries with fewer than :data:`MIN_COVER` samples near
   them (cold samples below the reference, warm ones above) are reported as not reached.
 
+Sparse channels: the fuel rate is used in the bins where it was logged; the coolant temperature (a slow
+regressor) and the engine power are bridged across short gaps only (:func:`calib.fit.replay.fill_short`),
+and the engine mode comes from every cue the log has (:func:`calib.fit.replay.running_cue`): a bin where
+any of them is unknown is left out, never read as an engine off or zero fuel. A fuel rate estimated from the
+MAF is named as such in ``used``.
+
 Data: the *stable* 1 s bins of every log with fuel rate and coolant temperature and an engine operating
 point (logged speed x torque, logged engine power, or inferred from the power balance: see
 :func:`calib.fit.replay.log_arrays`): engine mode the same in the bin and both neighbours, engine power
@@ -38,7 +44,7 @@ import math
 import numpy as np
 
 from calib.fit.battery import hat_basis
-from calib.fit.replay import fuel_replay, log_arrays
+from calib.fit.replay import fill_short, filled_note, fuel_label, fuel_replay, log_arrays
 from calib.fit.toolkit import (INPUT_REL_SD, WEAK_INFORMED, ParamEstimate, SubsystemFit, confounded_pairs, map_fit,
                                not_fitted, posterior_estimate)
 from calib.model.equations import IDLE, ON
@@ -146,10 +152,16 @@ def _gather(use, mp0, fit):
     mode, P, T, W, seg, TL = [], [], [], [], [], []
     for lg in use:
         la = log_arrays(lg, mp0)
-        used = {"engine power": la.engine_source, "fuel": "fuel_rate_g_per_s", "coolant": "coolant_temp_degC"}
+        used = {"engine power": la.engine_source, "fuel": fuel_label(lg), "coolant": "coolant_temp_degC"}
         used.update({f"inferred {k}": v for k, v in la.inferred.items() if k != "heater power"})
-        T_cl = smooth(la.ch["coolant_temp_degC"], 21)
-        ok = la.stable & np.isin(la.mode, (ON, IDLE)) & np.isfinite(la.ch["fuel_rate_g_per_s"]) & np.isfinite(T_cl)
+        # the coolant is a slow regressor: bridged across its short gaps (a sensor polled every few seconds),
+        # never across long ones; the fuel rate (the output) only where logged
+        T_cl = smooth(fill_short(la.ch["coolant_temp_degC"], la.dt), 21)
+        W_log = la.logged("fuel_rate_g_per_s")
+        note = filled_note(lg, "fuel_rate_g_per_s")
+        if note:
+            used["warning"] = note
+        ok = la.stable & np.isin(la.mode, (ON, IDLE)) & np.isfinite(W_log) & np.isfinite(T_cl)
         ok &= np.isfinite(la.P_e) & _steady_power(la.P_e)
         if la.has("engine_speed_rpm", "engine_torque_Nm"):
             # bins whose mean speed and torque lie off the optimal operating line mix two operating points
@@ -169,7 +181,7 @@ def _gather(use, mp0, fit):
         tt = la.t
         okT = np.isfinite(T_cl)
         TL.append(np.interp(tt + SENSOR_LAG_S, tt[okT], T_cl[okT])[ok] if okT.sum() > 1 else T_cl[ok])
-        W.append(la.ch["fuel_rate_g_per_s"][ok])
+        W.append(W_log[ok])
         seg.append(int(ok.sum()))
     return (np.concatenate(mode).astype(np.int64), np.concatenate(P), np.concatenate(T), np.concatenate(W),
             np.cumsum(seg)[:-1], np.concatenate(TL))

@@ -42,6 +42,86 @@ def _fill(a, default=np.nan):
     return np.interp(idx, idx[ok], a[ok])
 
 
+#: A gap in a logged input is bridged (interpolated, or the nearer sample held) only when it is short: at most
+#: FILL_FACTOR times the channel's own sampling interval (the median spacing of its logged bins), and never
+#: less than MIN_FILL_S (the resampler's own default gap). Longer gaps stay unknown: a fitter leaves such bins
+#: out, it never reads them as zero.
+FILL_FACTOR = 2.5
+MIN_FILL_S = 5.0
+
+
+def native_interval(a, dt=1.0) -> float:
+    """The channel's sampling interval on the table (s): the median spacing of its finite bins (inf with
+    fewer than two). A channel polled every 10 s and binned without interpolation gives 10 s; one the
+    resampler already interpolated gives the table step."""
+    k = np.flatnonzero(np.isfinite(np.asarray(a, float)))
+    return float(np.median(np.diff(k))) * dt if k.size >= 2 else np.inf
+
+
+def gap_limit(a, dt=1.0) -> float:
+    """The longest gap (s, from one logged bin to the next) :func:`fill_short` bridges for this channel."""
+    ni = native_interval(a, dt)
+    return max(FILL_FACTOR * ni, MIN_FILL_S) if np.isfinite(ni) else MIN_FILL_S
+
+
+def fill_short(a, dt=1.0, limit_s=None, nearest=False):
+    """``a`` with its short gaps bridged and its long ones left NaN.
+
+    A NaN run between two finite bins at most ``limit_s`` apart (default :func:`gap_limit`) takes the linear
+    interpolation of the two. With ``nearest`` (a state such as the engine running or not) it takes the value
+    of the nearer one, and each sample also holds for half the limit into a longer gap and beyond the first
+    and last sample (the state it reports, as far as a poll reaches). Everything else stays NaN: nothing is
+    invented across a long gap, nor (for values) before the first or after the last sample.
+    """
+    a = np.asarray(a, float)
+    ok = np.isfinite(a)
+    if ok.all() or not ok.any():
+        return a.copy()
+    lim = gap_limit(a, dt) if limit_s is None else float(limit_s)
+    k = np.flatnonzero(ok)
+    i = np.flatnonzero(~ok)
+    out = a.copy()
+    j = np.searchsorted(k, i)  # k[j - 1] < i < k[j]
+    prev = np.where(j > 0, k[np.maximum(j - 1, 0)], -1)
+    nxt = np.where(j < k.size, k[np.minimum(j, k.size - 1)], -1)
+    inner = (prev >= 0) & (nxt >= 0)
+    span = (nxt - prev) * dt
+    sel = inner & (span <= lim + 1e-9)
+    if sel.any():
+        ii, p0, p1 = i[sel], prev[sel], nxt[sel]
+        if nearest:
+            out[ii] = np.where(ii - p0 <= p1 - ii, a[p0], a[p1])
+        else:
+            w = (ii - p0) / (p1 - p0)
+            out[ii] = (1.0 - w) * a[p0] + w * a[p1]
+    if nearest:
+        near_prev = ~sel & (prev >= 0) & ((i - prev) * dt <= 0.5 * lim + 1e-9)
+        near_next = ~sel & (nxt >= 0) & ((nxt - i) * dt <= 0.5 * lim + 1e-9)
+        out[i[near_next]] = a[nxt[near_next]]
+        out[i[near_prev]] = a[prev[near_prev]]  # the earlier sample where both are near (a gap just over the limit)
+    return out
+
+
+def known_runs(known, min_len=1):
+    """``[(start, stop)]`` of the runs of True in ``known`` with at least ``min_len`` bins."""
+    k = np.asarray(known, bool)
+    d = np.diff(np.concatenate([[0], k.astype(np.int8), [0]]))
+    starts, stops = np.flatnonzero(d == 1), np.flatnonzero(d == -1)
+    return [(int(a), int(b)) for a, b in zip(starts, stops) if b - a >= min_len]
+
+
+#: Shortest run of bins with every input known that an output-error fit simulates (s): the state cannot be
+#: carried across a bin whose input is unknown, so each run starts from its own initial temperature.
+MIN_SEGMENT_S = 60.0
+
+
+def input_segments(known, T_out, dt=1.0, min_s=MIN_SEGMENT_S, min_obs=3):
+    """``[(start, stop)]`` of the runs of bins where every input of an output-error replay is known, at least
+    ``min_s`` long and with at least ``min_obs`` logged outputs (finite ``T_out``)."""
+    ok = np.isfinite(np.asarray(T_out, float))
+    return [(a, b) for a, b in known_runs(known, max(int(round(min_s / dt)), 2)) if ok[a:b].sum() >= min_obs]
+
+
 def engine_mode(n_rpm, tau_Nm, n_idle_rpm=1000.0):
     """Engine mode per sample from logged speed and torque: 1 off, 2 idle, 3 on, 0 unknown/mixed.
 
@@ -189,7 +269,20 @@ class LogArrays:
     engine_source: str = ""  # how the engine operating point was obtained ("" when it could not be)
     battery_source: str = ""  # how the battery terminal power was obtained
     P_bat: np.ndarray = None  # W, battery terminal power (logged, V*I, or NaN)
+    known: np.ndarray = None  # bins whose engine state a logged cue gives (False: unknown, left out of fits)
     inferred: dict = field(default_factory=dict)  # input -> how it was inferred from a balance
+    sampled: dict = field(default_factory=dict)  # channel -> rows that hold a logged sample (where recorded)
+
+    def logged(self, name) -> np.ndarray:
+        """Channel ``name`` in the rows that hold one of its samples: as :attr:`ch`, with the rows the resampler
+        filled by interpolation NaN where the log records which rows hold samples (``DriveLog.sampled``).
+        Fitters take their outputs (fuel rate, coolant, cabin temperature, SOC) from here: residuals only where
+        the output was logged."""
+        x = self.ch[name]
+        m = self.sampled.get(name)
+        if m is None or len(m) != len(x):
+            return x
+        return np.where(np.asarray(m, bool), x, np.nan)
 
     def has(self, *names) -> bool:
         return all(np.isfinite(self.ch.get(n, np.array([np.nan]))).any() for n in names)
@@ -238,32 +331,105 @@ def current_from_power(p, soc, P_bat, T_bat):
     return I
 
 
-def log_arrays(log, mp, cabin_balance=True) -> LogArrays:
+#: Engine speed below which a logged engine speed says the engine is stopped (rpm).
+N_STOPPED_RPM = 150.0
+#: Values of ``heater=`` (:func:`log_arrays`, :func:`calib.fit.driver.calibrate`): None reads the heater heat
+#: from what the log has (logged, vent temperature and blower flow, the cabin balance) and estimates it where
+#: the log has none of these; "off" declares it zero wherever it is not logged; "estimate" estimates it
+#: wherever it is not logged (never inferred from the cabin balance).
+HEATER_CHOICES = (None, "off", "estimate")
+#: ``LogArrays.heater_source`` of a heater declared off.
+HEATER_OFF = "none: declared off (heater='off')"
+
+
+def _nearest_distance(ok):
+    """Per bin, the distance (in bins) to the nearest True of ``ok`` (inf without any)."""
+    k = np.flatnonzero(ok)
+    n = ok.size
+    if not k.size:
+        return np.full(n, np.inf)
+    i = np.arange(n)
+    j = np.clip(np.searchsorted(k, i), 0, k.size - 1)
+    d = np.abs(k[j] - i).astype(float)
+    jp = np.maximum(j - 1, 0)
+    return np.minimum(d, np.abs(k[jp] - i))
+
+
+def running_cue(ch, dt=1.0):
+    """Whether the engine runs, bin by bin, from every cue the log has.
+
+    Cues: engine speed (running at or above :data:`N_STOPPED_RPM`, else stopped), fuel rate (running above
+    :data:`FUEL_RUNNING_G_PER_S`, else stopped; a fuel rate estimated from MAF counts the same), engine power
+    (running above :data:`P_ON_MIN_W`; below it, it cannot tell idle from off). Each cue counts where it was
+    logged and, from its nearest sample, across its short gaps (:func:`fill_short`): a channel polled every
+    10 s still says what the engine did between two polls, and a long dropout says nothing. A bin is running
+    where any cue says so, stopped where the cues that reach it all say stopped, unknown (0) where none
+    reaches it: a bin is never "off" for want of a sample.
+
+    Returns
+    -------
+    state : ndarray of int
+        +1 running, -1 stopped, 0 unknown.
+    cues : list of str
+        The channels that gave a cue.
+    """
+    n = len(next(iter(ch.values())))
+    run = np.zeros(n, bool)
+    stop_seen = np.zeros(n, bool)
+    cues = []
+    for name, on_above in (("engine_speed_rpm", N_STOPPED_RPM - 1e-9), ("fuel_rate_g_per_s", FUEL_RUNNING_G_PER_S),
+                           ("engine_power_W", P_ON_MIN_W)):
+        x = ch.get(name)
+        if x is None or not np.isfinite(x).any():
+            continue
+        cues.append(name)
+        ok = np.isfinite(x)
+        c = np.full(n, np.nan)
+        c[ok] = np.where(x[ok] > on_above, 1.0, -1.0)
+        c = fill_short(c, dt, gap_limit(x, dt), nearest=True)
+        run |= c == 1.0
+        if name != "engine_power_W":  # a low engine power says nothing about idle or off
+            stop_seen |= c == -1.0
+    state = np.where(run, 1, np.where(stop_seen, -1, 0)).astype(np.int64)
+    return state, cues
+
+
+def log_arrays(log, mp, cabin_balance=True, heater=None) -> LogArrays:
     """Extract the arrays the fitters and the replay need from a :class:`calib.drivelog.DriveLog`.
 
     Inputs a log may give in several ways, in order of preference:
 
-    - engine operating point: speed x torque; else the logged engine power (mode: on above
-      :data:`P_ON_MIN_W`, idle when fuel flows below it); else *inferred* from the power balance (traction
-      demand of the logged speed minus the motor's share of the battery power; running where the logged
-      fuel rate exceeds :data:`FUEL_RUNNING_G_PER_S`);
+    - engine operating point: speed x torque; else the logged engine power (on above :data:`P_ON_MIN_W`);
+      else *inferred* from the power balance (traction demand of the logged speed minus the motor's share of
+      the battery power; on above :data:`P_ON_MIN_W` where the engine runs). Whether the engine runs comes
+      from every cue the log has (:func:`running_cue`: engine speed, fuel rate, engine power); a bin no cue
+      reaches is unknown (mode 0, ``known`` False), never "off";
     - battery terminal power: ``bat_power_W``; else voltage x current;
-    - heater heat: ``heater_power_W``; else ``W_bl c_p (T_vent - T_in)``; else (``cabin_balance``) *inferred*
-      from the cabin heat balance (eq. 10 solved for the heater heat with the given cabin parameters).
+    - heater heat: ``heater_power_W``; else ``W_bl c_p (T_vent - T_in)``; else, with ``heater`` None and
+      ``cabin_balance``, *inferred* from the cabin heat balance (eq. 10 solved for the heater heat with the
+      given cabin parameters); with ``heater="off"`` zero (declared); otherwise none (``heater_source`` "").
 
-    Everything inferred is named in ``la.inferred``.
+    Inputs are bridged across short gaps only (:func:`fill_short`); across a long one they stay NaN. Everything
+    inferred is named in ``la.inferred``.
     """
+    if heater not in HEATER_CHOICES:
+        from calib.errors import IptmError
+
+        raise IptmError(f"heater={heater!r}: give 'off' (the heater did not run), 'estimate' (estimate its heat) "
+                        "or None (read it from the log where it can be)")
     df = log.data
     ch = {n: _col(df, n) for n in LOG_CHANNELS}
     t = df.index.to_numpy(dtype=float)
-    la = LogArrays(name=log.label() if hasattr(log, "label") else "log", dt=float(log.dt), t=t, ch=ch)
+    dt = float(log.dt)
+    la = LogArrays(name=log.label() if hasattr(log, "label") else "log", dt=dt, t=t, ch=ch,
+                   sampled=dict(getattr(log, "sampled", None) or {}))
     n_idle = mp.w_idle / RPM
     # battery power
     if la.has("bat_power_W"):
-        la.P_bat = ch["bat_power_W"].copy()
+        la.P_bat = fill_short(ch["bat_power_W"], dt)
         la.battery_source = "bat_power_W"
     elif la.has("bat_current_A", "bat_voltage_V"):
-        la.P_bat = ch["bat_current_A"] * ch["bat_voltage_V"]
+        la.P_bat = fill_short(ch["bat_current_A"], dt) * fill_short(ch["bat_voltage_V"], dt)
         la.battery_source = "bat_voltage_V x bat_current_A"
     else:
         la.P_bat = np.full(t.size, np.nan)
@@ -276,56 +442,78 @@ def log_arrays(log, mp, cabin_balance=True) -> LogArrays:
         la.f_on, la.P_on, la.f_idle = operating_point(ch["engine_speed_rpm"], ch["engine_torque_Nm"], la.mode,
                                                       la.stable, mp)
         la.engine_source = "engine_speed_rpm x engine_torque_Nm"
+        la.known = np.isfinite(ch["engine_speed_rpm"]) & np.isfinite(ch["engine_torque_Nm"])
     else:
         P = None
         if la.has("engine_power_W"):
-            P = ch["engine_power_W"].copy()
+            P = fill_short(ch["engine_power_W"], dt)
             la.engine_source = "engine_power_W"
         elif la.has("speed_mps") and la.battery_source:
-            grade = _fill(ch["grade_rad"], 0.0)
-            P = engine_power_from_balance(mp, _fill(ch["speed_mps"], 0.0), _fill(la.P_bat, 0.0), grade, float(log.dt))
+            grade = _fill(ch["grade_rad"], 0.0)  # grade 0 unless logged (docs/model.md s.1)
+            v = fill_short(ch["speed_mps"], dt)
+            P = engine_power_from_balance(mp, np.nan_to_num(v), np.nan_to_num(la.P_bat), grade, dt)
+            bad = ~np.isfinite(v) | ~np.isfinite(la.P_bat)
+            bad[:-1] |= ~np.isfinite(v[1:])
+            P[bad] = np.nan
             la.engine_source = "inferred from the power balance (speed_mps, " + la.battery_source + ")"
             la.inferred["engine power"] = ("traction demand of the logged speed minus the motor's share of the "
                                            "battery power (road load, mass and efficiencies from the parameter set)")
         if P is None:
             la.mode = np.zeros(t.size, np.int64)
             la.P_e = np.full(t.size, np.nan)
+            la.known = np.zeros(t.size, bool)
         else:
-            W = ch["fuel_rate_g_per_s"]
-            fuel = np.isfinite(W).any()
-            if la.engine_source == "engine_power_W":
+            state, cues = running_cue(ch, dt)
+            logged_power = la.engine_source == "engine_power_W"
+            if logged_power:
                 on = P > P_ON_MIN_W
-                idle = ~on & (np.nan_to_num(W) > FUEL_RUNNING_G_PER_S) if fuel else np.zeros(t.size, bool)
-                la.inferred["engine mode"] = (f"on where engine_power_W > {P_ON_MIN_W:g} W; " +
-                                              (f"idle where the fuel rate exceeds {FUEL_RUNNING_G_PER_S:g} g/s below it"
-                                               if fuel else "idle cannot be told from off (no fuel rate logged)"))
-            elif fuel:  # the inferred power is a balance of noisy terms: the fuel flow says whether it runs
-                run = np.nan_to_num(W) > FUEL_RUNNING_G_PER_S
-                on = run & (P > P_ON_MIN_W)
-                idle = run & ~on
-                la.inferred["engine mode"] = f"running where fuel_rate_g_per_s > {FUEL_RUNNING_G_PER_S:g} g/s"
+            elif cues:
+                on = (P > P_ON_MIN_W) & (state > 0)
             else:
                 on = P > 2000.0
-                idle = np.zeros(t.size, bool)
-                la.inferred["engine mode"] = "on where the inferred engine power exceeds 2 kW (no fuel rate logged)"
-            la.mode = np.where(on, ON, np.where(idle, IDLE, OFF)).astype(np.int64)
-            la.mode[~np.isfinite(P)] = 0
-            la.P_e = np.where(on, P, 0.0)
-            la.P_e[~np.isfinite(P)] = np.nan
+            idle = (state > 0) & ~on & np.isfinite(P)
+            if logged_power and not (set(cues) - {"engine_power_W"}):
+                off = ~on & np.isfinite(P)
+                la.inferred["engine mode"] = (f"on where engine_power_W > {P_ON_MIN_W:g} W; idle cannot be told from "
+                                              "off (no fuel rate or engine speed logged)")
+            elif not cues:
+                off = ~on & np.isfinite(P)
+                la.inferred["engine mode"] = ("on where the inferred engine power exceeds 2 kW (no fuel rate or engine "
+                                              "speed logged)")
+            else:
+                off = state < 0
+                la.inferred["engine mode"] = (
+                    f"running where {' or '.join(cues)} says so (engine speed >= {N_STOPPED_RPM:g} rpm, fuel rate > "
+                    f"{FUEL_RUNNING_G_PER_S:g} g/s, engine power > {P_ON_MIN_W:g} W; each held from its nearest "
+                    f"sample across short gaps); on above {P_ON_MIN_W:g} W of engine power, else idle")
+            la.mode = np.where(on, ON, np.where(idle, IDLE, np.where(off, OFF, 0))).astype(np.int64)
+            la.P_e = np.where(on, P, np.where(off | idle, 0.0, np.nan))
+            la.known = la.mode > 0
+            unknown = int((~la.known).sum())
+            if unknown and cues:
+                la.inferred["engine mode"] += (f"; {unknown} bin(s) ({unknown * dt:.0f} s) that no cue reaches are "
+                                               "unknown and left out")
         la.stable = stable_mode(la.mode)
         la.f_on = (la.mode == ON).astype(float)
         la.P_on = np.where(la.mode == ON, np.nan_to_num(la.P_e), 0.0)
         la.f_idle = (la.mode == IDLE).astype(float)
     T_amb = ch["ambient_temp_degC"]
-    T_in = mp.recirc * _fill(ch["cabin_temp_degC"], 0.0) + (1.0 - mp.recirc) * T_amb
+    T_cab = fill_short(ch["cabin_temp_degC"], dt)
+    # the heater inlet air: recirculated cabin air and fresh air; without a cabin reading, the ambient
+    T_in = mp.recirc * T_cab + (1.0 - mp.recirc) * T_amb if la.has("cabin_temp_degC") else T_amb.copy()
     la.T_in = T_in
     if np.isfinite(ch["heater_power_W"]).any():
-        la.Q_heat = ch["heater_power_W"].copy()
+        la.Q_heat = fill_short(ch["heater_power_W"], dt)
         la.heater_source = "heater_power_W"
     elif np.isfinite(ch["vent_temp_degC"]).any() and np.isfinite(ch["blower_flow_kg_per_s"]).any():
-        la.Q_heat = np.maximum(ch["blower_flow_kg_per_s"] * mp.cp_air * (ch["vent_temp_degC"] - T_in), 0.0)
+        Ti = fill_short(T_in, dt)
+        la.Q_heat = np.maximum(fill_short(ch["blower_flow_kg_per_s"], dt) * mp.cp_air
+                               * (fill_short(ch["vent_temp_degC"], dt) - Ti), 0.0)
         la.heater_source = "vent_temp_degC + blower_flow_kg_per_s"
-    elif cabin_balance and la.has("cabin_temp_degC", "ambient_temp_degC"):
+    elif heater == "off":
+        la.Q_heat = np.zeros(t.size)
+        la.heater_source = HEATER_OFF
+    elif heater is None and cabin_balance and la.has("cabin_temp_degC", "ambient_temp_degC"):
         la.Q_heat = heater_from_cabin(mp, t, ch["cabin_temp_degC"], ch["ambient_temp_degC"])
         la.heater_source = "inferred from the cabin heat balance"
         la.inferred["heater power"] = ("C_cab dT_cab/dt - UA_cab (T_amb - T_cab) - Q_sun from the logged cabin "
@@ -335,13 +523,44 @@ def log_arrays(log, mp, cabin_balance=True) -> LogArrays:
     return la
 
 
+def logged_column(log, name) -> np.ndarray:
+    """Column ``name`` of a log (NaN where absent) in the rows that hold one of its samples, where the log
+    records them (``DriveLog.sampled``); see :meth:`LogArrays.logged`."""
+    x = _col(log.data, name)
+    m = (getattr(log, "sampled", None) or {}).get(name)
+    return x if m is None or len(m) != len(x) else np.where(np.asarray(m, bool), x, np.nan)
+
+
+def filled_note(log, name) -> str:
+    """A warning when the resampler filled ``name`` into many more rows than it has samples and the log does not
+    say which rows hold them (then interpolated values count as logged ones); "" otherwise."""
+    if name in (getattr(log, "sampled", None) or {}):
+        return ""
+    kept = (getattr(log.meta, "channel_counts", None) or {}).get(name, {}).get("kept")
+    if not kept or name not in log.data:
+        return ""
+    rows = int(np.isfinite(log.data[name].to_numpy(dtype=float)).sum())
+    if rows <= 1.5 * kept + 5:
+        return ""
+    return (f"{name}: {kept} samples filled into {rows} rows by interpolation, and the log does not record which rows "
+            "hold them: the interpolated values are used as if logged")
+
+
+def fuel_label(log) -> str:
+    """How the log's fuel rate was obtained: the channel, and the estimate's description where it is one
+    (fuel from the MAF, ``LogMeta.estimated``), so no fit presents an estimate as a measured rate."""
+    how = (getattr(log.meta, "estimated", None) or {}).get("fuel_rate_g_per_s")
+    return f"fuel_rate_g_per_s ({how})" if how else "fuel_rate_g_per_s"
+
+
 def heater_from_cabin(mp, t, T_cab, T_amb, window_s=60.0):
     """Heater heat from the cabin balance (eq. 10 solved for Q_heat), >= 0. The cabin temperature is
     smoothed over ``window_s`` (a local linear fit's slope) so its quantisation does not dominate the
-    derivative."""
-    Tc = _fill(T_cab, 0.0)
-    Ta = _fill(T_amb, 0.0)
+    derivative. NaN where a window reaches into a long gap of either temperature."""
     dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+    # NaN across long gaps of either temperature: the window's sums carry it, so no heat is inferred there
+    Tc = fill_short(T_cab, dt)
+    Ta = fill_short(T_amb, dt)
     m = max(3, int(round(window_s / dt)) | 1)
     k = np.arange(m) - m // 2
     # slope of a centred least-squares line = convolution with k / sum(k^2)
@@ -371,6 +590,22 @@ def coolant_replay(p, T0, dt, T_amb, W_f, P_e, Q_heat):
     T[0] = T0
     for k in range(n - 1):
         d = coolant_flows(p, T[k], T_amb[k], p.LHV * W_f[k], P_e[k], Q_heat[k])[0]
+        T[k + 1] = T[k] + dt * d
+    return T
+
+
+@njit(cache=True)
+def coolant_replay_heater(p, T0, dt, T_amb, W_f, P_e, Q_heat, q_heat, dT_full):
+    """:func:`coolant_replay` with an unlogged heater drawing ``q_heat`` (W) once the simulated coolant is
+    ``dT_full`` (K) above the ambient, and in proportion below (a heater core passes heat in proportion to
+    the coolant's excess over the air it heats), on top of ``Q_heat``."""
+    n = T_amb.shape[0]
+    T = np.empty(n)
+    T[0] = T0
+    for k in range(n - 1):
+        x = (T[k] - T_amb[k]) / dT_full
+        q = Q_heat[k] + q_heat * min(max(x, 0.0), 1.0)
+        d = coolant_flows(p, T[k], T_amb[k], p.LHV * W_f[k], P_e[k], q)[0]
         T[k + 1] = T[k] + dt * d
     return T
 

@@ -15,6 +15,22 @@
   their prior (the posterior equals it), and the note says so. The posterior sd includes the calibration
   uncertainty of the inputs (fuel rate, engine power, heater power: 1 % each) and of the coolant sensor
   (0.5 K offset).
+
+Sparse inputs: an input is bridged across its short gaps only (:func:`calib.fit.replay.fill_short`); a bin
+where the engine state, the fuel rate of a running engine, the engine power, the heater heat or the ambient
+is unknown is left out, and the replay restarts after it from its own initial temperature (one nuisance
+parameter per run of known bins, :func:`calib.fit.replay.input_segments`). A gap is never read as zero
+fuel or an engine off.
+
+Heater heat that no channel gives (``heater=``, :data:`calib.fit.replay.HEATER_CHOICES`): declared off
+(``"off"``: zero), or estimated (``"estimate"``, and by default where the log has neither a heater channel
+nor a cabin temperature to infer it from) as a draw ``q_heat`` per log that ramps with the simulated coolant's
+excess over the ambient up to :data:`HEATER_RAMP_K` and is constant beyond
+(:func:`calib.fit.replay.coolant_replay_heater`): a nuisance parameter with a wide prior
+(:data:`HEATER_PRIOR_W` +- :data:`HEATER_PRIOR_SD_W`, within 0 ... :data:`HEATER_MAX_W`). ``used`` names which.
+Without a known heat sink the coolant rise fixes ``C_eng / (1 - gamma_exh)`` (the heat that stays in the
+engine over its heat capacity): a parked warm-up at idle is then a calibration drive whose split of that ratio
+between ``C_eng`` and ``gamma_exh`` comes from their priors.
 """
 from __future__ import annotations
 
@@ -22,21 +38,32 @@ import numpy as np
 
 from calib.fit.toolkit import (T_SENSOR_SD, INPUT_REL_SD, ParamEstimate, SubsystemFit, combine_with_prior, confounded_pairs, map_fit, not_fitted,
                                output_error_params, posterior_estimate)
-from calib.fit.replay import _fill, coolant_replay, first_valid_mean, log_arrays
+from calib.fit.replay import (coolant_replay, coolant_replay_heater, fill_short, first_valid_mean,
+                              fuel_label, input_segments, log_arrays)
 
 #: Channels every log of the fit needs; the engine power and the heater heat come in several ways
 #: (:func:`calib.fit.replay.log_arrays`).
 NEEDS = ("coolant_temp_degC", "fuel_rate_g_per_s", "ambient_temp_degC")
 PARAMS = ("kappa", "C_eng_J_per_K", "gamma_exh", "hA_eng_W_per_K", "T_open_degC", "k_rad_W_per_K")
 MIN_ABOVE_S = 120.0
+#: The estimated heater draw (W) of a log whose heater heat is not logged: prior, prior sd, upper bound, and
+#: the coolant excess over the ambient (K) at which it reaches its full draw.
+HEATER_PRIOR_W = 1000.0
+HEATER_PRIOR_SD_W = 1500.0
+HEATER_MAX_W = 8000.0
+HEATER_RAMP_K = 30.0
 
 
 def fuel_input(la):
-    """Logged fuel rate as a heat input, zero where the engine is stopped (speed < 150 rpm): a fuel-flow
-    sensor's noise clipped at zero would otherwise add phantom heat while the engine is off."""
-    W = np.maximum(_fill(la.ch["fuel_rate_g_per_s"], 0.0), 0.0)
+    """Logged fuel rate as a heat input: zero where the engine is known to be stopped (a fuel-flow sensor's
+    noise clipped at zero would otherwise add phantom heat while the engine is off), the logged rate
+    (bridged across its short gaps) where it runs, NaN where that is unknown (no engine cue reaches the bin,
+    or the engine runs and no fuel sample is near)."""
+    W = np.maximum(fill_short(la.ch["fuel_rate_g_per_s"], la.dt), 0.0)
     running = (la.f_on + la.f_idle) > 0
-    return np.where(running, W, 0.0)
+    out = np.where(running, W, 0.0)
+    out[~la.known] = np.nan
+    return out
 
 
 def _kappa(use, fit, base):
@@ -66,10 +93,10 @@ def _kappa(use, fit, base):
                               f"from the engine-bay temperature ({x.size} samples)")
 
 
-def fit_thermal(logs, base, *, allowed=None) -> SubsystemFit:
+def fit_thermal(logs, base, *, allowed=None, heater=None) -> SubsystemFit:
     """Fit the engine thermal parameters (maximum a posteriori) from every log with coolant temperature,
-    ambient temperature, fuel rate, an engine power (logged or inferred) and a heater heat (logged,
-    from vent temperature and blower flow, or inferred from the cabin balance).
+    ambient temperature, fuel rate and an engine power (logged or inferred); the heater heat is logged, from
+    vent temperature and blower flow, inferred from the cabin balance, declared off or estimated (``heater``).
 
     Parameters
     ----------
@@ -77,6 +104,8 @@ def fit_thermal(logs, base, *, allowed=None) -> SubsystemFit:
     base : ParameterSet
         Priors (values and ``prior_sd``); ``kappa`` and the heater/cabin parameters used to derive inputs.
     allowed : set of str, optional
+    heater : None, "off" or "estimate"
+        The heater heat where no channel gives it (:data:`calib.fit.replay.HEATER_CHOICES`).
 
     Returns
     -------
@@ -95,25 +124,18 @@ def fit_thermal(logs, base, *, allowed=None) -> SubsystemFit:
         miss = lg.missing(NEEDS)
         la = None
         if not miss:
-            la = log_arrays(lg, mp_b)
+            la = log_arrays(lg, mp_b, heater=heater)
             if not la.engine_source:
                 miss.append("engine power (engine_speed_rpm + engine_torque_Nm, or engine_power_W, or speed_mps "
                             "with battery power)")
-            if not la.heater_source:
-                miss.append("heater heat (heater_power_W, or vent_temp_degC + blower_flow_kg_per_s, or "
-                            "cabin_temp_degC to infer it)")
         if miss:
             fit.skipped[lg.label()] = f"missing channel(s) {', '.join(miss)}"
         else:
             use.append((lg, la))
     if not use:
         return not_fitted(fit, base, names, "engine thermal parameters not fitted: no log has coolant temperature, "
-                          "fuel rate, ambient temperature, an engine power and a heater heat ("
+                          "fuel rate, ambient temperature and an engine power ("
                           + "; ".join(f"{k}: {v}" for k, v in fit.skipped.items()) + ")")
-    fit.logs = [lg.label() for lg, _ in use]
-    for lg, la in use:
-        fit.used[lg.label()] = {"engine power": la.engine_source, "heater heat": la.heater_source,
-                                "fuel heat": "fuel_rate_g_per_s", **{f"inferred {k}": v for k, v in la.inferred.items()}}
     work = base
     if "kappa" in allowed:
         ke = _kappa([lg for lg, _ in use], fit, base)
@@ -129,17 +151,55 @@ def fit_thermal(logs, base, *, allowed=None) -> SubsystemFit:
                 work = base.with_values(kappa=ke.value)
     kappa_known = "kappa" in fit.estimates and fit.estimates["kappa"].status == "estimated"
     mp0 = work.model_params()
-    data = []
-    for i, (_lg, la) in enumerate(use):
+    data, q_names, q_of, left_out = [], [], {}, {}
+    for i, (lg, la) in enumerate(use):
         c = la.ch
-        T = c["coolant_temp_degC"]
-        data.append(dict(T=T, ok=np.isfinite(T), dt=la.dt, T_amb=_fill(c["ambient_temp_degC"], 0.0),
-                         W=fuel_input(la),
-                         P=_fill(la.f_on * la.P_on, 0.0), Q=np.maximum(_fill(la.Q_heat, 0.0), 0.0),
-                         heater_on=_fill(la.Q_heat, 0.0) > 200.0,
-                         T0=first_valid_mean(T, 5, 0.0), name=f"T0_{i}"))
+        T = la.logged("coolant_temp_degC")
+        W = fuel_input(la)
+        P = la.f_on * la.P_on
+        P[~la.known] = np.nan
+        est = not la.heater_source
+        Q = np.zeros(T.size) if est else np.maximum(la.Q_heat, 0.0)
+        T_amb = fill_short(c["ambient_temp_degC"], la.dt)
+        known = np.isfinite(W) & np.isfinite(P) & np.isfinite(Q) & np.isfinite(T_amb)
+        segs = input_segments(known, T, la.dt)
+        used = {"engine power": la.engine_source, "heater heat": la.heater_source, "fuel heat": fuel_label(lg),
+                **{f"inferred {k}": v for k, v in la.inferred.items()}}
+        if est:
+            why = ("heater='estimate'" if heater == "estimate" else
+                   "no heater channel and no cabin temperature to infer it from")
+            used["heater heat"] = (f"not logged: estimated ({why}) as a draw q_heat_{i} ramping with the "
+                                   f"coolant's excess over the ambient up to {HEATER_RAMP_K:g} K, prior "
+                                   f"{HEATER_PRIOR_W:g} +- {HEATER_PRIOR_SD_W:g} W; declare heater='off' if it did "
+                                   "not run")
+        if not segs:
+            fit.skipped[lg.label()] = ("no run of at least 60 s with every input known (engine state, fuel rate, "
+                                       "engine power, heater heat, ambient) and the coolant logged")
+            continue
+        fit.used[lg.label()] = used
+        n_out = int(T.size - sum(b - a for a, b in segs))
+        if n_out:
+            left_out[lg.label()] = n_out * la.dt
+            used["left out"] = (f"{n_out * la.dt:.0f} s where an input is unknown (no value within its short-gap "
+                                f"limit) or runs shorter than 60 s; the replay restarts after each such gap "
+                                f"({len(segs)} run(s))")
+        qn = f"q_heat_{i}" if est else None
+        if qn:
+            q_names.append(qn)
+            q_of[lg.label()] = qn
+        for j, (a, b) in enumerate(segs):
+            Tj = T[a:b]
+            data.append(dict(T=Tj, ok=np.isfinite(Tj), dt=la.dt, T_amb=T_amb[a:b], W=W[a:b], P=P[a:b], Q=Q[a:b],
+                             heater_on=np.full(b - a, True) if est else Q[a:b] > 200.0, T0=first_valid_mean(Tj, 5, 0.0),
+                             name=f"T0_{i}" if j == 0 else f"T0_{i}_{j}", q=qn))
+    if not data:
+        return not_fitted(fit, base, names, "engine thermal parameters not fitted: no log has a run of known inputs ("
+                          + "; ".join(f"{k}: {v}" for k, v in fit.skipped.items()) + ")")
+    fit.logs = [lg for lg in fit.used]
     Tmax = max(float(np.nanmax(d["T"])) for d in data)
     fit.metrics["coolant_max_degC"] = Tmax
+    if left_out:
+        fit.metrics["left_out_s"] = float(sum(left_out.values()))
     cand = [n for n in ("C_eng_J_per_K", "gamma_exh", "hA_eng_W_per_K", "T_open_degC", "k_rad_W_per_K")
             if n in allowed]
     T_open0 = float(work["T_open_degC"])
@@ -149,8 +209,21 @@ def fit_thermal(logs, base, *, allowed=None) -> SubsystemFit:
     bnd = {n: work.param(n).bounds for n in cand}
     prior = {n: float(work[n]) for n in cand}
     psd = {n: float(prior_sd_of(work.param(n))) for n in cand}
+    # the estimated heater draws are nuisance parameters with their own prior
+    nuis_prior = {q: HEATER_PRIOR_W for q in q_names}
+    nuis_sd = {q: HEATER_PRIOR_SD_W for q in q_names}
 
-    make = output_error_params(cand, bnd, prior, data)
+    make0 = output_error_params(cand, bnd, prior, data)
+    at_zero = set()  # estimated heater draws held at their bound 0 (see below)
+
+    def make(vary):
+        ps = make0(vary)
+        for q in q_names:
+            # no lower bound in the search (a bound's transform stalls the optimiser as the draw nears 0):
+            # a draw that comes out negative is then held at 0 and the fit repeated
+            ps.add(q, value=0.0 if q in at_zero else HEATER_PRIOR_W, min=-HEATER_MAX_W, max=HEATER_MAX_W,
+                   vary=q not in at_zero)
+        return ps
 
     def sims(ps, sW=1.0, sP=1.0, sQ=1.0):
         v = ps.valuesdict()
@@ -159,8 +232,15 @@ def fit_thermal(logs, base, *, allowed=None) -> SubsystemFit:
                           hA_eng=float(v.get("hA_eng_W_per_K", mp0.hA_eng)),
                           T_open=float(v.get("T_open_degC", mp0.T_open)),
                           k_rad=float(v.get("k_rad_W_per_K", mp0.k_rad)))
-        return [coolant_replay(mp, float(v[d["name"]]), d["dt"], d["T_amb"], sW * d["W"], sP * d["P"],
-                               sQ * d["Q"]) for d in data]
+        out = []
+        for d in data:
+            if d["q"] is None:
+                out.append(coolant_replay(mp, float(v[d["name"]]), d["dt"], d["T_amb"], sW * d["W"], sP * d["P"],
+                                          sQ * d["Q"]))
+            else:
+                out.append(coolant_replay_heater(mp, float(v[d["name"]]), d["dt"], d["T_amb"], sW * d["W"],
+                                                 sP * d["P"], sQ * d["Q"], sQ * float(v[d["q"]]), HEATER_RAMP_K))
+        return out
 
     def segments(ps, dT=0.0, **scale):
         return [(s - d["T"] - dT)[d["ok"]] for s, d in zip(sims(ps, **scale), data)]
@@ -169,21 +249,41 @@ def fit_thermal(logs, base, *, allowed=None) -> SubsystemFit:
     perturbed = [(lambda ps, k=k: segments(ps, **{k: 1.0 + INPUT_REL_SD}),
                   lambda ps, k=k: segments(ps, **{k: 1.0 - INPUT_REL_SD})) for k in ("sW", "sP", "sQ")]
     perturbed.append(lambda ps: segments(ps, dT=T_SENSOR_SD))
-    out = map_fit(lambda: make(set(cand)), segments, cand, prior=prior, prior_sd=psd, noise_sd=T_SENSOR_SD,
-                  perturbed=perturbed, floor=0.05)
+    def run():
+        free = [q for q in q_names if q not in at_zero]
+        return map_fit(lambda: make(set(cand)), segments, cand, prior={**prior, **{q: nuis_prior[q] for q in free}},
+                       prior_sd={**psd, **{q: nuis_sd[q] for q in free}}, noise_sd=T_SENSOR_SD, perturbed=perturbed,
+                       floor=0.05)
+
+    out = run()
+    neg = {q for q in q_names if out["params"][q].value < 0.0}
+    if neg:
+        at_zero.update(neg)
+        out = run()
     res = out["params"]
     fit.metrics.update(rmse_degC=out["rmse"], samples=int(out["n"]), n_eff=out["n_eff"],
                        noise_sd_degC=out["noise_sd"])
     fit.correlations = out["correl"]
     fit.confounded = confounded_pairs(out["correl"])
     fit.nuisance = {d["name"]: float(res[d["name"]].value) for d in data}
+    fit.nuisance.update({q: float(res[q].value) for q in q_names})
+    for q in q_names:
+        fit.metrics[f"{q}_W"] = float(res[q].value)
+    for label, q in q_of.items():
+        fit.used[label]["heater heat"] += (f"; fitted draw {float(res[q].value):.0f} W"
+                                           + (" (held at its bound 0: the data ask for less than no heater)"
+                                              if q in at_zero else ""))
+    heat_known = any(d["q"] is None and np.any(d["Q"] > 200.0) for d in data)
     for n in cand:
-        note = f"MAP fit of the coolant temperature over {len(use)} log(s)"
+        note = f"MAP fit of the coolant temperature over {len(fit.logs)} log(s)"
         if n == "hA_eng_W_per_K" and not kappa_known:
             note = (f"identified only as hA_eng (1 - kappa) = {out['values'][n] * (1 - mp0.kappa):.4g} W/K; "
                     f"kappa not logged, this value assumes kappa = {mp0.kappa:g} (its prior)")
         if n in ("T_open_degC", "k_rad_W_per_K") and above < MIN_ABOVE_S:
             note = (f"coolant never reached the thermostat ({above:.0f} s within 5 K of its prior opening, max "
                     f"{Tmax:.1f} degC): the value comes from the prior")
+        if n in ("C_eng_J_per_K", "gamma_exh") and not heat_known:
+            note += ("; no logged heat sink (heater heat not logged or zero): the coolant rise fixes "
+                     "C_eng / (1 - gamma_exh), and their priors split it")
         fit.estimates[n] = posterior_estimate(n, out, note, prior[n])
     return fit

@@ -31,8 +31,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from calib.plotting import plot_residual_comparison, plot_residuals, plot_validation  # noqa: F401 - re-exported
-from calib.fit.replay import (CHANNEL_METRICS, _fill, _split_battery_power, first_valid_mean, fuel_replay, full_replay,
-                              log_arrays)
+from calib.fit.replay import (CHANNEL_METRICS, HEATER_OFF, _fill, _split_battery_power, fill_short, first_valid_mean,
+                              fuel_replay, full_replay, log_arrays)
 
 #: Window (s) at the start of a log over which the replay's initial SOC is matched to the logged SOC.
 SOC0_WINDOW_S = 60.0
@@ -56,6 +56,18 @@ class Replay:
         Figure."""
         return plot_validation(self, path, title)
 
+    def cumulative_fuel(self):
+        """Cumulative measured and simulated fuel (g) per row, both summed over the same rows (the measured
+        rate bridged across its short gaps only, the simulated one where the engine state is known): a row
+        neither knows adds nothing to either. None when the log has no fuel rate."""
+        mf, sf = self.measured.get("fuel_rate"), self.simulated.get("fuel_rate")
+        if mf is None or sf is None:
+            return None
+        dt = float(np.median(np.diff(self.t))) if self.t.size > 1 else 1.0
+        mfill = fill_short(np.asarray(mf, float), dt)
+        ok = np.isfinite(mfill) & np.isfinite(sf)
+        return np.cumsum(np.where(ok, mfill, 0.0)) * dt, np.cumsum(np.where(ok, sf, 0.0)) * dt
+
     def metrics(self) -> dict:
         """Per channel RMSE, max abs error, bias (sim - meas) and sample count; cumulative fuel error."""
         out = {}
@@ -72,21 +84,30 @@ class Replay:
         mf, sf = self.measured.get("fuel_rate"), self.simulated.get("fuel_rate")
         if mf is not None and sf is not None and np.isfinite(mf).sum() > 2:
             dt = float(np.median(np.diff(self.t))) if self.t.size > 1 else 1.0
-            cm = float(np.nansum(_fill(mf, 0.0)) * dt)
-            cs = float(np.nansum(sf) * dt)
+            # both totals over the same bins: the measured rate bridged across its short gaps only, and the
+            # simulated one where the engine state is known (a long gap is neither fuel nor no fuel)
+            mfill = fill_short(mf, dt)
+            ok = np.isfinite(mfill) & np.isfinite(sf)
+            cm = float(np.sum(mfill[ok]) * dt)
+            cs = float(np.sum(sf[ok]) * dt)
             out["cumulative_fuel"] = {"measured_g": cm, "simulated_g": cs,
-                                      "error_pct": 100.0 * (cs - cm) / cm if cm > 0 else float("nan")}
+                                      "error_pct": 100.0 * (cs - cm) / cm if cm > 0 else float("nan"),
+                                      "compared_s": float(ok.sum() * dt), "left_out_s": float((~ok).sum() * dt)}
         return out
 
 
-def replay(log, params) -> Replay:
+def replay(log, params, heater=None) -> Replay:
     """Simulate ``log`` from its logged inputs with ``params`` (a ParameterSet or compiled tuple).
 
     A channel whose inputs the log lacks is *not* simulated: it is left out of ``simulated`` and
     ``refused`` names the missing channel(s). Inputs inferred from a balance are named in ``inferred``.
+    ``heater`` as for :func:`calib.fit.replay.log_arrays` (``"off"``: a heater heat not logged is zero).
+    The simulation runs through bins whose inputs are unknown (a long gap of a sparse channel: bridged for
+    the state only); those bins' simulated outputs are NaN, so no metric counts them, and ``inferred``
+    names how long they are.
     """
     mp = params.model_params() if hasattr(params, "model_params") else params
-    la = log_arrays(log, mp)
+    la = log_arrays(log, mp, heater=heater)
     c = la.ch
     refused, inferred = {}, dict(la.inferred)
     P_e = la.f_on * la.P_on
@@ -116,7 +137,8 @@ def replay(log, params) -> Replay:
             refused.setdefault(k, "missing channel ambient_temp_degC")
     if not la.heater_source:
         why = ("missing channel(s) heater_power_W (or vent_temp_degC + blower_flow_kg_per_s, or cabin_temp_degC "
-               "to infer it)")
+               "to infer it" + (", which heater='estimate' does not" if heater == "estimate" else "")
+               + "; heater='off' declares it zero)")
         refused.setdefault("coolant_temp", why)
         refused.setdefault("cabin_temp", why)
     elif la.heater_source.startswith("inferred"):
@@ -135,6 +157,16 @@ def replay(log, params) -> Replay:
         soc0 += float(np.nanmean(e0))
         soc, T_cl, T_cab, W = full_replay(mp, la.dt, soc0, T_cl0, T_cab0, la.f_on, la.P_on, la.f_idle, P_bat, T_bat,
                                           T_amb, Q_heat)
+    # bins whose inputs are unknown (a long gap of a sparse channel): simulated through, never compared
+    unknown = ~la.known if la.engine_source else np.zeros(la.t.size, bool)
+    for arr, needed in ((la.P_bat, bool(la.battery_source)), (la.Q_heat, bool(la.heater_source)),
+                        (fill_short(c["ambient_temp_degC"], la.dt), amb)):
+        if needed:
+            unknown |= ~np.isfinite(arr)
+    if unknown.any() and not unknown.all():
+        inferred["bins with an unknown input"] = (f"{int(unknown.sum()) * la.dt:.0f} s where an input (engine state, "
+                                                  "battery power, heater heat or ambient) has no sample within its "
+                                                  "short-gap limit: simulated through, not compared")
     fuel_note = ""
     if "coolant_temp" in refused and "fuel_rate" not in refused:
         if la.has("coolant_temp_degC"):  # the cold correction then reads the measured coolant
@@ -152,13 +184,16 @@ def replay(log, params) -> Replay:
     measured = {"soc": c["soc"], "coolant_temp": c["coolant_temp_degC"], "cabin_temp": c["cabin_temp_degC"],
                 "fuel_rate": W_meas}
     simulated = {"soc": soc, "coolant_temp": T_cl, "cabin_temp": T_cab, "fuel_rate": W}
+    if unknown.any():
+        simulated = {k: np.where(unknown, np.nan, v) for k, v in simulated.items()}
     for k in list(measured):
         if not np.isfinite(measured[k]).any():
             measured.pop(k)
             refused.pop(k, None)
     for k in refused:
         simulated.pop(k, None)
-    inputs = (f"{src}; engine from {la.engine_source or 'nothing'}; heater from {la.heater_source or 'nothing'}"
+    inputs = (f"{src}; engine from {la.engine_source or 'nothing'}; heater from "
+              f"{'nothing (declared off)' if la.heater_source == HEATER_OFF else la.heater_source or 'nothing'}"
               + (f"; {fuel_note}" if fuel_note else ""))
     rep = Replay(la.name, la.t, measured, simulated, inputs=inputs, refused=refused, inferred=inferred)
     rep.regimes = {"engine on": (la.f_on + la.f_idle) > 0, "engine off": (la.f_on + la.f_idle) == 0,
@@ -177,12 +212,13 @@ def replay(log, params) -> Replay:
     return rep
 
 
-def validate(logs, params) -> dict:
+def validate(logs, params, heater=None) -> dict:
     """Replay every log; returns ``{log label: metrics}`` (see :meth:`Replay.metrics`), with ``refused``
-    (channel -> why it was not checked) and ``inferred`` (input -> how) where there are any."""
+    (channel -> why it was not checked) and ``inferred`` (input -> how) where there are any. ``heater`` as
+    for :func:`replay`."""
     out = {}
     for lg in logs:
-        r = replay(lg, params)
+        r = replay(lg, params, heater=heater)
         m = r.metrics()
         if r.refused:
             m["refused"] = dict(r.refused)

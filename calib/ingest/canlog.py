@@ -43,10 +43,9 @@ from calib.ingest.common import (
     to_channel_unit,
 )
 from calib.ingest.damage import Damage, quiet_libraries
+from calib.ingest.dbc import PRIUS_DBC, _bytes_needed, _signal_is_vectorisable, extract_signal, load_dbc  # noqa: F401
 from calib.units import GASOLINE_DENSITY_KG_PER_L, convert
 
-#: Our Prius DBC, shipped with the package.
-PRIUS_DBC = Path(str(resources.files("calib") / "data" / "can" / "prius_iptm.dbc"))
 #: opendbc's Toyota 2017 DBC (MIT), shipped with the package.
 TOYOTA_2017_DBC = Path(str(resources.files("calib") / "data" / "can" / "toyota_2017.dbc"))
 
@@ -89,20 +88,6 @@ CAN_FORMATS = ("candump", "asc", "blf", "trc")
 LOG_INFO_ID = 0x6FF
 #: A timestamp stepping back by more than this is an error; smaller steps are sorted (bus/driver jitter).
 MAX_BACKSTEP_S = 1.0
-
-
-def load_dbc(dbc, path_for_errors=None):
-    """Load a DBC with cantools; errors name the DBC file."""
-    import cantools
-
-    dbc = Path(dbc) if dbc is not None else PRIUS_DBC
-    if not dbc.exists():
-        raise LogFormatError(dbc, "DBC file not found")
-    try:
-        return cantools.database.load_file(str(dbc), database_format="dbc", strict=False)
-    except Exception as exc:  # noqa: BLE001 - cantools raises many parser types; all mean "bad DBC"
-        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise LogFormatError(dbc, f"cannot parse DBC: {msg[:200]}") from None
 
 
 def resolve_signal_map(db, dbc_path, signal_map: dict | None) -> dict[tuple[str, str], tuple[str, str | None]]:
@@ -464,60 +449,6 @@ def _bus_name(fmt: str, channel) -> str:
     if isinstance(channel, int) and fmt in ("asc", "blf"):
         return str(channel + 1)
     return str(channel)
-
-
-def _signal_is_vectorisable(msg, sig) -> bool:
-    if msg.is_multiplexed() or sig.is_float or msg.length > 8:
-        return False
-    if sig.byte_order == "little_endian":
-        return sig.start + sig.length <= 64
-    byte, bit = divmod(sig.start, 8)
-    return (7 - byte) * 8 + bit - (sig.length - 1) >= 0
-
-
-def _bytes_needed(sig) -> int:
-    if sig.byte_order == "little_endian":
-        return (sig.start + sig.length - 1) // 8 + 1
-    byte, bit = divmod(sig.start, 8)
-    lsb = (7 - byte) * 8 + bit - (sig.length - 1)
-    return 7 - lsb // 8 + 1
-
-
-def extract_signal(data: np.ndarray, sig) -> np.ndarray:
-    """Physical values of ``sig`` from payloads ``data`` (uint8, shape (n, 8)); NaN where not available.
-
-    Implements the DBC bit layout (Intel and Motorola "sawtooth" numbering) on whole arrays.
-    """
-    n = data.shape[0]
-    if n == 0:
-        return np.empty(0)
-    mask = np.uint64((1 << sig.length) - 1) if sig.length < 64 else np.uint64(0xFFFFFFFFFFFFFFFF)
-    if sig.byte_order == "little_endian":
-        word = data.view("<u8").reshape(n)
-        raw = (word >> np.uint64(sig.start)) & mask
-    else:
-        word = data.view(">u8").reshape(n)
-        byte, bit = divmod(sig.start, 8)
-        lsb = (7 - byte) * 8 + bit - (sig.length - 1)
-        raw = (word >> np.uint64(lsb)) & mask
-    if sig.is_signed:
-        r = raw.astype(np.int64)
-        half = 1 << (sig.length - 1)
-        r = np.where(r >= half, r - (1 << sig.length), r)
-        sna = r == -half
-        phys = r * float(sig.scale) + float(sig.offset)
-        if sig.minimum is not None:
-            sna &= phys < float(sig.minimum)
-        else:
-            sna[:] = False
-    else:
-        sna = raw == mask
-        phys = raw.astype(np.float64) * float(sig.scale) + float(sig.offset)
-        if sig.maximum is not None:
-            sna &= phys > float(sig.maximum)
-        else:
-            sna[:] = False
-    return np.where(sna, np.nan, phys)
 
 
 def decode_can_signals(path, *, fmt: str, dbc=None, signals=None, signal_map=None, strict: bool = False,

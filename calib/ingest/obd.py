@@ -86,7 +86,7 @@ class ObdDecoded:
 
 def load_obd_dbc():
     """The OBD-II service 01 message of :data:`OBD2_DBC` (cantools)."""
-    from calib.ingest.canlog import load_dbc
+    from calib.ingest.dbc import load_dbc
 
     return load_dbc(OBD2_DBC).get_message_by_name(RESPONSE_MESSAGE)
 
@@ -135,7 +135,7 @@ def decode_obd(frames: dict) -> ObdDecoded:
         For each decoded PID the values of the ECU that answered it most often (the others are named in
         the notes, not merged: two ECUs may answer the same PID from different sensors).
     """
-    from calib.ingest.canlog import extract_signal
+    from calib.ingest.dbc import extract_signal
 
     msg = load_obd_dbc()
     by_pid, length = _pid_layout(msg)

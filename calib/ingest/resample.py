@@ -25,14 +25,22 @@ def native_interval(t: np.ndarray) -> float:
     return float(np.median(d)) if len(d) else float("nan")
 
 
+#: Fewest samples from which a stream's own sampling interval is taken (two samples cannot tell a slow rate
+#: from a gap).
+MIN_SAMPLES_FOR_RATE = 5
+
+
 def stream_gap_limit(t: np.ndarray, max_gap_s: float) -> float:
     """The longest gap interpolated across for a stream: ``max_gap_s``, or more for a channel that is
-    polled more slowly than that (:data:`POLL_GAP_FACTOR` times its median interval)."""
+    polled more slowly than that (:data:`POLL_GAP_FACTOR` times its median interval, from at least
+    :data:`MIN_SAMPLES_FOR_RATE` samples)."""
+    if len(t) < MIN_SAMPLES_FOR_RATE:
+        return max_gap_s
     md = native_interval(t)
     return max(max_gap_s, POLL_GAP_FACTOR * md) if np.isfinite(md) else max_gap_s
 
 
-def resample_stream(s: pd.Series, grid: np.ndarray, dt: float, max_gap_s: float) -> np.ndarray:
+def resample_stream(s: pd.Series, grid: np.ndarray, dt: float, max_gap_s: float, return_mask: bool = False):
     """Values of one stream on ``grid``.
 
     A grid point gets the mean of the samples within half a step of it when there are any (so a 10 Hz
@@ -41,12 +49,14 @@ def resample_stream(s: pd.Series, grid: np.ndarray, dt: float, max_gap_s: float)
     last sample, and inside longer gaps, the value is NaN: nothing is invented.
 
     Each bin's mean is summed from its own samples, so a value (however large) changes only its own bin.
+    With ``return_mask``, returns ``(values, sampled)``: ``sampled`` is True where the bin holds a sample
+    (False where the value is interpolated or NaN).
     """
     t = s.index.to_numpy(dtype=float)
     v = s.to_numpy(dtype=float)
     out = np.full(len(grid), np.nan)
     if len(t) == 0:
-        return out
+        return (out, np.zeros(len(grid), bool)) if return_mask else out
     # Bin means over [g - dt/2, g + dt/2).
     lo = np.searchsorted(t, grid - dt / 2, side="left")
     hi = np.searchsorted(t, grid + dt / 2, side="left")
@@ -69,7 +79,7 @@ def resample_stream(s: pd.Series, grid: np.ndarray, dt: float, max_gap_s: float)
             vals = np.interp(g, t, v)
             vals[gap > max_gap_s] = np.nan
             out[need] = vals
-    return out
+    return (out, has) if return_mask else out
 
 
 def to_drivelog(streams: dict, meta: LogMeta, rate_hz: float = 1.0, max_gap_s: float = 5.0) -> DriveLog:
@@ -104,13 +114,19 @@ def to_drivelog(streams: dict, meta: LogMeta, rate_hz: float = 1.0, max_gap_s: f
                                                                         "resample at a lower rate")
     n = int(np.floor(t_end / dt + 1e-9)) + 1
     grid = np.arange(n) * dt
-    cols = {}
+    cols, interpolated = {}, {}
     for ch in CHANNELS:
         if ch in streams and len(streams[ch]):
             s = streams[ch]
-            cols[ch] = resample_stream(s, grid, dt, stream_gap_limit(s.index.to_numpy(float), max_gap_s))
+            cols[ch], has = resample_stream(s, grid, dt, stream_gap_limit(s.index.to_numpy(float), max_gap_s),
+                                            return_mask=True)
+            filled = ~has & np.isfinite(cols[ch])
+            if filled.any():  # rows whose value was interpolated between samples, as [start, stop) runs
+                edges = np.flatnonzero(np.diff(np.concatenate([[0], filled.astype(np.int8), [0]])))
+                interpolated[ch] = edges.reshape(-1, 2).tolist()
     data = pd.DataFrame(cols, index=pd.Index(grid, name="time_s"))
     new_meta = LogMeta.from_dict(meta.to_dict())
+    new_meta.interpolated_rows = interpolated
     new_meta.notes = list(meta.notes) + [f"resampled to {rate_hz:g} Hz (bin means; interpolation only across gaps <= {max_gap_s:g} s, "
                                         f"or {POLL_GAP_FACTOR:g} sampling intervals of a slower channel)"]
     return DriveLog(data=data, meta=new_meta)

@@ -25,6 +25,10 @@ def register(sub):
                    help="refuse damaged logs (default: read what they still hold, say what was lost)")
     p.add_argument("--dbc", help="DBC for CAN logs (default: the shipped Prius DBC)")
     p.add_argument("--bus", help="CAN logs: the bus to decode (default: the one with most frames the DBC knows)")
+    p.add_argument("--heater", choices=("off", "estimate"), default=None,
+                   help="logs without a heater channel: 'off' declares that the heater did not run (its heat is "
+                        "zero); 'estimate' fits one heater draw per log as an unknown input; default: inferred "
+                        "from the cabin temperature where it is logged, else estimated")
     p.set_defaults(func=run)
 
 
@@ -65,7 +69,7 @@ def run(args) -> int:
         (logs if i < len(args.logs) else val).append(lg)
     base = ParameterSet.load(args.params) if args.params else None
     res = calibrate(logs, base=base, fit=_names(args.fit), fix=_names(args.fix), validate=val or None,
-                    progress=not args.quiet)
+                    progress=not args.quiet, heater=getattr(args, "heater", None))
     res.to_artifact(args.out)
     print(res.report())
     print(f"\ncalibration artifact: {args.out}")
