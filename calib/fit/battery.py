@@ -294,7 +294,8 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
             curv = (sse(c + h) - 2 * s0 + sse(c - h)) / h ** 2
             s2 = s0 / max(n0 - int(varyU.sum() + varyR.sum() + varyH) - 1, 1)
             se = math.sqrt(2 * s2 / curv) * inflation(segs_, 1) if curv > 0 else None
-            e = combine_with_prior("R_int_tc_per_K", c, se, tc, tc_sd, f"battery temperature span {T_span:.0f} K")
+            e = combine_with_prior("R_int_tc_per_K", c, se, tc, tc_sd, f"battery temperature span {T_span:.0f} K",
+                                   bounds=base.param("R_int_tc_per_K").bounds)
             fit.estimates["R_int_tc_per_K"] = e
             if e.status == "estimated":
                 tc_est = float(e.value)
@@ -384,11 +385,8 @@ def fit_battery(logs, base, *, allowed=None) -> SubsystemFit:
             # the voltage sensor's calibration does not reach a step at the sign change; the current's gain
             # error scales R I only
             e = combine_with_prior("U_hyst_V", H, seH, h0, hsd, f"terminal voltage step where the current changes "
-                                   f"sign ({n_dis} discharging, {n_chg} charging steady samples)")
-            lo, hi = base.param("U_hyst_V").bounds
-            if not lo <= e.value <= hi:
-                e.note += f"; the estimate {e.value:.3g} V lies outside the bounds and is clipped"
-                e.value = float(min(max(e.value, lo), hi))
+                                   f"sign ({n_dis} discharging, {n_chg} charging steady samples)",
+                                   bounds=base.param("U_hyst_V").bounds)
             fit.estimates["U_hyst_V"] = e
         else:
             fit.estimates["U_hyst_V"] = prior_only(
@@ -426,7 +424,7 @@ def _fit_capacity(fit, rows, inferred, base):
                    "with its own initial SOC" if n_runs > len(rows + inferred) else "")
         fit.estimates["C_bat_Ah"] = combine_with_prior("C_bat_Ah", C, se, Cp, Csd,
                                                        f"{src} over SOC span {span:.3f} ({n_cross} level crossings)"
-                                                       f"{restart}")
+                                                       f"{restart}", bounds=base.param("C_bat_Ah").bounds)
 
 
 def _inferred_current_rows(logs, use, base, fit, which="prior"):

@@ -129,7 +129,8 @@ def fit_cabin(logs, base, *, allowed=None, heater=None) -> SubsystemFit:
         else:
             eps, se, nb = e
             fit.estimates["eps_hc"] = combine_with_prior("eps_hc", eps, se, p0, sd0,
-                                                         f"{nb} samples where the heater-core limit binds")
+                                                         f"{nb} samples where the heater-core limit binds",
+                                                         bounds=base.param("eps_hc").bounds)
     cand = [n for n in ("C_cab_J_per_K", "UA_cab_W_per_K", "Q_sun_W") if n in allowed]
     if not cand:
         return fit

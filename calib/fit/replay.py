@@ -463,7 +463,8 @@ def log_arrays(log, mp, cabin_balance=True, heater=None) -> LogArrays:
             la.P_e = np.full(t.size, np.nan)
             la.known = np.zeros(t.size, bool)
         else:
-            state, cues = running_cue(ch, dt)
+            # the cues where they were logged: a polled channel's own rate sets how far each poll reaches
+            state, cues = running_cue({n: la.logged(n) for n in ch}, dt)
             logged_power = la.engine_source == "engine_power_W"
             if logged_power:
                 on = P > P_ON_MIN_W

@@ -90,7 +90,7 @@ def _kappa(use, fit, base):
     from calib.model.params import prior_sd_of
 
     return combine_with_prior("kappa", k, se, float(base["kappa"]), float(prior_sd_of(base.param("kappa"))),
-                              f"from the engine-bay temperature ({x.size} samples)")
+                              f"from the engine-bay temperature ({x.size} samples)", bounds=base.param("kappa").bounds)
 
 
 def fit_thermal(logs, base, *, allowed=None, heater=None) -> SubsystemFit:

@@ -393,14 +393,22 @@ def confounded_pairs(correl, limit=CONFOUNDED):
     return sorted(out, key=lambda t: -abs(t[2]))
 
 
-def combine_with_prior(name, est, se, prior_value, prior_sd, note):
+def combine_with_prior(name, est, se, prior_value, prior_sd, note, bounds=None):
     """Posterior of a parameter estimated in closed form (a linear regression with standard error ``se``)
-    under its Gaussian prior: precision-weighted mean, ``1/post^2 = 1/se^2 + 1/prior_sd^2``."""
+    under its Gaussian prior: precision-weighted mean, ``1/post^2 = 1/se^2 + 1/prior_sd^2``. With ``bounds``
+    (the parameter's physical limits) a mean beyond them is held at the bound, and the note says so: the
+    data then disagree with the model, which the reader must know."""
     if se is None or not np.isfinite(se) or se <= 0 or not np.isfinite(est):
         return prior_only(name, prior_value, prior_sd, note + "; the data gave no usable estimate")
     w1, w0 = 1.0 / se ** 2, 1.0 / prior_sd ** 2
     v = (w1 * est + w0 * prior_value) / (w1 + w0)
     post = math.sqrt(1.0 / (w1 + w0))
+    at_bound = {}
+    if bounds is not None and not bounds[0] <= v <= bounds[1]:
+        lo, hi = bounds
+        at_bound[name] = (f"the data put it at {v:.4g} (estimate {est:.4g} +- {se:.2g}), beyond its physical bounds "
+                          f"[{lo:g}, {hi:g}]: held at the bound; the log disagrees with the model here")
+        v = float(min(max(v, lo), hi))
     out = {"values": {name: v}, "post_sd": {name: post}, "prior_sd": {name: prior_sd},
-           "informed": {name: max(0.0, 1.0 - post / prior_sd)}}
+           "informed": {name: max(0.0, 1.0 - post / prior_sd)}, "at_bound": at_bound}
     return posterior_estimate(name, out, note, prior_value)

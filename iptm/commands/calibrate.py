@@ -20,6 +20,9 @@ def register(sub):
     p.add_argument("--plots", metavar="DIR", help="write measured-vs-simulated plots of the validation logs and "
                                                 "residual diagnostics (residuals, autocorrelation) of every log")
     p.add_argument("--rate", type=float, default=1.0, help="resampling rate in Hz (default 1)")
+    p.add_argument("--max-gap", type=float, default=5.0, metavar="S",
+                   help="interpolate a channel across gaps up to S seconds (default 5; a channel polled more slowly "
+                        "is interpolated up to 2.5 of its own sampling intervals); longer gaps stay unknown")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--strict", action="store_true",
                    help="refuse damaged logs (default: read what they still hold, say what was lost)")
@@ -36,7 +39,7 @@ def _names(s):
     return [n.strip() for n in s.split(",") if n.strip()] if s else None
 
 
-def _read(path, rate, strict=False, dbc=None, bus=None):
+def _read(path, rate, strict=False, dbc=None, bus=None, max_gap_s=5.0):
     from pathlib import Path
 
     from calib.ingest import read_canonical, read_log
@@ -44,7 +47,7 @@ def _read(path, rate, strict=False, dbc=None, bus=None):
     p = Path(path)
     if p.suffix.lower() == ".parquet" or (p.suffix.lower() == ".csv" and p.with_name(p.name + ".meta.json").exists()):
         return read_canonical(p)
-    return read_log(p, rate_hz=rate, strict=strict, dbc=dbc, bus=bus)
+    return read_log(p, rate_hz=rate, strict=strict, dbc=dbc, bus=bus, max_gap_s=max_gap_s)
 
 
 def run(args) -> int:
@@ -63,7 +66,7 @@ def run(args) -> int:
     logs, val = [], []
     for i, path in enumerate(tqdm(paths, desc="read logs", disable=args.quiet, leave=False, file=sys.stderr)):
         lg = _read(path, args.rate, getattr(args, "strict", False), getattr(args, "dbc", None),
-                   getattr(args, "bus", None))
+                   getattr(args, "bus", None), getattr(args, "max_gap", 5.0))
         if not lg.meta.sha256:
             lg.meta.sha256 = file_sha256(path)
         (logs if i < len(args.logs) else val).append(lg)
