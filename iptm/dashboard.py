@@ -38,6 +38,7 @@ CALIB = "iptm_calibration"
 OPT = "iptm_optimisation"
 SCENARIO = "iptm_scenario"
 UPLOADS = "iptm_upload_history"
+UPLOAD_IDS = "iptm_upload_ids"  # upload file id -> the name of the session log it became
 
 DEFAULT_MAX_UPLOAD_MB = 200.0
 #: Extensions the readers understand (calib.ingest); anything else is refused up front with a message.
@@ -130,7 +131,8 @@ def end_session(state) -> None:
     d = state.pop(TMP, None)
     if d:
         shutil.rmtree(d, ignore_errors=True)
-    state.pop(LOGS, None)
+    for k in (LOGS, SEEN, UPLOAD_IDS):
+        state.pop(k, None)
 
 
 def session_dir(state) -> Path:
@@ -205,10 +207,17 @@ def unique_name(state, fname: str, subdir: str = "uploads") -> str:
 _MD_SPECIAL = re.compile(r"([\\`*_\[\]#!|<>~$])")
 
 
+#: A word joiner (U+2060, invisible): placed inside ``://``, ``www.`` and ``@`` it stops Markdown from turning
+#: a web address or an e-mail address in user text into a link.
+_WJ = "\u2060"
+
+
 def plain(text) -> str:
     """``text`` escaped so that Streamlit's Markdown shows it as written: a log's header comment, a file name
     or an error message is never rendered (no links, no images fetched from another host, no HTML)."""
-    return _MD_SPECIAL.sub(r"\\\1", str(text)).replace("\n", "  \n")
+    t = _MD_SPECIAL.sub(r"\\\1", str(text)).replace("\n", "  \n")
+    t = re.sub(r"(?i)(www)\.", r"\1" + _WJ + ".", t.replace("://", ":" + _WJ + "//"))
+    return t.replace("@", _WJ + "@")
 
 
 def check_size(name: str, size: int, max_bytes: int | None = None) -> None:

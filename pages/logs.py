@@ -34,16 +34,23 @@ def _page():
     if dbc_file is None and state.get(dash.DBC):
         state.pop(dash.DBC, None)
 
+    loaded_ids = state.setdefault(dash.UPLOAD_IDS, {})  # upload file id -> the session log it became
     for up in uploads or []:
         key = ("log", up.file_id)
         if key in seen:
             continue
-        seen.add(key)
+        # Marked as handled only once its outcome is recorded: a rerun (another file added meanwhile) stops
+        # this script mid-read, and the file must then be read again, not lost. A read that finished before
+        # the rerun is not read twice.
+        if up.file_id in loaded_ids and loaded_ids[up.file_id] in dash.logs(state):
+            seen.add(key)
+            continue
         try:
             if up.size > dash.max_upload_bytes():  # refuse before reading the bytes into memory
                 dash.check_size(up.name, up.size)
             with st.spinner(f"reading {up.name}..."):
                 entry = dash.add_upload(state, up.name, up.getvalue(), dbc=state.get(dash.DBC))
+            loaded_ids[up.file_id] = entry.name
             notes = [n[len("warning: "):] for n in entry.log.meta.notes if n.startswith("warning: ")]
             msg = f"{entry.label}: {entry.log.duration_s:.0f} s, {len(entry.log.channels())} channels"
             dash.record_upload(state, up.name, True, msg + ("; " + "; ".join(notes) if notes else ""))
@@ -54,6 +61,7 @@ def _page():
                 st.success(dash.plain(msg))
         except Exception as exc:  # noqa: BLE001 - any failure is a message in the page, never a crash
             dash.record_upload(state, up.name, False, dash.error_message(exc))
+        seen.add(key)
 
     # every upload of the session stays listed with its outcome: an error does not vanish with the next file
     hist = state.get(dash.UPLOADS, [])
@@ -131,7 +139,7 @@ def _page():
             else:
                 st.line_chart(df, x_label="time [s]")
     with tab_meta:
-        st.json(entry.log.meta.to_dict(), expanded=False)
+        st.json({**entry.log.meta.to_dict(), "source": entry.name}, expanded=False)  # never the server's path
 
     if st.button(f"Remove {sel} from this session", key="remove_log"):
         dash.remove_log(state, sel)

@@ -4,17 +4,23 @@ system's headless Chromium (``scripts/install_browser.sh`` installs both).
 Uploads a corrupt log (message shown, and still shown after the next upload) and a 300-s log, runs a
 calibration, an optimisation on 60 s with coarse grids and the report (the downloaded HTML, opened in the
 browser, has a labelled row per strategy in its comparison table), and saves a screenshot of each page to
-``reports/figures/page_{logs,calibrate,optimize,report}.png`` (shown in the README).
+``reports/figures/page_{logs,calibrate,optimize,report}.png`` (shown in the README). Two users calibrate at
+once, each seeing only their own logs. One user uploads a unit bomb, a decompression bomb and a log whose header
+note is Markdown while another calibrates: the other's answer comes in its usual time, the server's health
+check answers throughout, and the note is shown as text.
 
 Run: ``make test-browser`` (``pytest -q -m browser``).
 """
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import socket
+import struct
 import subprocess
 import sys
+import threading
 import time
 import urllib.request
 from pathlib import Path
@@ -84,7 +90,7 @@ def server(tmp_path_factory):
                 log.flush()
                 pytest.fail("streamlit did not start:\n" + (tmp / "streamlit.log").read_text()[-3000:])
             time.sleep(0.5)
-        yield url, tmp
+        yield url, tmp, proc.pid
     finally:
         proc.terminate()
         try:
@@ -94,20 +100,24 @@ def server(tmp_path_factory):
         log.close()
 
 
-def _small_csv(path: Path, seconds: float = 300.0) -> Path:
+def _small_csv(path: Path, seconds: float = 300.0, notes: tuple[str, ...] = ()) -> Path:
+    """The first ``seconds`` of the bundled warm-restart CSV, with ``# note: ...`` header lines added."""
     lines = (ROOT / "logs" / "winter_warm_restart.csv").read_text().splitlines()
-    head = [ln for ln in lines[:10] if ln.startswith("#") or ln.startswith("time")]
+    comments = [ln for ln in lines[:10] if ln.startswith("#")] + [f"# note: {n}" for n in notes]
+    header = [ln for ln in lines[:10] if ln.startswith("time")]
     body = [ln for ln in lines if ln[:1].isdigit() and float(ln.split(",", 1)[0]) < seconds]
-    path.write_text("\n".join(head + body) + "\n")
+    path.write_text("\n".join(comments + header + body) + "\n")
     return path
 
 
 def _idle(page, timeout=LONG):
-    """Wait until the script run finished (the 'Running...' status widget is gone)."""
+    """Wait until the script run finished (the 'Running...' status widget is gone, and with it the elements of
+    the previous run that this one has not drawn again)."""
     page.wait_for_timeout(400)
     page.wait_for_function(
         "() => { const w = document.querySelector('[data-testid=\"stStatusWidget\"]');"
-        " return !w || !/Running|Stop/.test(w.innerText); }", timeout=timeout)
+        " return (!w || !/Running|Stop/.test(w.innerText)) && !document.querySelector('[data-stale=\"true\"]'); }",
+        timeout=timeout)
     page.wait_for_timeout(500)
 
 
@@ -129,7 +139,7 @@ def _shot(page, name):
 
 
 def test_dashboard_in_chromium(sync_playwright, server):
-    url, tmp = server
+    url, tmp, _ = server
     good = _small_csv(tmp / "winter_short.csv")
     bad = tmp / "corrupt.blf"
     bad.write_bytes(b"LOGG" + b"\xff" * 200)
@@ -229,7 +239,7 @@ def test_dashboard_in_chromium(sync_playwright, server):
 def test_two_browser_sessions_calibrating_at_once_see_only_their_own(sync_playwright, server):
     """Two browser contexts (two users) upload different logs and start a calibration at the same time on
     one server: each page lists only its own log and shows a calibration of its own log only."""
-    url, tmp = server
+    url, tmp, _ = server
     files = {"a": _small_csv(tmp / "drive_user_a.csv", 300.0), "b": _small_csv(tmp / "drive_user_b.csv", 240.0)}
     with sync_playwright() as pw:
         browser = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
@@ -262,5 +272,220 @@ def test_two_browser_sessions_calibrating_at_once_see_only_their_own(sync_playwr
                 _goto(page, "Logs")
                 assert page.get_by_text(files[who].name).count() >= 1
                 assert page.get_by_text(other).count() == 0, f"user {who} sees {other} on the Logs page"
+        finally:
+            browser.close()
+
+
+def _mcap_bomb(path: Path) -> tuple[Path, Path, int]:
+    """A known 300-s drive as MCAP (written with the mcap package) with one more zstd chunk after its header
+    record: 33 kB that inflate to 1 GiB of zeros while the chunk declares 4096 bytes. Returns the bomb, the
+    intact drive and the byte where the bomb chunk starts."""
+    from calib.ingest.fabricate import fabricate_streams
+    from calib.ingest.writers import write_streams
+    from test_ingest_bombs import chunk_record, zstd_rle_frame
+
+    streams, meta = fabricate_streams(300, seed=7)
+    intact = write_streams(streams, meta, path.with_name(path.stem + "_intact.mcap"), "mcap")
+    data = intact.read_bytes()
+    assert data[8] == 1  # the header record follows the magic
+    at = 8 + 9 + struct.unpack_from("<Q", data, 9)[0]
+    bomb = chunk_record(zstd_rle_frame(1 << 30), declared=4096, t_ns=(10**9, 2 * 10**9))
+    assert len(bomb) < 40_000
+    path.write_bytes(data[:at] + bomb + data[at:])
+    return path, intact, at
+
+
+# Times one script run of the page, in the page itself (so that the test can drive another page meanwhile):
+# from now until the status widget, once it showed the run, is gone again. Epoch milliseconds.
+_RUN_TIMER = """() => {
+  const r = window.__iptmRun = {start: Date.now(), busy: null, end: null};
+  const busy = () => { const w = document.querySelector('[data-testid="stStatusWidget"]');
+                       return !!w && /Running|Stop/.test(w.innerText); };
+  const tick = () => {
+    if (busy()) { if (r.busy === null) r.busy = Date.now(); }
+    else if (r.busy !== null) { r.end = Date.now(); return; }
+    setTimeout(tick, 20);
+  };
+  tick();
+}"""
+
+
+def _start_calibration(page, truncate_s: float) -> None:
+    box = page.get_by_label("Use only the first ... seconds of each log (0 = whole log)", exact=True)
+    box.fill(f"{truncate_s:g}")
+    box.press("Enter")
+    _idle(page)
+    page.evaluate(_RUN_TIMER)
+    page.get_by_role("button", name="Run calibration").click()
+
+
+def _calibration_seconds(page) -> tuple[float, float]:
+    """(seconds from the click to the end of the run, epoch seconds of that end) of the run timed by
+    :data:`_RUN_TIMER`, once it has ended."""
+    page.wait_for_function("() => window.__iptmRun.end !== null", timeout=LONG)
+    r = page.evaluate("window.__iptmRun")
+    page.get_by_role("heading", name="Calibrated parameters").wait_for(timeout=60_000)
+    return (r["end"] - r["start"]) / 1000, r["end"] / 1000
+
+
+def _rss_kib(pid: int, field: str) -> int:
+    line = next(ln for ln in Path(f"/proc/{pid}/status").read_text().splitlines() if ln.startswith(field + ":"))
+    return int(line.split()[1])
+
+
+def _reset_peak_rss(pid: int) -> int:
+    """Resets the process's peak resident memory (VmHWM) to its current one, returned in KiB."""
+    Path(f"/proc/{pid}/clear_refs").write_text("5")
+    return _rss_kib(pid, "VmRSS")
+
+
+class _HealthProbe(threading.Thread):
+    """Asks the server's health endpoint every 0.1 s until stopped: (seconds to answer, HTTP status or error)."""
+
+    def __init__(self, url: str):
+        super().__init__(daemon=True)
+        self.url, self.answers, self.halt = url + "/_stcore/health", [], threading.Event()
+
+    def run(self):
+        while not self.halt.is_set():
+            t = time.perf_counter()
+            try:
+                with urllib.request.urlopen(self.url, timeout=5) as r:
+                    got = r.status
+            except OSError as exc:
+                got = f"{type(exc).__name__}: {exc}"
+            self.answers.append((time.perf_counter() - t, got))
+            self.halt.wait(0.1)
+
+
+NOTE_MD = "![pixel](http://127.0.0.1:9/p.png) **bold**"  # a remote image and bold text, if rendered
+WARN_MD = "![pixel](http://127.0.0.1:9/w.png) **bold**"  # the same, in a note the page shows as a warning
+
+
+def test_hostile_uploads_in_one_session_leave_another_sessions_calibration_on_time(sync_playwright, server):
+    """Session A uploads a unit bomb, an MCAP decompression bomb and a log with a Markdown header note while
+    session B calibrates the bundled logs: B's answer comes within about twice its time alone, B sees no
+    error, the health check answers throughout, the server's memory does not jump, A gets a clear message
+    for each bomb and its note as text (no image fetched, nothing rendered)."""
+    from playwright.sync_api import TimeoutError as PlaywrightTimeout
+
+    url, tmp, pid = server
+    unit_bomb = tmp / "unit_bomb.csv"
+    unit_bomb.write_text("time [s],speed [km/h**9**9**9]\n0,1\n1,2\n")
+    zip_bomb, intact, at = _mcap_bomb(tmp / "zip_bomb.mcap")
+    from calib.ingest import read_log
+
+    kept = read_log(intact)  # what the bomb's file still holds
+    md = _small_csv(tmp / "markdown_note.csv", 120.0, notes=(NOTE_MD, "warning: " + WARN_MD))
+    md_s = read_log(md).duration_s
+    requests: list[str] = []
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
+        try:
+            a_ctx, b_ctx = (browser.new_context(viewport={"width": 1400, "height": 1800}) for _ in "ab")
+            a_ctx.on("request", lambda r: requests.append(r.url))
+            a, b = a_ctx.new_page(), b_ctx.new_page()
+            for page in (a, b):
+                page.goto(url, wait_until="domcontentloaded")
+                page.get_by_role("heading", name="Logs").first.wait_for(timeout=60_000)
+                _idle(page)
+            b.get_by_role("button", name="Load the bundled sample logs (SYNTHETIC)").click()
+            b.get_by_text("winter_warm_restart.blf [SYNTHETIC]").first.wait_for(timeout=120_000)
+            _idle(b)
+            _goto(b, "Calibrate")
+            # the server's first calibration also compiles the numba kernels: not part of B's usual time
+            b.get_by_role("button", name="Run calibration").click()
+            b.get_by_role("heading", name="Calibrated parameters").wait_for(timeout=LONG)
+            _idle(b)
+            # Each timed run fits the whole of every log (none is longer than 2600 s); its own truncation
+            # gives it its own key in the page's calibration cache, so each is computed.
+            base_alone = _reset_peak_rss(pid)
+            _start_calibration(b, 3000)
+            alone, _ = _calibration_seconds(b)
+            _idle(b)
+            peak_alone = _rss_kib(pid, "VmHWM") - base_alone
+
+            health = _HealthProbe(url)
+            base_loaded = _reset_peak_rss(pid)
+            _start_calibration(b, 4000)
+            health.start()
+            try:
+                a_began = time.time()
+                uploader = a.locator('[data-testid="stFileUploader"] input[type="file"]').first
+                said = {}  # what the page says about each upload when it has read it
+                for f in (unit_bomb, zip_bomb, md):
+                    uploader.set_input_files(str(f))  # each outcome is awaited before the next file is added
+                    outcome = a.locator('[data-testid^="stAlertContent"]').filter(
+                        has_text=re.compile(rf"^(Could not load )?{re.escape(f.name)}"))
+                    try:
+                        outcome.first.wait_for(timeout=60_000)
+                    except PlaywrightTimeout:
+                        pytest.fail(f"{f.name}: no outcome in the page within 60 s of its upload")
+                    _idle(a)
+                    said[f.name] = {k: a.locator(f'[data-testid="stAlertContent{k}"]').filter(has_text=f.name)
+                                    .all_inner_texts() for k in ("Error", "Warning", "Success")}
+            finally:
+                health.halt.set()
+                health.join(timeout=10)
+            loaded, b_ended = _calibration_seconds(b)
+            _idle(b)
+            peak_loaded = _rss_kib(pid, "VmHWM") - base_loaded
+            print(f"\nB's calibration alone: {alone:.1f} s; with A's uploads: {loaded:.1f} s; health check: "
+                  f"{len(health.answers)} answers, slowest {max(s for s, _ in health.answers):.2f} s; server peak "
+                  f"memory above its start: {peak_alone / 1024:.0f} MiB alone, {peak_loaded / 1024:.0f} MiB with A")
+
+            # B: its answer in its usual time, while A's uploads went on, and no error
+            assert b_ended > a_began, "B's calibration ended before A's uploads began: nothing was measured"
+            assert loaded <= 2 * alone + 5, f"B took {loaded:.1f} s with A's uploads, {alone:.1f} s alone"
+            for tid in ("stException", "stAlertContentError"):
+                assert b.locator(f'[data-testid="{tid}"]').count() == 0, b.locator(f'[data-testid="{tid}"]').all_inner_texts()
+            assert b.get_by_text("unit_bomb.csv").count() == b.get_by_text("zip_bomb.mcap").count() == 0
+            # the server answered its health check all the while, and no bomb cost it memory
+            assert len(health.answers) >= 5, health.answers
+            assert all(got == 200 for _, got in health.answers), [g for _, g in health.answers if g != 200]
+            assert peak_loaded < peak_alone + 500 * 1024, (peak_alone, peak_loaded)
+
+            # A: the unit bomb is refused with one message naming the column
+            assert said["unit_bomb.csv"]["Success"] == said["unit_bomb.csv"]["Warning"] == []
+            err = [m for m in said["unit_bomb.csv"]["Error"] if m.startswith("Could not load unit_bomb.csv: ")]
+            assert len(err) == 1 and "speed [km/h**9**9**9]" in err[0], said["unit_bomb.csv"]
+            # the decompression bomb: its chunk refused by name, the rest of the drive read, never in green
+            bomb = said["zip_bomb.mcap"]
+            assert bomb["Success"] == [] and not [m for m in bomb["Error"] if "Could not load" in m], bomb
+            warn = [m for m in bomb["Warning"] if m.startswith("zip_bomb.mcap [SYNTHETIC] [RECOVERED]: ")]
+            assert len(warn) == 1, bomb
+            assert warn[0].startswith(f"zip_bomb.mcap [SYNTHETIC] [RECOVERED]: {kept.duration_s:.0f} s, "
+                                      f"{len(kept.channels())} channels: "), warn
+            assert f"chunk at byte {at}" in warn[0] and "4096 bytes" in warn[0], warn
+            # and it stays in red while that log is selected
+            assert a.locator('[data-testid="stAlertContentError"]').filter(has_text=f"chunk at byte {at}").count() == 1
+            assert said["markdown_note.csv"]["Error"] == []
+            assert [m for m in said["markdown_note.csv"]["Success"]
+                    if m.startswith(f"markdown_note.csv [SYNTHETIC]: {md_s:.0f} s, ")], said["markdown_note.csv"]
+            assert a.locator('[data-testid="stException"]').count() == 0
+
+            # the Markdown note: nothing of it rendered or fetched, and it is shown as written, as a warning
+            # and in the provenance
+            a.locator('[data-testid="stSelectbox"]').filter(has=a.get_by_text("Log", exact=True)).click()
+            a.get_by_role("option", name="markdown_note.csv [SYNTHETIC]").click()
+            a.get_by_text("markdown_note.csv is SYNTHETIC").wait_for(timeout=30_000)  # the run for it has begun
+            _idle(a)
+            a.get_by_role("tab", name="Channel report").click()
+            rendered = a.evaluate("""() => ({
+                img: [...document.images].map(i => i.src).filter(s => s.includes('127.0.0.1:9')),
+                bold: [...document.querySelectorAll('strong, b, em')].filter(e => e.innerText === 'bold').length})""")
+            assert rendered == {"img": [], "bold": 0}, rendered
+            assert not [u for u in requests if "127.0.0.1:9/" in u], "the browser fetched the note's image"
+            # as written, but for the invisible word joiner that keeps the address from becoming a link
+            warnings = [w.strip().replace("\u2060", "")
+                        for w in a.locator('[data-testid="stAlertContentWarning"]').all_inner_texts()]
+            assert WARN_MD in warnings, warnings
+            assert a.locator('a[href*="127.0.0.1:9"]').count() == 0
+            a.get_by_role("tab", name="Provenance").click()
+            prov = a.locator('[data-testid="stJson"]')
+            prov.locator(".node-ellipsis").first.click()  # the whole record, then its notes
+            prov.locator(".object-key-val").filter(has_text='"notes"').last.locator(".node-ellipsis").first.click()
+            assert prov.get_by_text(f'"{NOTE_MD}"').count() == 1
+            assert prov.get_by_text(f'"warning: {WARN_MD}"').count() == 1
         finally:
             browser.close()
