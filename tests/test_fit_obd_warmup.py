@@ -12,28 +12,17 @@ import functools
 import numpy as np
 import pytest
 
-from calib.drivelog import DriveLog
 from calib.errors import IptmError
 from calib.fit.driver import calibrate
 from calib.fit.replay import log_arrays
 from calib.fit.validate import replay
 from calib.ingest import to_drivelog
+from test_fit_sparse import binned_only  # the tests folder is on the path (rootdir import mode)
 from calib.model.equations import IDLE, OFF, ON
 from calib.model.params import default_parameters
 from calib.synth_perturbed import OBD_PIDS, PARKED_WARMUP, draw_plant, synthesise_perturbed_obd
 
 POLLED = [c for c, _, _ in OBD_PIDS if c != "maf_g_per_s"] + ["fuel_rate_g_per_s"]
-
-
-def binned_only(log, streams, channels):
-    """The table with each of ``channels`` kept only in the bins that hold one of its samples."""
-    d = log.data.copy()
-    for ch in channels:
-        idx = np.floor(streams[ch].index.to_numpy(float) / log.dt + 0.5).astype(int)
-        keep = np.zeros(len(d), bool)
-        keep[idx[idx < len(d)]] = True
-        d.loc[~keep, ch] = np.nan
-    return DriveLog(d, log.meta)
 
 
 @functools.lru_cache(maxsize=None)

@@ -134,13 +134,16 @@ def fit_cabin(logs, base, *, allowed=None, heater=None) -> SubsystemFit:
     cand = [n for n in ("C_cab_J_per_K", "UA_cab_W_per_K", "Q_sun_W") if n in allowed]
     if not cand:
         return fit
-    if not use:
-        msg = ("cabin parameters not fitted: no log has cabin temperature, ambient temperature and heater power ("
-               + "; ".join(f"{k}: {v}" for k, v in fit.skipped.items()) + ")")
+    def none_fitted(why):  # the cabin parameters at their priors; eps_hc, estimated above, kept
         keep = dict(fit.estimates)
-        not_fitted(fit, base, cand, msg)
+        not_fitted(fit, base, cand, f"cabin parameters not fitted: no log has {why} ("
+                   + "; ".join(f"{k}: {v}" for k, v in fit.skipped.items()) + ")")
         fit.estimates.update(keep)
+        fit.logs = []
         return fit
+
+    if not use:
+        return none_fitted("cabin temperature, ambient temperature and heater power")
     mp0 = base.model_params()
     data = []
     for i, lg in enumerate(use):
@@ -165,13 +168,7 @@ def fit_cabin(logs, base, *, allowed=None, heater=None) -> SubsystemFit:
             data.append(dict(T=Tj, ok=np.isfinite(Tj), dt=la.dt, T_amb=T_amb[a:b], Q=Q[a:b],
                              T0=first_valid_mean(Tj, 5, 0.0), name=f"Tc0_{i}" if j == 0 else f"Tc0_{i}_{j}"))
     if not data:
-        msg = ("cabin parameters not fitted: no log has a run of known heater heat and ambient ("
-               + "; ".join(f"{k}: {v}" for k, v in fit.skipped.items()) + ")")
-        keep = dict(fit.estimates)
-        not_fitted(fit, base, cand, msg)
-        fit.estimates.update(keep)
-        fit.logs = []
-        return fit
+        return none_fitted("a run of known heater heat and ambient")
     fit.logs = list(fit.used)
     bnd = {n: base.param(n).bounds for n in cand}
     prior = {n: float(base[n]) for n in cand}
