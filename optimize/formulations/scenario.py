@@ -88,9 +88,6 @@ class DPScenario:
                                     f"{lo} must be below {hi}")
         if not (0.0 <= self.soc_min and self.soc_max <= 1.0):
             raise ScenarioError(f"scenario SOC window [{self.soc_min:g}, {self.soc_max:g}] must lie inside [0, 1]")
-        if not self.soc_min <= self.soc0 <= self.soc_max:
-            raise ScenarioError(f"scenario field soc0 = {self.soc0:g} is outside the SOC window [soc_min, soc_max] = "
-                                f"[{self.soc_min:g}, {self.soc_max:g}]: start inside it, or widen the window")
         if self.terminal not in TERMINALS:
             raise ScenarioError(f"terminal {self.terminal!r}: choose one of {', '.join(TERMINALS)}")
         if self.cont_soc_band is not None and not self.cont_soc_band >= 0:
