@@ -93,3 +93,45 @@ def save_figure(fig, path, dpi: int = 110) -> None:
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip(".") or "png")
     plt.close(fig)
+
+
+#: Largest configuration file (parameters, scenario, study, map) read, in bytes: such files are a few kB; a
+#: larger one (or a device such as /dev/zero) is refused before it is read.
+MAX_CONFIG_BYTES = 16 * 2**20
+
+
+def read_config(path, error, what: str = "file") -> dict:
+    """A TOML (or, by its suffix, JSON) configuration file as a dict, read within limits.
+
+    Refuses, with one ``error(message)`` naming the file: a path that is not a regular file, a file over
+    :data:`MAX_CONFIG_BYTES`, bytes that are not UTF-8, a syntax error, an integer of more digits than Python
+    converts (``ValueError``), nesting deeper than the parser's recursion allows, and a top level that is not
+    a table.
+    """
+    import tomllib
+
+    p = Path(path)
+    try:
+        st = p.stat()
+    except OSError as exc:
+        raise error(f"{p}: cannot read {what} ({exc.strerror})") from None
+    import stat as _stat
+
+    if not _stat.S_ISREG(st.st_mode):
+        raise error(f"{p}: not a regular file: give a {what} (TOML or JSON)")
+    if st.st_size > MAX_CONFIG_BYTES:
+        raise error(f"{p}: {st.st_size / 2**20:.1f} MiB is too large for a {what} (at most "
+                    f"{MAX_CONFIG_BYTES / 2**20:.0f} MiB)")
+    try:
+        text = p.read_bytes().decode("utf-8")
+        d = json.loads(text) if p.suffix.lower() == ".json" else tomllib.loads(text)
+    except OSError as exc:
+        raise error(f"{p}: cannot read {what} ({exc.strerror})") from None
+    except RecursionError:
+        raise error(f"{p}: not a valid {what}: nested too deeply") from None
+    except (ValueError, UnicodeDecodeError) as exc:  # syntax, non-UTF-8, over-long integers
+        kind = "JSON" if p.suffix.lower() == ".json" else "TOML"
+        raise error(f"{p}: not a valid {kind} {what}: {str(exc).splitlines()[0][:200]}") from None
+    if not isinstance(d, dict):
+        raise error(f"{p}: a {what} must be a table of fields, not {type(d).__name__}")
+    return d

@@ -21,7 +21,6 @@ import shutil
 import sys
 import time
 import warnings
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -70,12 +69,9 @@ def load_scenario(path=None):
     if path is None:
         return DPScenario(), DEFAULT_GRIDS, STRATEGIES, None
     path = Path(path)
-    try:
-        d = tomllib.loads(path.read_text())
-    except OSError as exc:
-        raise ScenarioError(f"{path}: cannot read scenario file ({exc.strerror})") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise ScenarioError(f"{path}: not valid TOML ({exc})") from None
+    from calib.fileio import read_config
+
+    d = read_config(path, ScenarioError, "scenario file")
     unknown = set(d) - {"scenario", "grids", "run"}
     if unknown:
         raise ScenarioError(f"{path}: unknown section(s) {sorted(unknown)}; use [scenario], [grids], [run]")

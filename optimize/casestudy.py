@@ -24,6 +24,11 @@ STRATEGIES = ("rule", "baseline", "thermal", "thermal_cabin")
 CAUSAL = ("ecms", "sdp")
 
 
+def _saving(x, ref) -> float:
+    """``100 (1 - x / ref)``, NaN where the reference burns no fuel (a drive too short to start the engine)."""
+    return 100.0 * (1.0 - x / ref) if ref and np.isfinite(ref) else float("nan")
+
+
 @dataclass
 class CaseStudy:
     """Results of the case study: ``sims`` (label key -> SimResult), ``outcomes`` (DP outcomes),
@@ -63,16 +68,16 @@ class CaseStudy:
                 "engine_starts": s["engine_starts"], "idle_s": s["idle_s"],
                 "heater_kJ": s["heater_delivered_J"] / 1e3,
                 "charge_sustaining": bool(s["soc_final"] >= s["soc_initial"] - tol),
-                "saving_vs_rule_pct": 100 * (1 - c / c_rule) if key != "baseline_warm" else np.nan,
-                "raw_saving_vs_rule_pct": 100 * (1 - f / ref_rule) if key != "baseline_warm" else np.nan,
+                "saving_vs_rule_pct": _saving(c, c_rule) if key != "baseline_warm" else np.nan,
+                "raw_saving_vs_rule_pct": _saving(f, ref_rule) if key != "baseline_warm" else np.nan,
                 "paper_vs_rule_pct": paper.get("vs_rule", np.nan),
-                "saving_vs_baseline_pct": 100 * (1 - c / c_base) if key != "baseline_warm" else np.nan,
-                "raw_saving_vs_baseline_pct": 100 * (1 - f / ref_base) if key != "baseline_warm" else np.nan,
+                "saving_vs_baseline_pct": _saving(c, c_base) if key != "baseline_warm" else np.nan,
+                "raw_saving_vs_baseline_pct": _saving(f, ref_base) if key != "baseline_warm" else np.nan,
                 "paper_vs_baseline_pct": paper.get("vs_baseline", np.nan),
-                "saving_vs_thermal_pct": 100 * (1 - c / c_th) if key == "thermal_cabin" else np.nan,
-                "raw_saving_vs_thermal_pct": 100 * (1 - f / ref_th) if key == "thermal_cabin" else np.nan,
+                "saving_vs_thermal_pct": _saving(c, c_th) if key == "thermal_cabin" else np.nan,
+                "raw_saving_vs_thermal_pct": _saving(f, ref_th) if key == "thermal_cabin" else np.nan,
                 "paper_vs_thermal_pct": paper.get("vs_thermal", np.nan),
-                "gap_to_dp_pct": 100 * (s["fuel_corrected_g"] / c_th - 1),  # corrected fuel vs Thermal-DP
+                "gap_to_dp_pct": -_saving(s["fuel_corrected_g"], c_th),  # corrected fuel vs Thermal-DP
             })
         df = pd.DataFrame(rows).set_index("strategy")
         return df.astype({c: float for c in df.columns if c.startswith("paper")})

@@ -49,7 +49,6 @@ import asyncio
 import itertools
 import os
 import time
-import tomllib
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -255,10 +254,21 @@ def load_study(path) -> Study:
     path = Path(path)
     if not path.is_file():
         raise ScenarioError(f"study file {path} not found")
+    from calib.fileio import read_config
+
+    d = read_config(path, ScenarioError, "study file")
     try:
-        d = tomllib.loads(path.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise ScenarioError(f"{path}: not valid TOML ({exc})") from None
+        return _study_checked(d, path)
+    except ScenarioError:
+        raise
+    except (TypeError, ValueError, AttributeError, OverflowError) as exc:
+        # a field of the wrong kind the checks do not name ([params] files not a list, hold_s not a number...)
+        raise ScenarioError(f"{path}: a field has the wrong type ({str(exc).splitlines()[0][:120]})") from None
+
+
+def _study_checked(d, path):
+    from calib.errors import ScenarioError
+
     try:
         return study_from_dict(d, base_dir=path.parent, source=str(path), default_name=path.stem)
     except ScenarioError as exc:

@@ -284,21 +284,10 @@ def load_map(path) -> dict:
 
     Returns ``{"columns": {...}, "topics": {...}, "signals": {...}}``.
     """
-    p = Path(path)
-    if not p.exists():
-        raise LogFormatError(path, "map file not found")
-    text = p.read_text(encoding="utf-8", errors="replace")
-    try:
-        if p.suffix.lower() == ".json":
-            d = json.loads(text)
-        else:
-            import tomllib
+    from calib.fileio import read_config
 
-            d = tomllib.loads(text)
-    except Exception as exc:  # noqa: BLE001 - json/toml decode errors carry line numbers in the text
-        raise LogFormatError(path, f"cannot parse map: {str(exc).splitlines()[0][:160]}") from None
-    if not isinstance(d, dict):
-        raise LogFormatError(path, "map must be a table/object")
+    p = Path(path)
+    d = read_config(p, lambda msg: LogFormatError(path, msg.removeprefix(f"{p}: ")), "map file")
     extra = set(d) - {"columns", "topics", "signals"}
     if extra:
         raise LogFormatError(path, f"unknown map section(s): {', '.join(sorted(extra))}",

@@ -756,7 +756,10 @@ def read_can_streams(path, *, fmt: str, dbc=None, signal_map=None, strict: bool 
     if t0 > 1e9:  # epoch seconds (candump -L on a live bus); a monotonic clock is not a date
         import datetime as _dt
 
-        meta.start_time = _dt.datetime.fromtimestamp(t0, tz=_dt.timezone.utc).isoformat()
+        try:
+            meta.start_time = _dt.datetime.fromtimestamp(t0, tz=_dt.timezone.utc).isoformat()
+        except (OverflowError, ValueError, OSError):  # beyond year 9999 or the platform's time_t: not a date
+            meta.notes.append(f"warning: the first time stamp {t0:.6g} s is not a date; no start time recorded")
     info = res["signals"].get(("IPTM_LOG_INFO", "SYNTHETIC"))
     if res["synthetic_comment"] or (info is not None and np.any(info[1] == 1)):
         meta.synthetic = True

@@ -279,7 +279,8 @@ def make_series(t, v, channel: str, meta=None, absent=None) -> pd.Series:
         Samples that were never there (an empty CSV cell): not counted as read. Without it every NaN counts
         as a non-finite reading.
     """
-    t = np.round(np.asarray(t, dtype=float), 6)
+    with np.errstate(over="ignore", invalid="ignore"):  # a time of 1e308 s rounds to inf: non-finite, counted
+        t = np.round(np.asarray(t, dtype=float), 6)
     v = np.asarray(v, dtype=float)
     if absent is not None:
         there = ~np.asarray(absent, dtype=bool)

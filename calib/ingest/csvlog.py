@@ -178,6 +178,12 @@ def read_csv_streams(path, column_map: dict | None = None, strict: bool = False,
         recognised, unknown unit, no readable row; under ``strict`` also the first damaged row (naming
         the line and, for a bad cell, the column).
     """
+    # absurd clocks (1e308 s) overflow in the shifts and roundings; they end as non-finite samples, counted
+    with np.errstate(over="ignore", invalid="ignore"):
+        return _read_csv(path, column_map, strict, app)
+
+
+def _read_csv(path, column_map, strict, app):
     head = sniff_text_lenient(path, "CSV").lstrip("\ufeff")
     comments, n_skip = _read_comments(head)
     meta = LogMeta(source=str(path), sha256=file_sha256(path), format="csv")

@@ -2,6 +2,7 @@
 reader (:mod:`calib.ingest.canlog`) and the OBD-II decoder (:mod:`calib.ingest.obd`)."""
 from __future__ import annotations
 
+import math
 from importlib import resources
 from pathlib import Path
 
@@ -21,10 +22,22 @@ def load_dbc(dbc, path_for_errors=None):
     if not dbc.exists():
         raise LogFormatError(dbc, "DBC file not found")
     try:
-        return cantools.database.load_file(str(dbc), database_format="dbc", strict=False)
+        db = cantools.database.load_file(str(dbc), database_format="dbc", strict=False)
     except Exception as exc:  # noqa: BLE001 - cantools raises many parser types; all mean "bad DBC"
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise LogFormatError(dbc, f"cannot parse DBC: {msg[:200]}") from None
+    for m in db.messages:  # a scale or offset no float holds would overflow in the decoding
+        for sg in m.signals:
+            for what in ("scale", "offset", "minimum", "maximum"):
+                v = getattr(sg, what)
+                try:
+                    ok = v is None or math.isfinite(float(v))
+                except (OverflowError, TypeError, ValueError):
+                    ok = False
+                if not ok:
+                    raise LogFormatError(dbc, f"signal {m.name}.{sg.name}: {what} {str(v)[:24]!r} is not a finite "
+                                              "number", hint="correct the DBC")
+    return db
 
 
 def _signal_is_vectorisable(msg, sig) -> bool:

@@ -649,7 +649,8 @@ def read_mcap_streams(path, topic_map: dict | None = None, strict: bool = False)
             meta.vehicle_id = d.get("vehicle_id", "")
             meta.start_time = d.get("start_time") or None
     if state["n_msgs"] == 0:
-        extra = f" ({'; '.join(dmg.problems)})" if dmg else ""
+        # name the records that were refused (a decompression bomb: "chunk at byte N ... declared ...")
+        extra = f" ({'; '.join(scan.refused or dmg.where or list(dmg.problems))})" if dmg or scan.refused else ""
         if dmg.truncated_at is not None and "zstd" in extra:
             extra += " - the cut falls in the chunk's first zstd block (up to 128 kB of records)"
         raise LogFormatError(path, "MCAP file holds no readable messages" + extra)

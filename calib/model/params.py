@@ -25,9 +25,7 @@ unit, an unknown name, a value outside its bounds or a non-monotonic table break
 from __future__ import annotations
 
 import copy
-import json
 import math
-import tomllib
 from collections import namedtuple
 from dataclasses import dataclass, field
 from importlib import resources
@@ -455,19 +453,10 @@ class ParameterSet:
         Parameters missing from the file keep the values of ``base`` (default: the default Prius), so a
         file may hold only what it changes. Units are converted to each parameter's canonical unit.
         """
+        from calib.fileio import read_config
+
         path = Path(path)
-        try:
-            raw = path.read_bytes()
-        except OSError as exc:
-            raise ParameterError(f"{path}: cannot read parameter file ({exc.strerror})") from None
-        try:
-            if path.suffix.lower() == ".json":
-                d = json.loads(raw)
-            else:
-                d = tomllib.loads(raw.decode("utf-8"))
-        except (ValueError, UnicodeDecodeError) as exc:
-            raise ParameterError(f"{path}: not a valid {path.suffix.lstrip('.').upper() or 'TOML'} "
-                                 f"parameter file: {exc}") from None
+        d = read_config(path, ParameterError, "parameter file")
         return cls.from_dict(d, base=base, origin=str(path))
 
     @classmethod
@@ -475,83 +464,98 @@ class ParameterSet:
         new = (base or default_parameters()).copy()
         if not isinstance(d, dict) or not isinstance(d.get("parameters", {}), dict):
             raise ParameterError(f"{origin}: expected a [parameters] table")
+        if not isinstance(d.get("meta", {}), dict):
+            raise ParameterError(f"{origin}: [meta] must be a table")
         new.meta.update(d.get("meta", {}))
         new.meta["file"] = origin
-        limits = physical_limits()
         for name, entry in d.get("parameters", {}).items():
-            if name not in new:
-                import difflib
-
-                close = difflib.get_close_matches(str(name), new.names(), n=3, cutoff=0.6)
-                hint = f"did you mean {' or '.join(close)}?" if close else "`iptm params` lists the parameters"
-                raise ParameterError(f"{origin}: unknown parameter {name!r} ({hint})")
-            p = new.param(name)
-            if not isinstance(entry, dict):
-                entry = {"value": entry}
-            unknown = [k for k in entry if k not in ENTRY_FIELDS]
-            if unknown:
-                import difflib
-
-                k = unknown[0]
-                close = difflib.get_close_matches(str(k), ENTRY_FIELDS, n=1, cutoff=0.6)
-                raise ParameterError(f"{origin}: parameter {name}: unknown field {k!r}"
-                                     + (f" (did you mean {close[0]!r}?)" if close else
-                                        f" (fields: {', '.join(ENTRY_FIELDS)})"))
-            if "value" not in entry:
-                raise ParameterError(f"{origin}: parameter {name} has no value")
-            val = entry["value"]
-            if p.is_table != isinstance(val, list):
-                kind = "a table (list)" if p.is_table else "a scalar"
-                raise ParameterError(f"{origin}: parameter {name} must be {kind}")
-            unit = entry.get("unit", p.unit)
-            val = _convert(val, unit, p.unit, f"{origin}: parameter {name}")
-            p.value = [float(v) for v in val] if p.is_table else float(val)
-            if p.is_table and "x" in entry:
-                xu = entry.get("x_unit", p.x_unit)
-                p.x = [float(v) for v in _convert(entry["x"], xu, p.x_unit, f"{origin}: breakpoints of {name}")]
-            if "prior_sd" not in entry and (p.name in PRIOR_SD or p.name in TABLE_PRIOR_SD):
-                # the default uncertainty of the new value (and breakpoints)
-                p.prior_sd = None
-                if not p.is_table or len(p.x) == len(p.value):  # else validate() names the mismatch
-                    p.prior_sd = prior_sd_of(p)
-            for key in ("source", "description", "status", "note"):
-                if key in entry:
-                    setattr(p, key, str(entry[key]))
-            if "stderr" in entry:
-                p.stderr = entry["stderr"]
-            if "logs" in entry:
-                p.logs = list(entry["logs"])
-            if "entry_status" in entry and p.is_table:
-                st = entry["entry_status"]
-                if not (isinstance(st, list) and len(st) == len(p.value)):
-                    raise ParameterError(f"{origin}: entry_status of {name} must list one status per table entry")
-                p.entry_status = [str(v) for v in st]
-            for key in ("prior_sd", "prior_value", "informed"):
-                if key in entry:
-                    setattr(p, key, entry[key])
-            if "prior_sd" in entry:
-                _check_prior_sd(entry["prior_sd"], p, origin)
-            if "bounds" in entry:
-                b = entry["bounds"]
-                if not (isinstance(b, list) and len(b) == 2):
-                    raise ParameterError(f"{origin}: bounds of {name} must be [low, high]")
-                # Bounds belong to the parameter and are in its canonical unit (what save() writes), whatever
-                # unit the value is given in; ``bounds_unit`` states another unit explicitly.
-                bu = entry.get("bounds_unit", p.unit)
-                lo, hi = (float(v) for v in _convert(b, bu, p.unit, f"{origin}: bounds of {name}"))
-                llo, lhi = limits[name]
-                if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
-                    raise ParameterError(f"{origin}: bounds of {name} must be two finite numbers, low < high; got {b}")
-                if lo < llo or hi > lhi:
-                    raise ParameterError(f"{origin}: bounds of {name} [{lo:g}, {hi:g}] {p.unit} go beyond its physical "
-                                         f"limits [{llo:g}, {lhi:g}] {p.unit}: a parameter file may narrow the "
-                                         "bounds, never widen them")
-                p.bounds = (lo, hi)
+            try:
+                new._read_entry(name, entry, origin)
+            except (TypeError, ValueError, AttributeError, OverflowError) as exc:
+                # a field of the wrong kind that the checks below do not name (a table where text goes, ...)
+                raise ParameterError(f"{origin}: parameter {name}: a field has the wrong type "
+                                     f"({str(exc).splitlines()[0][:120]})") from None
         try:
             new.validate()
         except ParameterError as exc:
             raise ParameterError(f"{origin}: {exc}") from None
         return new
+
+    def _read_entry(self, name, entry, origin: str) -> None:
+        """Apply one ``[parameters.NAME]`` entry of a file (checked field by field)."""
+        new = self
+        limits = physical_limits()
+        if name not in new:
+            import difflib
+
+            close = difflib.get_close_matches(str(name), new.names(), n=3, cutoff=0.6)
+            hint = f"did you mean {' or '.join(close)}?" if close else "`iptm params` lists the parameters"
+            raise ParameterError(f"{origin}: unknown parameter {name!r} ({hint})")
+        p = new.param(name)
+        if not isinstance(entry, dict):
+            entry = {"value": entry}
+        unknown = [k for k in entry if k not in ENTRY_FIELDS]
+        if unknown:
+            import difflib
+
+            k = unknown[0]
+            close = difflib.get_close_matches(str(k), ENTRY_FIELDS, n=1, cutoff=0.6)
+            raise ParameterError(f"{origin}: parameter {name}: unknown field {k!r}"
+                                 + (f" (did you mean {close[0]!r}?)" if close else
+                                    f" (fields: {', '.join(ENTRY_FIELDS)})"))
+        if "value" not in entry:
+            raise ParameterError(f"{origin}: parameter {name} has no value")
+        val = entry["value"]
+        if p.is_table != isinstance(val, list):
+            kind = "a table (list)" if p.is_table else "a scalar"
+            raise ParameterError(f"{origin}: parameter {name} must be {kind}")
+        unit = entry.get("unit", p.unit)
+        val = _convert(val, unit, p.unit, f"{origin}: parameter {name}")
+        p.value = [float(v) for v in val] if p.is_table else float(val)
+        if p.is_table and "x" in entry and not isinstance(entry["x"], list):
+            raise ParameterError(f"{origin}: breakpoints x of {name} must be a list of numbers")
+        if p.is_table and "x" in entry:
+            xu = entry.get("x_unit", p.x_unit)
+            p.x = [float(v) for v in _convert(entry["x"], xu, p.x_unit, f"{origin}: breakpoints of {name}")]
+        if "prior_sd" not in entry and (p.name in PRIOR_SD or p.name in TABLE_PRIOR_SD):
+            # the default uncertainty of the new value (and breakpoints)
+            p.prior_sd = None
+            if not p.is_table or len(p.x) == len(p.value):  # else validate() names the mismatch
+                p.prior_sd = prior_sd_of(p)
+        for key in ("source", "description", "status", "note"):
+            if key in entry:
+                setattr(p, key, str(entry[key]))
+        if "stderr" in entry:
+            p.stderr = _numbers(entry["stderr"], f"{origin}: stderr of {name}")
+        if "logs" in entry:
+            p.logs = list(entry["logs"])
+        if "entry_status" in entry and p.is_table:
+            st = entry["entry_status"]
+            if not (isinstance(st, list) and len(st) == len(p.value)):
+                raise ParameterError(f"{origin}: entry_status of {name} must list one status per table entry")
+            p.entry_status = [str(v) for v in st]
+        for key in ("prior_sd", "prior_value", "informed"):
+            if key in entry:
+                setattr(p, key, _numbers(entry[key], f"{origin}: {key} of {name}")
+                        if key != "prior_sd" else entry[key])
+        if "prior_sd" in entry:
+            _check_prior_sd(entry["prior_sd"], p, origin)
+        if "bounds" in entry:
+            b = entry["bounds"]
+            if not (isinstance(b, list) and len(b) == 2):
+                raise ParameterError(f"{origin}: bounds of {name} must be [low, high]")
+            # Bounds belong to the parameter and are in its canonical unit (what save() writes), whatever
+            # unit the value is given in; ``bounds_unit`` states another unit explicitly.
+            bu = entry.get("bounds_unit", p.unit)
+            lo, hi = (float(v) for v in _convert(b, bu, p.unit, f"{origin}: bounds of {name}"))
+            llo, lhi = limits[name]
+            if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+                raise ParameterError(f"{origin}: bounds of {name} must be two finite numbers, low < high; got {b}")
+            if lo < llo or hi > lhi:
+                raise ParameterError(f"{origin}: bounds of {name} [{lo:g}, {hi:g}] {p.unit} go beyond its physical "
+                                     f"limits [{llo:g}, {lhi:g}] {p.unit}: a parameter file may narrow the "
+                                     "bounds, never widen them")
+            p.bounds = (lo, hi)
 
     def table(self):
         """A pandas DataFrame, one row per parameter (for reports)."""
@@ -600,7 +604,25 @@ def _strip_none(o):
     return o
 
 
+def _numbers(val, what: str):
+    """``val`` (a number or a list of numbers) as floats, or one ParameterError naming ``what``: text, a
+    table, a boolean or an integer too large for a float is not a value."""
+    items = val if isinstance(val, list) else [val]
+    out = []
+    for v in items:
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise ParameterError(f"{what}: {str(v)[:40]!r} is not a number")
+        try:
+            out.append(float(v))
+        except OverflowError:
+            raise ParameterError(f"{what}: {str(v)[:20]}... is too large for a number") from None
+    return out if isinstance(val, list) else out[0]
+
+
 def _convert(val, unit: str, target: str, what: str):
+    val = _numbers(val, what)
+    if not isinstance(unit, str):
+        raise ParameterError(f"{what}: unit {str(unit)[:40]!r} is not a unit string")
     if unit == target:
         return val
     import pint

@@ -49,8 +49,6 @@ def register(sub):
 def _scenario(args):
     """The scenario (file, then command-line options), and the file's ``[grids]`` and ``[run]`` when it has
     them (None otherwise): a scenario file of ``iptm run`` means the same here."""
-    import json
-    import tomllib
     from pathlib import Path
 
     from calib.errors import ScenarioError
@@ -61,12 +59,9 @@ def _scenario(args):
         path = Path(args.scenario)
         if not path.is_file():
             raise ScenarioError(f"scenario file {path} not found")
-        try:
-            d = tomllib.loads(path.read_text()) if path.suffix != ".json" else json.loads(path.read_text())
-        except (tomllib.TOMLDecodeError, json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise ScenarioError(f"{path}: not valid TOML/JSON ({exc})") from None
-        if not isinstance(d, dict):
-            raise ScenarioError(f"{path}: expected a table of scenario fields")
+        from calib.fileio import read_config
+
+        d = read_config(path, ScenarioError, "scenario file")
         if "scenario" in d:
             from iptm.pipeline import load_scenario
 
@@ -118,6 +113,9 @@ def run(args) -> int:
 
     from calib.store import Store
     from iptm.pipeline import optimize_cached
+    from optimize.formulations.scenario import check_grid_axes
+
+    check_grid_axes(scen, grids, ps, chosen)  # before any progress bar: a bad grid is one message
 
     # the same store entries as `iptm run`: the identical problem is solved once
     store = None if args.no_cache else Store(Path(args.cache))

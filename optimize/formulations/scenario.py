@@ -76,10 +76,20 @@ class DPScenario:
     def __post_init__(self):
         for f in fields(self):
             v = getattr(self, f.name)
-            if f.name in ("cycle", "terminal", "cont_cycle") or v is None:
+            if f.name in ("cycle", "terminal", "cont_cycle"):
+                if not isinstance(v, str) or not v.strip():
+                    raise ScenarioError(f"scenario field {f.name} = {str(v)[:40]!r}: give a name (or a CSV file)")
                 continue
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise ScenarioError(f"scenario field {f.name} = {v!r}: give a finite number")
+            if v is None:
+                continue
+            ok = isinstance(v, (int, float)) and not isinstance(v, bool)
+            try:
+                ok = ok and math.isfinite(float(v))
+            except OverflowError:
+                ok = False
+            if not ok:
+                shown = repr(v) if isinstance(v, float) else (str(v)[:40] + ("..." if len(str(v)) > 40 else ""))
+                raise ScenarioError(f"scenario field {f.name} = {shown}: give a finite number")
         if self.duration_s is not None and not self.duration_s > 0:
             raise ScenarioError(f"scenario field duration_s = {self.duration_s!r}: give a positive number of seconds")
         for lo, hi in (("soc_min", "soc_max"), ("T_cl_min", "T_cl_max"), ("Q_heat_min", "Q_heat_max")):
@@ -223,11 +233,13 @@ def parse_grid_steps(spec) -> dict:
         if k not in DPGrids.__dataclass_fields__:
             raise ScenarioError(f"grid spec: unknown grid {k!r}; known: soc, tcl, tcab, pbat, qheat")
         try:
+            if isinstance(v, bool):
+                raise TypeError
             x = float(v)
-        except (TypeError, ValueError):
-            raise ScenarioError(f"grid spec: {k}={v!r} is not a number") from None
-        if not x > 0:
-            raise ScenarioError(f"grid spec: {k} step must be positive")
+        except (TypeError, ValueError, OverflowError):
+            raise ScenarioError(f"grid spec: {k}={str(v)[:40]!r} is not a number") from None
+        if not (x > 0 and math.isfinite(x)):
+            raise ScenarioError(f"grid spec: {k} step must be a positive finite number")
         vals[k] = x
     return vals
 
@@ -256,4 +268,22 @@ def _grid(lo, hi, step, name: str = "grid"):
         raise ScenarioError(f"{name} {lo:g}:{step:g}:{hi:g} has fewer than two points: the step is larger than "
                             "the range")
     return lo + step * np.arange(n)
+
+
+def check_grid_axes(scen: "DPScenario", grids, params, formulations) -> None:
+    """Every axis a formulation will build, checked before anything is solved or drawn (each refusal names the
+    grid, its ends and step; :data:`MAX_AXIS_POINTS`). The cabin axis's span depends on the drive's comfort
+    bounds; it is checked over the widest span a winter cabin grid takes (60 K)."""
+    for f in formulations:
+        if f not in FORMULATIONS:
+            continue
+        g = FormulationGrids.coerce(grids).of(f)
+        _grid(scen.soc_min, scen.soc_max, g.soc, "SOC grid (soc_min:soc:soc_max)")
+        _grid(float(params["P_bat_min_W"]), float(params["P_bat_max_W"]), g.pbat,
+              "battery-power grid (P_bat_min_W:pbat:P_bat_max_W)")
+        if f != "baseline":
+            _grid(scen.T_cl_min, scen.T_cl_max, g.tcl, "coolant grid (T_cl_min:tcl:T_cl_max)")
+        if f == "thermal_cabin":
+            _grid(0.0, 60.0, g.tcab, "cabin grid (tcab over 60 K)")
+            _grid(scen.Q_heat_min, scen.Q_heat_max, g.qheat, "heater grid (Q_heat_min:qheat:Q_heat_max)")
 

@@ -298,7 +298,7 @@ class _Built:
 #: Budgets of one DP problem, checked before anything is allocated (environment variables override them):
 #: states (IPTM_DP_MAX_STATES) and state-control pairs per step (IPTM_DP_MAX_PAIRS). The paper's grids
 #: and their halving (the convergence check) stay well inside; the dashboard's finest sliders do not.
-DP_MAX_STATES = 20_000_000
+DP_MAX_STATES = 4_000_000
 DP_MAX_PAIRS = 2e10
 
 
