@@ -115,3 +115,18 @@ def test_unknown_format(tmp_path):
     p = tmp_path / "x.weird"
     p.write_bytes(b"\x01\x02\x03")
     assert "cannot tell the log format" in _err(p)
+
+
+def test_a_bad_map_target_names_the_map_file(tmp_path):
+    from calib.errors import LogFormatError
+    from calib.ingest import load_map
+
+    f = tmp_path / "m.toml"
+    for text, msg in (('[signals]\n"SPEED.SPEED" = "speed_mps [km/h**9**9]"\n', "exponent 9"),
+                      ('[columns]\nv = "speeed [km/h]"\n', "not a canonical channel"),
+                      ('[topics."/x"]\nspeed = "speed_mps [degC]"\n', "does not fit"),
+                      ('signals = 3\n', "must be a table")):
+        f.write_text(text)
+        with pytest.raises(LogFormatError, match=msg) as err:
+            load_map(f)
+        assert str(f) in str(err.value)

@@ -292,8 +292,42 @@ def load_map(path) -> dict:
     if extra:
         raise LogFormatError(path, f"unknown map section(s): {', '.join(sorted(extra))}",
                              hint="use [columns], [topics.\"/topic\"], [signals]")
+    for sec in ("columns", "topics", "signals"):
+        if not isinstance(d.get(sec, {}), dict):
+            raise LogFormatError(path, f"[{sec}] must be a table", hint="see `iptm ingest --help`")
+    # every target checked here, so that a bad channel or unit names this file, not the log or the DBC
+    for col, target in d.get("columns", {}).items():
+        _check_map_target(target, path, f"[columns] {col!r}", time_ok=True)
+    for topic, fields in d.get("topics", {}).items():
+        if not isinstance(fields, dict):
+            raise LogFormatError(path, f"[topics.{topic!r}] must be a table of field = \"channel [unit]\"")
+        for field, target in fields.items():
+            _check_map_target(target, path, f"[topics.{topic!r}] {field!r}")
+    for key, target in d.get("signals", {}).items():
+        _check_map_target(target, path, f"[signals] {key!r}", wheel_ok=True)
     return {"columns": dict(d.get("columns", {})), "topics": dict(d.get("topics", {})),
             "signals": dict(d.get("signals", {}))}
+
+
+def _check_map_target(target, path, where: str, time_ok: bool = False, wheel_ok: bool = False) -> None:
+    from calib.ingest.canlog import WHEEL_TARGETS
+    from calib.ingest.common import TIME_NAMES, check_unit, parse_target, split_spec
+    from calib.units import UnitError, parse_unit
+
+    if not isinstance(target, (str, dict, list)):
+        raise LogFormatError(path, f"map entry {where}: {str(target)[:40]!r} is not \"channel [unit]\"", where)
+    name, unit = split_spec(target) if isinstance(target, str) else (None, None)
+    if name is not None and ((time_ok and name.strip().lower() in TIME_NAMES)
+                             or (wheel_ok and name.strip().lower() in WHEEL_TARGETS)):
+        if unit is not None:
+            try:
+                parse_unit(unit)
+            except UnitError as exc:
+                raise LogFormatError(path, str(exc), where) from None
+            if wheel_ok and name.strip().lower() in WHEEL_TARGETS:
+                check_unit(unit, "speed_mps", path, where)
+        return
+    parse_target(target, path, where)
 
 
 
