@@ -267,11 +267,11 @@ def load_study(path) -> Study:
 
 
 def _study_checked(d, path):
-    from calib.errors import ScenarioError
+    from calib.errors import IptmError, ScenarioError
 
     try:
         return study_from_dict(d, base_dir=path.parent, source=str(path), default_name=path.stem)
-    except ScenarioError as exc:
+    except IptmError as exc:  # a scenario field, or a parameter file the study names: the study says which
         if str(path) in str(exc):
             raise
         raise ScenarioError(f"{path}: {exc}") from None
