@@ -14,8 +14,8 @@ from iptm.benchmarks.fuzz import GENERATORS, LOG_READERS, READERS, fuzz, generat
 N_GENERATED = 20
 SEED = 7
 
-#: File kinds whose first N_GENERATED inputs (seed 7) still escape, with where. Strict: a fix shows as XPASS.
-#: Generated inputs known to escape (none now; a label here marks its case xfail(strict) with the reason).
+#: File kinds whose first N_GENERATED inputs (seed 7) still escape, with where: a label here marks its case
+#: xfail(strict) with the reason, so a fix shows as XPASS.
 KNOWN_ESCAPES: dict[str, str] = {}
 
 

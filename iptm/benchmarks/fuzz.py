@@ -1471,15 +1471,15 @@ def _numbers_mf4(rng, base, folder):
     for ch, s in base.streams.items():
         v = s.to_numpy(float).copy()
         t = s.index.to_numpy(float).copy()
+        unit = _channel_unit(ch)
+        if unit == "dimensionless":  # written in % as loggers do (before the extremes: they stay as drawn)
+            unit = "%"
+            v = v * 100.0
         hit = rng.random(len(v)) < share
         v[hit] = rng.choice(_FLOAT_EXTREMES, size=int(hit.sum()))
         if rng.random() < 0.2:
             th = rng.random(len(t)) < share
             t[th] = rng.choice(_FLOAT_EXTREMES, size=int(th.sum()))
-        unit = _channel_unit(ch)
-        if unit == "dimensionless":
-            unit = "%"
-            v = v * 100.0
         mdf.append([asammdf.Signal(samples=v, timestamps=t, name=HUMAN_NAME.get(ch, ch), unit=unit)])
     p = folder / "numbers.mf4"
     mdf.save(p, overwrite=True)
