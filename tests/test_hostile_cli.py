@@ -118,23 +118,9 @@ def _mcap_only_bomb(data: bytes, bomb: bytes) -> tuple[bytes, int]:
 
 def _deep_mcap(path: Path):
     """1,000 messages on two topics, one of them nested 100,000 levels deep."""
-    import json
+    from test_ingest_bombs import deep_mcap  # the tests folder is on the path (rootdir import mode)
 
-    from mcap.writer import CompressionType, Writer
-
-    with open(path, "wb") as fh:
-        w = Writer(fh, compression=CompressionType.ZSTD)
-        w.start()
-        c = w.register_channel(topic="/vehicle/speed", message_encoding="json", schema_id=0)
-        e = w.register_channel(topic="/engine", message_encoding="json", schema_id=0)
-        for k in range(1000):
-            ns = k * 10**8
-            data = json.dumps({"speed": k / 100}).encode()
-            if k == 500:
-                data = b'{"speed": ' + b"[" * 100_000 + b"]" * 100_000 + b"}"
-            w.add_message(c, log_time=ns, data=data, publish_time=ns)
-            w.add_message(e, log_time=ns, data=json.dumps({"speed": 800.0 + k}).encode(), publish_time=ns)
-        w.finish()
+    deep_mcap(path)
 
 
 def _blf_with_bomb(data: bytes) -> tuple[bytes, int]:

@@ -208,11 +208,9 @@ def test_budget_is_per_file_and_set_by_the_environment(tmp_path, drive):
         assert f"IPTM_MAX_INFLATE_MB={bad!r} is not a positive number of MiB" in run.stderr
 
 
-def test_deeply_nested_message_is_refused_alone(tmp_path):
-    """One message nested 100,000 levels deep, in a zstd chunk among normal ones: only it is lost."""
-    p = tmp_path / "deep.mcap"
-    n = 1000
-    with open(p, "wb") as fh:
+def deep_mcap(path, n: int = 1000) -> None:
+    """``n`` messages on two topics in zstd chunks, message 500 of /vehicle/speed nested 100,000 levels deep."""
+    with open(path, "wb") as fh:
         w = Writer(fh, compression=CompressionType.ZSTD)
         w.start()
         c = w.register_channel(topic="/vehicle/speed", message_encoding="json", schema_id=0)
@@ -225,6 +223,13 @@ def test_deeply_nested_message_is_refused_alone(tmp_path):
             w.add_message(c, log_time=ns, data=data, publish_time=ns)
             w.add_message(e, log_time=ns, data=json.dumps({"speed": 800.0 + k}).encode(), publish_time=ns)
         w.finish()
+
+
+def test_deeply_nested_message_is_refused_alone(tmp_path):
+    """One message nested 100,000 levels deep, in a zstd chunk among normal ones: only it is lost."""
+    p = tmp_path / "deep.mcap"
+    n = 1000
+    deep_mcap(p, n)
     out = _probe(p, p)
     assert out["counts"] == {"speed_mps": n - 1, "engine_speed_rpm": n}
     assert out["damage"]["where"] == ["message 1001 on /vehicle/speed"]
