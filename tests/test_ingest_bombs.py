@@ -318,3 +318,17 @@ def test_blf_container_declaring_more_than_the_budget(tmp_path, blf):
     # the containers before it inflated a few kB of the budget
     assert re.search(rf"container at byte {at} declares 4.00 GiB, over the {MAX_INFLATE_MB - 1}\.\d\d MiB left of "
                      rf"the {MAX_INFLATE_MB} MiB inflate budget \(raise IPTM_MAX_INFLATE_MB\)$", out["bad"][0])
+
+
+def test_one_record_inflates_to_64_mib_at_most_unless_the_budget_is_set(tmp_path, drive, monkeypatch):
+    """A chunk that honestly declares 200 MiB is within the 512-MiB file budget but over what one record may
+    hold in memory: refused by name without being inflated; with the budget set, the user trusts the file."""
+    from calib.ingest.limits import MAX_RECORD_MB, InflateBudget, InflateRefused
+
+    monkeypatch.delenv("IPTM_MAX_INFLATE_MB", raising=False)
+    b = InflateBudget(tmp_path / "x.mcap")
+    with pytest.raises(InflateRefused, match=f"declares 200 MiB, more than the {MAX_RECORD_MB} MiB one record"):
+        b.cap(200 << 20)
+    assert b.cap(None) == MAX_RECORD_MB << 20 and b.cap(1 << 20) == 1 << 20
+    monkeypatch.setenv("IPTM_MAX_INFLATE_MB", "1024")
+    assert InflateBudget(tmp_path / "x.mcap").cap(200 << 20) == 200 << 20

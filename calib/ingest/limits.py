@@ -6,7 +6,8 @@ stream is inflated in bounded steps and never past the smaller of
 
 - the record's declared size (one byte more proves the declaration wrong: the record is refused), and
 - what is left of the file's budget, :data:`MAX_INFLATE_MB` MiB by default, or the environment variable
-  ``IPTM_MAX_INFLATE_MB`` (a record that declares more than is left is refused without being inflated).
+  ``IPTM_MAX_INFLATE_MB`` (a record that declares more than is left is refused without being inflated), and
+  :data:`MAX_RECORD_MB` MiB for one record unless that variable is set (one record is in memory whole).
 
 Memory and time spent on a bomb are then bounded by the budget, whatever its compression ratio. A refused
 record is damage of that record only: the readers name it and read the rest of the file.
@@ -30,6 +31,10 @@ from calib.errors import LogFormatError
 ENV_MAX_INFLATE_MB = "IPTM_MAX_INFLATE_MB"
 #: Default budget of bytes inflated from one file's compressed records, MiB.
 MAX_INFLATE_MB = 512
+#: Most bytes one record may inflate to, MiB, unless ``IPTM_MAX_INFLATE_MB`` is set (then the budget): one record
+#: is in memory whole, so this bounds the memory a read costs. MCAP writers chunk at about 1 MiB, BLF
+#: containers hold about 128 kB.
+MAX_RECORD_MB = 64
 #: Deepest nesting of a JSON message that is read (a dotted topic-map field needs one level per dot).
 MAX_NESTING = 64
 #: Output of one inflation step, bytes: the most a stream can allocate past its cap.
@@ -89,6 +94,8 @@ class InflateBudget:
 
     def __init__(self, path, limit: int | None = None):
         self.limit = max_inflate_bytes(path) if limit is None else int(limit)
+        chosen = limit is not None or bool(os.environ.get(ENV_MAX_INFLATE_MB, "").strip())
+        self.record_limit = self.limit if chosen else min(self.limit, MAX_RECORD_MB << 20)
         self.used = 0
 
     @classmethod
@@ -118,7 +125,10 @@ class InflateBudget:
         """
         if declared and declared > self.left:
             raise InflateRefused(f"declares {size_text(declared)}, over {self._budget_text()}")
-        return int(declared) if declared else self.left
+        if declared and declared > self.record_limit:
+            raise InflateRefused(f"declares {size_text(declared)}, more than the {size_text(self.record_limit)} one "
+                                 f"record may inflate to (raise {ENV_MAX_INFLATE_MB})")
+        return int(declared) if declared else min(self.left, self.record_limit)
 
     def spend(self, n: int) -> None:
         self.used += int(n)
