@@ -437,15 +437,16 @@ def run_study(study, client=None, store_dir=None, progress_callback=None, *, n_w
               retries: int = 2, retry_failed: bool = False) -> pd.DataFrame:
     """Run a study; return the tidy table (:func:`results_table`).
 
-    study: a :class:`Study` or a path to a study TOML.
-    client: a ``distributed.Client``, a scheduler address (``"tcp://host:8786"``), or None for a
-        ``LocalCluster`` of ``n_workers`` processes (started and closed here). Nothing else changes.
-    store_dir: the content-keyed result store (default ``.iptm-cache/sweep``); cases found there are not
-        recomputed; each finished case is stored as soon as it arrives (an interrupted study resumes).
-    progress_callback: ``f(done, total, record)`` after each case (cached cases first, record None).
-    retries: extra attempts per case on top of dask's rescheduling after a worker death.
-    retry_failed: recompute cases whose stored record holds an error (errors are stored: an infeasible
-        scenario fails the same way every time).
+    Args:
+        study: a :class:`Study` or a path to a study TOML.
+        client: a ``distributed.Client``, a scheduler address (``"tcp://host:8786"``), or None for a
+            ``LocalCluster`` of ``n_workers`` processes (started and closed here). Nothing else changes.
+        store_dir: the content-keyed result store (default ``.iptm-cache/sweep``); cases found there are not
+            recomputed; each finished case is stored as soon as it arrives (an interrupted study resumes).
+        progress_callback: ``f(done, total, record)`` after each case (cached cases first, record None).
+        retries: extra attempts per case on top of dask's rescheduling after a worker death.
+        retry_failed: recompute cases whose stored record holds an error (errors are stored: an infeasible
+            scenario fails the same way every time).
     """
     from calib.store import Store
 
