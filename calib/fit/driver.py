@@ -344,7 +344,7 @@ def calibrate(logs, *, base=None, fit=None, fix=None, validate=None, progress=Tr
     fixed = set(fix or ())
     for n in (sel or set()) | fixed:
         if n not in known:
-            raise ParameterError(f"unknown parameter {n!r} in fit/fix (known: {', '.join(base.names())})")
+            raise ParameterError(f"unknown parameter {n!r} in fit/fix - {base.closest_hint(n)}")
     allowed = {n for names in SUBSYSTEM_PARAMS.values() for n in names}
     if sel is not None:
         allowed &= sel

@@ -110,6 +110,11 @@ def run(args) -> int:
                     progress=not args.quiet, heater=getattr(args, "heater", None))
     res.to_artifact(args.out)
     print(res.report())
+    from iptm import present
+
+    print("\n" + present.counts_text(present.parameter_counts(res.params)))
+    for line in present.prior_banner(res):
+        print(line)
     print(f"\ncalibration artifact: {args.out}")
     if args.plots:
         d = Path(args.plots)

@@ -161,8 +161,9 @@ def run(args) -> int:
           f"{scen.terminal}; grid steps " + grids.describe([f for f in FORMULATIONS if f in chosen]))
     print(cs.format_table())
     tab = cs.table()
-    print("fuel economy: " + "; ".join(f"{k} {r.L_per_100km:.2f} L/100 km ({r.mpg:.1f} mpg)"
-                                       for k, r in zip(tab["key"], tab.itertuples())))
+    print("fuel economy, corrected (raw): " + "; ".join(
+        f"{k} {r.L_per_100km_corrected:.2f} L/100 km, {r.mpg_corrected:.1f} mpg ({r.L_per_100km:.2f}, {r.mpg:.1f})"
+        for k, r in zip(tab["key"], tab.itertuples())))
     print("charge-sustaining (SOC_N >= SOC0 - %g): %s" % (scen.soc_tol, ", ".join(
         f"{k}={'yes' if v else 'NO'}" for k, v in zip(tab["key"], tab["charge_sustaining"]))))
     if all(k in cs.sims for k in allf):
