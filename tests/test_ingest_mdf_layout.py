@@ -82,3 +82,33 @@ def test_an_unclosed_handle_collected_during_a_read_is_not_damage_of_the_file(tm
         log = read_log(p)
     assert not [x for x in w if issubclass(x.category, LogDamageWarning)]
     assert not log.meta.damage
+
+
+def _patch_cycles(path, channel, cycles, record_bytes):
+    """Write ``cycles`` and ``record_bytes`` into the CG block of a channel's group (cg_cycle_count, cg_data_bytes)."""
+    with asammdf.MDF(path) as m:
+        gi, _ = m.channels_db[channel][0]
+        addr = m.groups[gi].channel_group.address
+    data = bytearray(path.read_bytes())
+    assert data[addr:addr + 4] == b"##CG"
+    links = struct.unpack_from("<Q", data, addr + 16)[0]
+    base = addr + 24 + 8 * links  # cg_record_id (8), cg_cycle_count (8), cg_flags (2), cg_path_separator (2),
+    struct.pack_into("<Q", data, base + 8, cycles)  # 4 reserved, then cg_data_bytes (4), cg_inval_bytes (4)
+    struct.pack_into("<I", data, base + 24, record_bytes)
+    path.write_bytes(bytes(data))
+
+
+def test_group_declaring_a_gigabyte_of_records_is_skipped_without_allocating_it(tmp_path):
+    import resource
+
+    p = _write(tmp_path / "drive.mf4")
+    _patch_cycles(p, "ambient_temp", 393216, 1_003_487_232)
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        log = read_log(p)
+    grew_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024
+    msgs = [str(x.message) for x in w if issubclass(x.category, LogDamageWarning)]
+    assert len(msgs) == 1 and "group 1 declares 367488 GiB of records" in msgs[0] and "IPTM_MAX_INFLATE_MB" in msgs[0], msgs
+    assert "ambient_temp_degC" not in log.data.columns and "speed_mps" in log.data.columns
+    assert grew_mb < 200

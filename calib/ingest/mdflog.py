@@ -17,6 +17,7 @@ import numpy as np
 from calib.drivelog import LogMeta, file_sha256
 from calib.errors import LogFormatError
 from calib.ingest.common import canonical_name, check_nonempty, make_series, parse_target, split_spec, to_channel_unit
+from calib.ingest.limits import ENV_MAX_INFLATE_MB, InflateBudget, InflateRefused, size_text
 from calib.ingest.damage import Damage, quiet_libraries
 
 
@@ -123,16 +124,26 @@ def _open_mdf(MDF, path, **kw):
         sys.unraisablehook = prev
 
 
-def _layout_error(mdf, name) -> str | None:
+def _layout_error(mdf, name, budget=None, file_size: int = 0) -> str | None:
     """Why a channel's place in its record (or its group's time channel's) cannot be trusted, or None.
 
     asammdf's compiled record slicer reads wherever a channel's byte offset points: a damaged offset or bit
     count reads outside the record (a crash of the process, or garbage, not an exception), so such a
-    channel is refused before it is read."""
+    channel is refused before it is read. A group that declares more record bytes than the file holds and
+    than one record may inflate to (``budget``, :class:`calib.ingest.limits.InflateBudget`: zipped data
+    blocks may legitimately hold more than the file) is refused too: asammdf would allocate it whole."""
     for gi, ci in mdf.channels_db.get(name, ()):
         try:
             grp = mdf.groups[gi]
             size = int(grp.channel_group.samples_byte_nr)
+            cg = grp.channel_group
+            declared = int(cg.cycles_nr) * (size + int(getattr(cg, "invalidation_bytes_nr", 0)))
+            if budget is not None and declared > file_size:
+                try:
+                    budget.cap(declared)
+                except InflateRefused:
+                    # no colon: a damage summary keeps the whole reason
+                    return f"group {gi} declares {size_text(declared)} of records (raise {ENV_MAX_INFLATE_MB})"
             for k, ch in enumerate(grp.channels):
                 kind = int(getattr(ch, "channel_type", 0))
                 if not (k == ci or kind == 2) or kind not in (0, 2):  # the channel and its master; fixed slots
@@ -192,6 +203,7 @@ def _read_mdf(MDF, path, column_map, dmg, meta, tmp):
         raise err
     parts = {}
     t_first = np.inf
+    budget = InflateBudget(path)
     chatter_ctx = quiet_libraries()
     chatter2 = chatter_ctx.__enter__()
     try:
@@ -204,9 +216,12 @@ def _read_mdf(MDF, path, column_map, dmg, meta, tmp):
                 ch, unit = canonical_name(base), unit_in_name
                 if ch is None:
                     continue
-            why = _layout_error(mdf, name)
+            why = _layout_error(mdf, name, budget, size)
             if why is not None:
-                dmg.bad(LogFormatError(path, f"channel outside its record, skipped: {why}", f"MDF channel {name!r}"))
+                if "declares" in why:
+                    dmg.bad(LogFormatError(path, f"channel skipped, {why}", f"MDF channel {name!r}"))
+                else:
+                    dmg.bad(LogFormatError(path, f"channel outside its record, skipped: {why}", f"MDF channel {name!r}"))
                 continue
             sig = mdf.get(name)
             unit = unit or (sig.unit or None)
