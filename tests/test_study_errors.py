@@ -21,3 +21,15 @@ def test_good_vary_values_load(tmp_path):
     path = tmp_path / "ok.toml"
     path.write_text('[study]\nstrategies = ["rule"]\n[scenario]\ncycle = "nycc"\n[vary]\nT_amb = [-7.0, 0.0, 5.0]\n')
     assert len(load_study(path).expand()) == 3
+
+
+def test_unreadable_cycle_csv_is_one_line_naming_the_file(tmp_path):
+    from calib.errors import IptmError
+    from calib.model.cycles import load_cycle
+
+    bad = tmp_path / "passwd"
+    bad.write_text("root:x:0:0\n" + "a,b,c,d\n" * 30)
+    with pytest.raises(IptmError) as err:
+        load_cycle(str(bad))
+    msg = str(err.value)
+    assert str(bad) in msg and "\n" not in msg and "time_s" in msg

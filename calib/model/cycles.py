@@ -92,10 +92,12 @@ def load_cycle(spec, Ts: float = 1.0) -> Cycle:
     try:
         df = pd.read_csv(path, comment="#")
     except Exception as exc:  # pandas raises many types for unreadable text
-        raise IptmError(f"{path}: not a readable cycle CSV ({exc})") from None
+        why = " ".join(str(exc).split())[:200]  # pandas' messages span lines
+        raise IptmError(f"{path}: not a readable cycle CSV ({why}); a cycle CSV has a time_s column and a "
+                        "speed_kph (or speed_mps) column") from None
     cols = {c.strip().lower(): c for c in df.columns}
     if "time_s" not in cols:
-        raise IptmError(f"{path}: a cycle CSV needs a time_s column (has {list(df.columns)})")
+        raise IptmError(f"{path}: a cycle CSV needs a time_s column (has {str(list(df.columns))[:200]})")
     t = df[cols["time_s"]].to_numpy(float)
     if "speed_kph" in cols:
         v = df[cols["speed_kph"]].to_numpy(float) / 3.6
