@@ -18,16 +18,17 @@ venv: $(STAMP)
 run: $(STAMP)
 	MPLBACKEND=Agg $(BIN)/iptm run
 
-## the test suite that CI runs
+## the test suite that CI runs; it lists its 15 slowest tests (full-size checks belong in test-slow)
 test: $(STAMP)
-	MPLBACKEND=Agg $(BIN)/python -m pytest -q -m "not slow and not browser"
+	MPLBACKEND=Agg $(BIN)/python -m pytest -q -m "not slow and not browser" --durations=15
 
 ## static checks (ruff, configured in pyproject.toml); CI runs them before the tests
 lint: $(STAMP)
 	$(BIN)/ruff check .
 
+## the full-size checks left out of `make test` (tens of minutes to hours on 2 cores)
 test-slow: $(STAMP)
-	MPLBACKEND=Agg $(BIN)/python -m pytest -q -m slow
+	MPLBACKEND=Agg $(BIN)/python -m pytest -q -m "slow and not browser"
 
 ## real-browser dashboard test (needs Chromium + playwright: scripts/install_browser.sh)
 browser: $(STAMP)

@@ -61,16 +61,17 @@ def case_study_halving(cs, cs_half) -> list:
 
 
 def convergence_study(params, scenario: DPScenario | None = None, formulations=("baseline", "thermal"),
-                      grids=None, progress: bool = False) -> list:
+                      grids=None, progress: bool = False, step_progress=None) -> list:
     """One row per formulation: fuel on its grid (``grids``: as :func:`optimize.casestudy.run_case_study`)
-    and with every step halved, relative change (%)."""
+    and with every step halved, relative change (%). ``step_progress(done_steps, total_steps)``: handed to
+    every solve, called as its backward pass goes (:func:`optimize.dp.engine.solve`)."""
     scen, grids = scenario or DPScenario(), FormulationGrids.coerce(grids)
     rows = []
     for f in formulations:
         g = grids.of(f)
         runs = []
         for tag, gg in (("", g), ("_half", g.halved())):
-            o = solve_formulation(f, params, scen, gg)
+            o = solve_formulation(f, params, scen, gg, progress=step_progress)
             runs.append(o)
             if progress:
                 print(f"{f} {'halved' if tag else 'default'} grid: {o.sim.fuel_g:.3f} g, SOC_N "

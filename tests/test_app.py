@@ -272,6 +272,7 @@ def test_bundled_sample_logs_button():
     assert any("SYNTHETIC" in w.value for w in at.sidebar.warning)
 
 
+@pytest.mark.slow  # the whole flow through the pages (about 1 min on 2 quiet cores); `make test-slow`
 def test_calibrate_optimize_report_flow(small_csv):
     at = new_app()
     upload(at, "short.csv", small_csv, "text/csv")
@@ -359,6 +360,7 @@ def test_calibrate_optimize_report_flow(small_csv):
     assert at.get("iframe") and "<table" in at.get("iframe")[0].proto.srcdoc
 
 
+@pytest.mark.slow  # a sweep of solves through the page; the sweep itself is tested in test_sweep.py
 def test_optimize_sweep_over_ambient():
     pytest.importorskip("optimize.sweep")
     at = new_app()

@@ -143,6 +143,7 @@ def test_every_terminal_soc_set_gets_the_reach_rule_by_default(ps):
                          interp="multilinear").prob.interp == "multilinear"  # an explicit choice is kept
 
 
+@pytest.mark.slow  # two full-size Thermal-DP solves; `make test-slow`
 def test_reach_rule_with_a_soc_band_is_not_worse_than_the_chord(ps):
     """With a two-sided terminal SOC band, phi outside the band is phi at its edge, so the reach-boundary
     interpolation's premise (an unreachable node's value is about the boundary's cost) holds at the upper

@@ -150,7 +150,8 @@ def _check_separable(b, vg, vs):
 
 @pytest.mark.parametrize("nx,scen,grids,kw", [
     (2, DPScenario(duration_s=300.0, T_cl0=20.0), DPGrids(), {}),
-    (2, DPScenario(duration_s=300.0, T_cl0=20.0), DPGrids(), {"interp": "multilinear"}),
+    pytest.param(2, DPScenario(duration_s=300.0, T_cl0=20.0), DPGrids(), {"interp": "multilinear"},
+                 marks=pytest.mark.slow),  # 300 steps on the paper grid; the reach rule's case stays fast
     (3, DPScenario(duration_s=40.0, T_cl0=20.0), DPGrids(soc=0.02, tcl=2.0, pbat=1000.0, qheat=100.0), {}),
     (3, DPScenario(duration_s=40.0, T_cl0=20.0), DPGrids(soc=0.02, tcl=2.0, pbat=1000.0, qheat=100.0),
      {"interp": "multilinear", "cabin": "absolute"}),

@@ -119,9 +119,13 @@ def test_cases_are_reproducible(tmp_path):
         assert got[0] == got[1], label
 
 
+#: Mutated inputs per reader here (`iptm bench fuzz` runs 10,000 by default).
+N_MUTATED = 10
+
+
 @pytest.fixture(scope="module")
 def counts(tmp_path_factory):
-    return fuzz(n=25, seed=7, folder=tmp_path_factory.mktemp("fuzz"), log=lambda *_: None)
+    return fuzz(n=N_MUTATED, seed=7, folder=tmp_path_factory.mktemp("fuzz"), log=lambda *_: None)
 
 
 @pytest.mark.parametrize("reader", READERS)
@@ -130,7 +134,7 @@ def test_mutated_input_reads_or_fails_cleanly(counts, reader):
         pytest.skip(f"{reader}: optional library missing")
     c = counts[reader]
     assert c["escape"] == 0 and c["hang"] == 0 and c["unclear"] == 0 and c["printed"] == 0, c["examples"]
-    assert c["read"] + c["recovered"] + c["error"] == c["n"] == 25
+    assert c["read"] + c["recovered"] + c["error"] == c["n"] == N_MUTATED
 
 
 def test_mutations_are_reproducible():

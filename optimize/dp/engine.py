@@ -65,7 +65,9 @@ Boundary method: level sets (Elbert, Ebbesen & Guzzella, IEEE TCST 2013)
 User functions (compile them with ``numba.njit(cache=True)`` at module level). Each distinct user function
 compiles its own specialisation of the two kernels (static dispatch, the user code is inlined into the
 inner loop): about 4 s (backward, parallel) + 2 s (forward) on first use in a process. The kernels are
-not cached on disk: numba's cache never hits for functions specialised on a function argument.
+not cached on disk: numba's cache never hits for functions specialised on a function argument. A problem
+solved often can carry a cached forward kernel written for its functions (``DPProblem.forward_kernel``);
+the formulations of :mod:`optimize.formulations` also have cached backward kernels of their own.
 
 ``transition(k, x, u, w_k, p, tab, iu, ix, x_next) -> float``
     ``k`` step index; ``x`` (n_x,) current state; ``u`` (n_u,) control row; ``w_k`` (n_w,) exogenous
@@ -165,6 +167,11 @@ class DPProblem:
     :func:`forward_pass`) or "reach_first" (multilinear, except along the first state in a cell the reach
     boundary of the terminal set cuts; levelset only, up to 3 states; see the module docstring). The level
     function is always multilinear.
+    forward_kernel: optional ``@njit(cache=True)`` function ``f(*args)`` equal to
+    ``optimize.dp.kernels.forward(transition, precompute, *args)``: the same loop with this problem's two
+    functions called directly (e.g. :func:`optimize.formulations.fused.forward_hev`). The forward pass then
+    runs it, and numba caches its compiled code on disk; the engine's kernel, which takes the functions as
+    arguments, is compiled afresh in every process (about 2 s).
     """
 
     grids: Sequence[np.ndarray]
@@ -181,6 +188,7 @@ class DPProblem:
     table_shape: tuple = (0, 0)
     level_tol: float = 0.0
     interp: str = "multilinear"
+    forward_kernel: Callable | None = None
 
     def __post_init__(self):
         self.grids = [np.ascontiguousarray(g, dtype=np.float64).ravel() for g in self.grids]
@@ -373,8 +381,22 @@ def _tab(prob: DPProblem) -> np.ndarray:
     return np.zeros(tuple(int(s) for s in prob.table_shape))
 
 
-def backward_pass(prob: DPProblem, store_policy: bool = False) -> ValueFunctions:
-    """Run the backward pass; returns the stored value functions (float32)."""
+#: Parts of the backward pass between two progress reports, as a fraction of the steps.
+PROGRESS_PART = 0.01
+
+
+def _step_parts(N: int, progress) -> list:
+    """Step ranges ``(k_hi, k_lo)`` of a backward pass from N down to 0: one without ``progress``, else
+    parts of about :data:`PROGRESS_PART` of the steps (each a kernel call: tens of microseconds)."""
+    if progress is None:
+        return [(N, 0)]
+    size = max(1, int(round(N * PROGRESS_PART)))
+    return [(hi, max(0, hi - size)) for hi in range(N, 0, -size)]
+
+
+def backward_pass(prob: DPProblem, store_policy: bool = False, progress=None) -> ValueFunctions:
+    """Run the backward pass; returns the stored value functions (float32). ``progress``: as in
+    :func:`solve`."""
     grid = prob._grid_arrays()
     X = prob.grid_points()
     ns = X.shape[0]
@@ -390,9 +412,15 @@ def backward_pass(prob: DPProblem, store_policy: bool = False) -> ValueFunctions
     policy = np.full((prob.N, ns) if store_policy else (1, 1), -1, dtype=np.int32)
     pre = prob.precompute if prob.precompute is not None else _k.no_precompute
     t0 = time.perf_counter()
-    _k.backward(prob.transition, pre, prob.N, X, prob.controls, prob.w, prob.params, _tab(prob),
-                VT, LT, use_level, float(prob.level_tol), *grid, bool(prob.clip), policy,
-                bool(store_policy), _interp_mode(prob.interp, prob.n_x))
+    tab = _tab(prob)
+    mode = _interp_mode(prob.interp, prob.n_x)
+    if progress is not None:
+        progress(0, prob.N)
+    for hi, lo in _step_parts(prob.N, progress):
+        _k.backward(prob.transition, pre, hi, lo, X, prob.controls, prob.w, prob.params, tab, VT, LT, use_level,
+                    float(prob.level_tol), *grid, bool(prob.clip), policy, bool(store_policy), mode)
+        if progress is not None:
+            progress(prob.N - lo, prob.N)
     t_b = time.perf_counter() - t0
     shape = (prob.N + 1,) + prob.grid_shape
     return ValueFunctions(V=VT.reshape(shape), L=LT.reshape(shape) if use_level else None,
@@ -438,9 +466,12 @@ def forward_pass(prob: DPProblem, vf: ValueFunctions, x0, interp: str | None = N
     pred = np.full(N, np.nan)
     pre = prob.precompute if prob.precompute is not None else _k.no_precompute
     t0 = time.perf_counter()
-    done = _k.forward(prob.transition, pre, N, x0, prob.controls, prob.w, prob.params, _tab(prob),
-                      VT, LT, use_level, float(prob.level_tol), *grid, bool(prob.clip), X_out, U_idx,
-                      stage, pred, mode)
+    args = (N, x0, prob.controls, prob.w, prob.params, _tab(prob), VT, LT, use_level, float(prob.level_tol),
+            *grid, bool(prob.clip), X_out, U_idx, stage, pred, mode)
+    if prob.forward_kernel is not None:
+        done = prob.forward_kernel(*args)
+    else:
+        done = _k.forward(prob.transition, pre, *args)
     t_f = time.perf_counter() - t0
     u = np.full((N, prob.controls.shape[1]), np.nan)
     ok = U_idx >= 0
@@ -461,7 +492,13 @@ def forward_pass(prob: DPProblem, vf: ValueFunctions, x0, interp: str | None = N
                     n_evaluations=vf.n_evaluations, kernel=vf.kernel)
 
 
-def solve(prob: DPProblem, x0, store_policy: bool = False) -> DPResult:
-    """Backward pass then forward pass from x0; returns a :class:`DPResult`."""
-    vf = backward_pass(prob, store_policy=store_policy)
+def solve(prob: DPProblem, x0, store_policy: bool = False, progress=None) -> DPResult:
+    """Backward pass then forward pass from x0; returns a :class:`DPResult`.
+
+    ``progress``: None, or a callable ``progress(done, total)`` called during the backward pass with the
+    number of steps done and the number of steps N (integers): ``(0, N)`` first, then after every part of
+    about 1 % of the steps, ending with ``(N, N)``. The pass then runs in about 100 parts, one kernel call
+    each (a call costs tens of microseconds); it returns the same values as in one piece. The forward pass
+    (a few percent of the solve) reports nothing."""
+    vf = backward_pass(prob, store_policy=store_policy, progress=progress)
     return forward_pass(prob, vf, x0)

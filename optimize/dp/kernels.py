@@ -322,10 +322,12 @@ def level_choose(lv, v, tol, j, best, Lsel, feas):
 
 
 @njit(parallel=True, cache=False)  # no disk cache: kernels specialised on a user function never hit it
-def backward(transition, precompute, N, X, controls, w, p, tab, VT, LT, use_level, level_tol,
+def backward(transition, precompute, N, k_lo, X, controls, w, p, tab, VT, LT, use_level, level_tol,
              lo, inv_dx, n, uniform, pts, strides, clip, policy, store_policy, mode):
-    """Backward pass. VT[N] (and LT[N] when use_level) must hold the terminal data; fills VT[0..N-1],
-    LT[0..N-1] and, when store_policy, policy[0..N-1] (argmin control index, -1 if none).
+    """Backward pass, or the part of it from step N - 1 down to k_lo (the engine runs it in parts to report
+    progress). VT[N] (and LT[N] when use_level) must hold the data of step N (the terminal data for the
+    whole pass); fills VT[k_lo..N-1], LT[k_lo..N-1] and, when store_policy, policy[k_lo..N-1] (argmin
+    control index, -1 if none).
     ``mode``: the cost-to-go interpolation (:func:`_interp_v`)."""
     n_states = X.shape[0]
     nx = X.shape[1]
@@ -339,7 +341,7 @@ def backward(transition, precompute, N, X, controls, w, p, tab, VT, LT, use_leve
     # dynamic scheduling of the chunks (one chunk per grab): robust against a thread being descheduled
     # by other load on the machine, where numba's default static split would stall every step
     old_chunk = numba.set_parallel_chunksize(1)
-    for k in range(N - 1, -1, -1):
+    for k in range(N - 1, k_lo - 1, -1):
         precompute(k, w[k], p, tab)
         Vn = VT[k + 1]
         Ln = LT[k + 1]

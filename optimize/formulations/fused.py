@@ -32,10 +32,12 @@ from optimize.formulations.layout import (_C_CH, _C_CHI, _C_CREL, _C_PEN, _C_SH,
 from optimize.dp.kernels import _interp_slow as _slow  # the engine's exact multilinear interpolation
 from optimize.dp.kernels import _hermite, _interp_cubic_last  # the engine's cubic along the cabin axis
 from optimize.dp.kernels import _interp, _interp_reach, _lin_reach  # the engine's reach-boundary interpolation
-from optimize.dp.kernels import level_choose, level_needs_cost, reach_weights  # the level-set choice rule
+from optimize.dp.kernels import level_better, level_choose, level_needs_cost, reach_weights  # the level-set choice rule
+from optimize.dp.kernels import _interp_v, _locate  # the engine's locate and cost-to-go interpolation (Baseline-DP)
+from optimize.dp.kernels import _locate_all  # the engine's forward loop (forward_hev)
 from optimize.dp.engine import ValueFunctions
 from calib.model.equations import cabin_heat_rate, coolant_heat_rate, heater_core_limit
-from optimize.formulations.transition import _delivered_heat, hold_heat
+from optimize.formulations.transition import _delivered_heat, hev_precompute, hev_transition, hold_heat
 
 _SNAP = 1e-9
 
@@ -290,8 +292,9 @@ def _limited_next(P, P_e, q, Q_fuel, T_cl, loss, T_m, lb):
 
 
 @njit(parallel=True, cache=True)
-def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol, reach, skip):
-    """Thermal-DP backward pass (states SOC x T_cl, one heater demand Q[0]); fills VT, LT[0..N-1].
+def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol, reach, skip, k_lo=0):
+    """Thermal-DP backward pass (states SOC x T_cl, one heater demand Q[0]); fills VT, LT[k_lo..N-1] from
+    those at N (every kernel here runs a part of the pass, :func:`backward_pass_fused`).
     ``reach``: the cost-to-go is interpolated by the engine's ``interp="reach_first"``."""
     ns, nt = socg.size, tclg.size
     np_ = big.shape[1]
@@ -305,7 +308,7 @@ def backward2(N, P, big, w, socg, tclg, Q, VT, LT, level_tol, reach, skip):
     TT = np.empty((np_, nt))
     PT = np.empty((np_, nt))
     C0 = np.empty((np_, nt))
-    for k in range(N - 1, -1, -1):
+    for k in range(N - 1, k_lo - 1, -1):
         tab = big[k]
         Vn = VT[k + 1]
         Ln = LT[k + 1]
@@ -413,7 +416,7 @@ def _limited(P, tab, ip, a, ta, sidx, c0, pen0, q, Q_fuel, T_cl, loss, T_m, lb, 
 
 
 @njit(parallel=True, cache=True)
-def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold, reach, skip):
+def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold, reach, skip, k_lo=0):
     """Thermal-Cabin-DP backward pass (states SOC x T_cl x T_cab, controls power x (Q grid[, hold])).
 
     Controls whose requested heat exceeds the heater-core limit all deliver the same heat (the limit):
@@ -445,7 +448,7 @@ def backward3(N, P, big, w, socg, tclg, cabg, Q, VT, LT, level_tol, cubic, hold,
     SL = np.empty((nc * nq1, nplane))
     nh = nc if hold else 0
     qlim, nunl, pcu, cu, tu, qh, hsk, TB, TT, PT, QFUEL, C0 = _cabin_work(np_, nt, nc, nq, nq1, nh)
-    for k in range(N - 1, -1, -1):
+    for k in range(N - 1, k_lo - 1, -1):
         tab = big[k]
         Vn = VT[k + 1]
         Ln = LT[k + 1]
@@ -987,10 +990,10 @@ def _min_stretches(best, ob, U, o00, o01, o10, o11, K, CAND, a, e, ip, ns, PP, i
 
 
 @njit(parallel=True, cache=True)
-def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, nchunk):
+def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, nchunk, k_lo=0):
     """Thermal-DP backward pass when the level depends on SOC alone (a terminal set on SOC only, the default):
-    fills VT[0..N-1] and the levels per SOC node L1T[0..N-1]; returns -1, or the step k whose next cost-to-go
-    holds a non-finite value (then nothing below k is filled and the caller uses :func:`backward2`).
+    fills VT[k_lo..N-1] and the levels per SOC node L1T[k_lo..N-1]; returns -1, or the step k whose next
+    cost-to-go holds a non-finite value (then nothing below k is filled and the caller uses :func:`backward2`).
 
     The next SOC depends on (SOC node, power control), the next coolant on (coolant node, power control),
     and the level on SOC alone, so:
@@ -1054,7 +1057,7 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
         _coolant_columns2(ip, P, big[N - 1], tclg, fclg, lossg, qv, TB[cur], TT[cur], PT[cur], C0[cur])
         _soc_col(ip, P, big[N - 1], L1T[N], w[N - 1, 5], s_lo, s_inv, ns, p_lo, p_hi, level_tol, reach, LV[cur],
                  AC[cur], WA[cur], WB[cur], PP[cur])
-    for k in range(N - 1, -1, -1):
+    for k in range(N - 1, k_lo - 1, -1):
         cur = k % 2
         nxt = 1 - cur
         if not _soc_innermost(VT[k + 1], ns, V32):
@@ -1064,7 +1067,7 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
         _extend_rows(L1T[k], i_lo, i_hi, ns, 1)  # step k - 1's SOC side reads these levels
         _all_runs(AC[cur], np_, ns, i_lo, i_hi, R0, R1, RD, RN)
         nr = i_hi - i_lo
-        if k > 0:
+        if k > k_lo:  # the next part prepares its first step itself
             _heater_demand(P, tclg, w[k - 1, 1], Q[0], qv)
             p_lo, p_hi = _active(P, w[k - 1, 4], s_lo, s_inv, ns, skip)
         TBc, TTc, PTc, C0c = TB[cur], TT[cur], PT[cur], C0[cur]
@@ -1097,7 +1100,7 @@ def backward2_sep(N, P, big, w, socg, tclg, Q, VT, L1T, level_tol, reach, skip, 
                 for ii in range(nr):
                     for jj in range(m):
                         VT[k, (i_lo + ii) * nt + j0 + jj] = best[jj * nr + ii]
-            if k > 0:  # step k - 1's preparation: the power controls dealt to the tasks in turn (at most steps
+            if k > k_lo:  # step k - 1's preparation: the power controls dealt to the tasks in turn (at most steps
                 # only the first half of them is allowed, so runs of consecutive ones left one thread most of it)
                 for ip in range(c, np_, nchunk):
                     _coolant_columns2(ip, P, big[k - 1], tclg, fclg, lossg, qv, TB[nxt], TT[nxt], PT[nxt], C0[nxt])
@@ -1124,7 +1127,7 @@ def _dealt(cp, n, nth):
 
 # fused multiply-adds: 1.11 times on the paper grid, the stored values one float32 unit apart at most
 @njit(parallel=True, cache=True, fastmath={"contract"})
-def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, reach, skip, nchunk, nth):
+def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, reach, skip, nchunk, nth, k_lo=0):
     """Thermal-Cabin-DP backward pass when the level depends on SOC alone, the counterpart of
     :func:`backward2_sep` for :func:`backward3` (multilinear or reach interpolation; not the cubic):
     returns -1, or the step whose next cost-to-go holds a non-finite value.
@@ -1166,7 +1169,7 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
     RD = np.empty((np_, ns), np.int64)
     RN = np.empty((np_, 3), np.int64)
     gsz = (ng + nchunk - 1) // nchunk
-    for k in range(N - 1, -1, -1):
+    for k in range(N - 1, k_lo - 1, -1):
         tab = big[k]
         L1n = L1T[k + 1]
         if not _soc_innermost(VT[k + 1], ns, VS):
@@ -1254,71 +1257,233 @@ def backward3_sep(N, P, big, w, socg, tclg, cabg, Q, VT, L1T, level_tol, hold, r
     return -1
 
 
-def backward_pass_fused(prob, skip: bool = True, separable: bool = True) -> ValueFunctions:
-    """Backward pass of a Thermal-DP (2 states) or Thermal-Cabin-DP (3 states) problem built by
-    :func:`optimize.formulations.build_problem`; returns the engine's :class:`ValueFunctions`.
+@njit(cache=True)
+def backward1(N, P, big, w, VT, LT, level_tol, mode, lo, inv_dx, n, uniform, pts, strides, k_lo=0):
+    """Baseline-DP backward pass (SOC alone, the level-set boundary, next states clipped to the grid): fills
+    VT and LT at steps k_lo..N-1 from those at N (a part of the pass: :func:`backward_pass_fused` runs it
+    in pieces to report progress). ``mode``, ``lo`` .. ``strides``: the engine's interpolation code and grid
+    arrays (:meth:`optimize.dp.engine.DPProblem._grid_arrays`).
+
+    The generic engine's loop with :func:`optimize.formulations.transition.hev_transition` written in for
+    one state: the same operations in the same order on the same values, so the value and level functions
+    are the engine's bit for bit, without a function argument (which numba compiles afresh in every
+    process instead of caching it) and without copying the step's table or slicing the control rows.
+    Serial: about 150 states per step are too few to pay for a parallel region per step. The heater
+    controls of a power control all give the same transition with one state, so only the first of them
+    is evaluated (the engine's tie rule keeps it)."""
+    ns = VT.shape[1]
+    np_ = big.shape[1]
+    Ts = P[_C_TS]
+    PEN = P[_C_PEN]
+    ib = np.empty(1, np.int64)
+    tb = np.empty(1)
+    for k in range(N - 1, k_lo - 1, -1):
+        tab = big[k]
+        Vn = VT[k + 1]
+        Ln = LT[k + 1]
+        s_off = w[k, 5]
+        for i in range(ns):
+            best = np.inf
+            Lmin = np.inf
+            Lsel = np.inf
+            feas = False
+            for ip in range(np_):
+                if tab[ip, _T_OK] == 0.0:
+                    continue
+                sn = tab[ip, _T_SOC0 + i]
+                if not (sn == sn):
+                    continue
+                pen = 0.0
+                if sn < P[_C_SLO]:
+                    pen += (P[_C_SLO] - sn) / P[_C_SH]
+                elif sn > P[_C_SHI]:
+                    pen += (sn - P[_C_SHI]) / P[_C_SH]
+                cst = tab[ip, _T_WF] * Ts + PEN * pen
+                if not (cst < np.inf):
+                    continue
+                if not _locate(sn - s_off, 0, lo, inv_dx, n, uniform, pts, True, ib, tb):
+                    continue
+                lv = _interp(Ln, 1, strides, ib, tb)
+                if not (lv < np.inf):
+                    continue
+                if lv < Lmin:
+                    Lmin = lv
+                if not level_needs_cost(lv, level_tol, feas, Lsel):
+                    continue
+                v = cst + _interp_v(mode, Vn, Ln, level_tol, 1, n, uniform, strides, ib, tb)
+                if not (v < np.inf):
+                    continue
+                if level_better(lv, v, level_tol, feas, Lsel, best):
+                    best = v
+                    Lsel = lv
+                    feas = lv <= level_tol
+            LT[k, i] = Lmin
+            VT[k, i] = best
+
+
+@njit(cache=True)
+def forward_hev(N, x0, controls, w, p, tab, VT, LT, use_level, level_tol, lo, inv_dx, n, uniform, pts, strides,
+                clip, X_out, U_idx, stage, pred, mode):  # pragma: no cover - compiled
+    """The engine's forward kernel (:func:`optimize.dp.kernels.forward`, the same loop) with
+    :func:`hev_transition` and :func:`hev_precompute` called directly, for
+    :attr:`optimize.dp.engine.DPProblem.forward_kernel`: numba caches it on disk, whereas the engine's
+    kernel, which takes the functions as arguments, is compiled afresh in every process (a wrapper that
+    passes them on is not cached either: numba marks the transition's code as using dynamic globals).
+    tests/test_dp_progress.py checks that both passes give the same trajectory."""
+    nx = x0.shape[0]
+    nu = controls.shape[0]
+    x = x0.copy()
+    xn = np.empty(nx)
+    ix = np.full(nx, -1, np.int64)
+    ib = np.empty(nx, np.int64)
+    tb = np.empty(nx)
+    for d in range(nx):
+        X_out[0, d] = x[d]
+    for k in range(N):
+        hev_precompute(k, w[k], p, tab)
+        wk = w[k]
+        Vn = VT[k + 1]
+        Ln = LT[k + 1]
+        best = np.inf
+        Lsel = np.inf
+        feas = False
+        bi = -1
+        for iu in range(nu):
+            cst = hev_transition(k, x, controls[iu], wk, p, tab, iu, ix, xn)
+            if not (cst < np.inf):
+                continue
+            if not _locate_all(xn, nx, lo, inv_dx, n, uniform, pts, clip, ib, tb):
+                continue
+            if use_level:
+                lv = _interp(Ln, nx, strides, ib, tb)
+                if not (lv < np.inf):
+                    continue
+                if not level_needs_cost(lv, level_tol, feas, Lsel):
+                    continue
+                v = cst + _interp_v(mode, Vn, Ln, level_tol, nx, n, uniform, strides, ib, tb)
+                if not (v < np.inf):
+                    continue
+                if level_better(lv, v, level_tol, feas, Lsel, best):
+                    best = v
+                    Lsel = lv
+                    feas = lv <= level_tol
+                    bi = iu
+            else:
+                v = cst + _interp_v(mode, Vn, Ln, level_tol, nx, n, uniform, strides, ib, tb)
+                if v < best:
+                    best = v
+                    bi = iu
+        if bi < 0:
+            return k
+        cst = hev_transition(k, x, controls[bi], wk, p, tab, bi, ix, xn)
+        U_idx[k] = bi
+        stage[k] = cst
+        pred[k] = best
+        for d in range(nx):
+            x[d] = xn[d]
+            X_out[k + 1, d] = xn[d]
+    return N
+
+
+
+def backward_pass_fused(prob, skip: bool = True, separable: bool = True, progress=None) -> ValueFunctions:
+    """Backward pass of a problem built by :func:`optimize.formulations.build_problem`: Baseline-DP (1 state,
+    :func:`backward1`), Thermal-DP (2 states) or Thermal-Cabin-DP (3 states); returns the engine's
+    :class:`ValueFunctions`.
 
     ``skip``: SOC nodes whose charge is more than two nodes outside [soc_min, soc_max] at a step are not
-    computed (:func:`_active`); ``False`` computes every node, as the generic engine does.
+    computed (:func:`_active`); ``False`` computes every node, as the generic engine does (2 and 3 states;
+    Baseline-DP computes every node, as the engine does).
     ``separable``: a terminal level that depends on SOC alone runs :func:`backward2_sep` or
     :func:`backward3_sep` (the same value function up to rounding where the terminal set is reachable);
     ``False``, or another terminal set, or the cubic cost-to-go, or a cost-to-go with a non-finite value,
     runs :func:`backward2` or :func:`backward3` (the generic engine's values and levels bit for bit).
-    ``.kernel`` says which ran."""
+    ``progress``: None, or ``progress(done, total)`` called with the steps done so far as the pass goes
+    (:func:`optimize.dp.engine.backward_pass`). ``.kernel`` says which kernel ran."""
     import time
 
     import numba
 
+    from optimize.dp.engine import _interp_mode, _step_parts
     from optimize.formulations.layout import _A_BIG, _C_HOLD, _C_NQ
 
     P = prob.params
     nx = prob.n_x
     phi, level = prob.terminal_arrays()
     ns = prob.n_states
-    VT = np.empty((prob.N + 1, ns), dtype=np.float32)
-    LT = np.empty((prob.N + 1, ns), dtype=np.float32)
-    VT[prob.N] = phi
-    LT[prob.N] = level
+    N = prob.N
+    VT = np.empty((N + 1, ns), dtype=np.float32)
+    LT = np.empty((N + 1, ns), dtype=np.float32)
+    VT[N] = phi
+    LT[N] = level
     o, n = int(P[_A_BIG]), int(P[_A_BIG + 1])
     shape = prob.table_shape
-    big = P[o: o + n].reshape(prob.N, shape[0], shape[1])
+    big = P[o: o + n].reshape(N, shape[0], shape[1])
     nq = int(P[_C_NQ])
     hold = bool(P[_C_HOLD]) if nx == 3 else False
     Q = np.ascontiguousarray(prob.controls[:nq - 1 if hold else nq, 2])
-    t0 = time.perf_counter()
     if prob.interp == "cubic_last" and nx != 3:
         raise ValueError(f"interp {prob.interp!r}: the fused kernels offer it for 3 states only")
     reach = prob.interp == "reach_first"
-    if nx not in (2, 3):
-        raise ValueError("fused kernels cover 2 and 3 states")
+    if nx not in (1, 2, 3):
+        raise ValueError("fused kernels cover 1, 2 and 3 states")
+    if nx == 1 and not (prob.boundary == "levelset" and prob.clip):
+        raise ValueError("the 1-state fused kernel covers the level-set boundary with clipped next states")
+    parts = _step_parts(N, progress)
+    t0 = time.perf_counter()
+    if progress is not None:
+        progress(0, N)
+    if nx == 1:
+        lo, inv_dx, nn, uniform, pts, strides = prob._grid_arrays()
+        mode = _interp_mode(prob.interp, 1)
+        for hi, lo_k in parts:
+            backward1(hi, P, big, prob.w, VT, LT, float(prob.level_tol), mode, lo, inv_dx, nn, uniform, pts, strides,
+                      lo_k)
+            if progress is not None:
+                progress(N - lo_k, N)
+        shape1 = (N + 1,) + prob.grid_shape
+        return ValueFunctions(V=VT.reshape(shape1), L=LT.reshape(shape1), policy=None,
+                              t_backward=time.perf_counter() - t0, n_evaluations=N * ns * prob.n_controls,
+                              kernel="fused-1")
     g = prob.grids
     cubic = nx == 3 and prob.interp == "cubic_last" and g[2].size >= 3
-    rows = LT[prob.N].reshape(g[0].size, -1)
+    rows = LT[N].reshape(g[0].size, -1)
     kernel = "fused"
     if separable and not cubic and (nx == 3 or nq == 1) and bool(np.all(rows == rows[:, :1])):
-        L1T = np.empty((prob.N + 1, g[0].size), dtype=np.float32)
-        L1T[prob.N] = rows[:, 0]
+        L1T = np.empty((N + 1, g[0].size), dtype=np.float32)
+        L1T[N] = rows[:, 0]
         tol = float(prob.level_tol)
         nth = numba.get_num_threads()
-        if nx == 2:
-            k = backward2_sep(prob.N, P, big, prob.w, g[0], g[1], Q, VT, L1T, tol, reach, skip,
-                              min(g[1].size, 2 * nth))
-        else:
-            k = backward3_sep(prob.N, P, big, prob.w, g[0], g[1], g[2], Q, VT, L1T, tol, hold, reach, skip,
-                              min(rows.shape[1], 4 * nth), nth)
+        k = -1
+        for hi, lo_k in parts:
+            if nx == 2:
+                k = backward2_sep(hi, P, big, prob.w, g[0], g[1], Q, VT, L1T, tol, reach, skip,
+                                  min(g[1].size, 2 * nth), lo_k)
+            else:
+                k = backward3_sep(hi, P, big, prob.w, g[0], g[1], g[2], Q, VT, L1T, tol, hold, reach, skip,
+                                  min(rows.shape[1], 4 * nth), nth, lo_k)
+            if k >= 0:
+                break
+            if progress is not None:
+                progress(N - lo_k, N)
         if k < 0:  # else a non-finite cost-to-go at step k: the exact kernel redoes the pass (V_N is untouched)
             # the levels of every state from those per SOC node, broadcast in place (np.repeat's temporary copy
             # of the 30-MB array took 9-57 ms of Thermal-DP's pass)
-            LT.reshape(prob.N + 1, g[0].size, -1)[:] = L1T[:, :, None]
+            LT.reshape(N + 1, g[0].size, -1)[:] = L1T[:, :, None]
             kernel = "fused-separable"
-    if kernel == "fused" and nx == 2:
-        backward2(prob.N, P, big, prob.w, g[0], g[1], Q, VT, LT, float(prob.level_tol), reach, skip)
-    elif kernel == "fused":
-        backward3(prob.N, P, big, prob.w, g[0], g[1], g[2], Q, VT, LT, float(prob.level_tol), cubic, hold, reach, skip)
+    if kernel == "fused":
+        for hi, lo_k in parts:
+            if nx == 2:
+                backward2(hi, P, big, prob.w, g[0], g[1], Q, VT, LT, float(prob.level_tol), reach, skip, lo_k)
+            else:
+                backward3(hi, P, big, prob.w, g[0], g[1], g[2], Q, VT, LT, float(prob.level_tol), cubic, hold,
+                          reach, skip, lo_k)
+            if progress is not None:
+                progress(N - lo_k, N)
     t_b = time.perf_counter() - t0
-    gs = (prob.N + 1,) + prob.grid_shape
+    gs = (N + 1,) + prob.grid_shape
     socg = prob.grids[0]
     s_inv = (socg.size - 1) / (socg[-1] - socg[0])
-    rows = sum(b - a for a, b in (_active(P, prob.w[k, 4], socg[0], s_inv, socg.size, skip) for k in range(prob.N)))
+    rows = sum(b - a for a, b in (_active(P, prob.w[k, 4], socg[0], s_inv, socg.size, skip) for k in range(N)))
     return ValueFunctions(V=VT.reshape(gs), L=LT.reshape(gs), policy=None, t_backward=t_b,
                           n_evaluations=rows * (ns // socg.size) * prob.n_controls, kernel=kernel)

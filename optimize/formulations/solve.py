@@ -463,26 +463,29 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
     if nx == 3:
         # clipped to the grid's ends, a hold heat beyond them is what a grid control already delivers
         p[_C_QLO], p[_C_QHI], p[_C_HOLD] = q_range[0], q_range[1], 1.0 if hold else 0.0
+    from optimize.formulations.fused import forward_hev
+
     prob = DPProblem(grids=grid_list, controls=controls, N=N, transition=hev_transition, w=w, params=p,
                      terminal_bounds=bounds, terminal_cost=terminal, boundary="levelset", clip=True,
                      level_tol=LEVEL_TOL, precompute=hev_precompute,
-                     table_shape=(pc.shape[0], _T_SOC0 + socg.size), interp=interp)
+                     table_shape=(pc.shape[0], _T_SOC0 + socg.size), interp=interp, forward_kernel=forward_hev)
     return _Built(prob, np.array(x0), cyc, extra, mp)
 
 
-#: Backward kernels of Thermal-DP and Thermal-Cabin-DP (Baseline-DP always runs the generic engine).
+#: Backward kernels of the formulations (:func:`optimize.formulations.fused.backward_pass_fused`; Baseline-DP's
+#: fused kernel gives the generic engine's values bit for bit, so "fused" and "fused-exact" are one there).
 ENGINES = ("fused", "fused-exact", "generic")
 
 
-def _solve(b: _Built, engine: str):
+def _solve(b: _Built, engine: str, progress=None):
     if engine not in ENGINES:
         raise ScenarioError(f"engine {engine!r}: choose one of {', '.join(ENGINES)}")
-    if engine in ("fused", "fused-exact") and b.prob.n_x >= 2:
+    if engine in ("fused", "fused-exact"):
         from optimize.formulations.fused import backward_pass_fused
 
-        vf = backward_pass_fused(b.prob, separable=engine == "fused")
+        vf = backward_pass_fused(b.prob, separable=engine == "fused", progress=progress)
     else:
-        vf = backward_pass(b.prob)
+        vf = backward_pass(b.prob, progress=progress)
     res = forward_pass(b.prob, vf, b.x0)
     return res
 
@@ -515,32 +518,37 @@ def _threads(n):
 
 
 def solve_baseline(params, scenario: DPScenario | None = None, grids=None, *,
-                   threads: int | None = 1, soc: str = SOC_STATE) -> DPOutcome:
+                   threads: int | None = 1, soc: str = SOC_STATE, engine: str = "fused",
+                   progress=None) -> DPOutcome:
     """Baseline-DP (SOC only, f_cl = 1). ``grids``: a :class:`DPGrids`, a :class:`FormulationGrids` (its
     Baseline-DP grid) or None (the default, :data:`optimize.formulations.BASELINE_CONVERGED_GRIDS`); the
     other solvers take the same. ``.sim``: its own optimum (f_cl = 1); ``.on_thermal``: its controls
     re-simulated on the full thermal model with the scenario's heater demand. ``soc``: the SOC state's
-    coordinate (:func:`build_problem`).
-
-    Solved by the generic engine on one thread by default: 150 states per step are too few to pay for a
-    parallel region per step."""
+    coordinate (:func:`build_problem`). ``engine``: "fused" (default, the serial kernel
+    :func:`optimize.formulations.fused.backward1`, the generic engine's values bit for bit) or "generic"
+    (the engine, on ``threads`` threads). ``progress``: None or ``progress(done, total)``, called with the
+    backward pass's steps done and the number of steps as it goes (:func:`optimize.dp.engine.solve`); the
+    other solvers take it too."""
     scen, grids = scenario or DPScenario(), FormulationGrids.coerce(grids).of("baseline")
     t0 = time.perf_counter()
     b = build_problem(params, scen, grids, 1, warm=True, soc=soc)
     with _threads(threads):
-        res = _solve(b, "generic")
+        res = _solve(b, engine, progress)
     mp_warm = b.mp
     e, pbm = res.u[:, 0], res.u[:, 1]
     q = np.full(b.prob.N, scen.Q_heat)
     sim = resimulate(mp_warm, b.cyc, e, pbm, q, scen, "Baseline-DP (f_cl = 1)")
     sim.info["params"] = params.meta.get("name", "") if hasattr(params, "meta") else ""
     on = resimulate(params, b.cyc, e, pbm, q, scen, "Baseline-DP policy on the thermal model")
-    return _outcome("baseline", params, b, res, scen, grids, sim, t0, on_thermal=on)
+    out = _outcome("baseline", params, b, res, scen, grids, sim, t0, on_thermal=on)
+    out.extra["engine"] = engine
+    out.extra["kernel"] = res.kernel
+    return out
 
 
 def solve_thermal(params, scenario: DPScenario | None = None, grids=None, *,
                   heater: float | None = None, warm: bool = False, engine: str = "fused",
-                  threads: int | None = None, soc: str = SOC_STATE) -> DPOutcome:
+                  threads: int | None = None, soc: str = SOC_STATE, progress=None) -> DPOutcome:
     """Thermal-DP (SOC, T_cl). ``heater`` overrides the scenario's demand (e.g. 0 W); ``warm=True``
     sets f_cl = 1 (with heater 0 W it must reproduce Baseline-DP); ``soc``: the SOC state's coordinate
     (:func:`build_problem`). ``engine``: "fused" (default: the separable kernel where the terminal level
@@ -551,7 +559,7 @@ def solve_thermal(params, scenario: DPScenario | None = None, grids=None, *,
     t0 = time.perf_counter()
     b = build_problem(params, scen, grids, 2, heater=heater, warm=warm, soc=soc)
     with _threads(threads):
-        res = _solve(b, engine)
+        res = _solve(b, engine, progress)
     mp_used = b.mp
     q = res.u[:, 2]
     sim = resimulate(mp_used if warm else params, b.cyc, res.u[:, 0], res.u[:, 1], q, scen, "Thermal-DP")
@@ -564,7 +572,7 @@ def solve_thermal(params, scenario: DPScenario | None = None, grids=None, *,
 def solve_thermal_cabin(params, scenario: DPScenario | None = None, grids=None, *,
                         engine: str = "fused", threads: int | None = None,
                         interp: str = CABIN_INTERP, cabin: str = CABIN_STATE,
-                        soc: str = SOC_STATE, hold: bool | None = None) -> DPOutcome:
+                        soc: str = SOC_STATE, hold: bool | None = None, progress=None) -> DPOutcome:
     """Thermal-Cabin-DP (SOC, T_cl, T_cab; Q_heat a control). ``engine``: "fused" (default; separable where
     it applies), "fused-exact" or "generic" (:func:`solve_thermal`).
     ``interp``: how both passes interpolate the cost-to-go along the cabin axis
@@ -577,7 +585,7 @@ def solve_thermal_cabin(params, scenario: DPScenario | None = None, grids=None, 
     t0 = time.perf_counter()
     b = build_problem(params, scen, grids, 3, interp=interp, cabin=cabin, soc=soc, hold=hold)
     with _threads(threads):
-        res = _solve(b, engine)
+        res = _solve(b, engine, progress)
     held = np.zeros(b.prob.N, bool)
     if b.extra["heater_hold"] and res.steps_completed == b.prob.N:
         # the hold control's heat depends on the state: replay the heat the forward pass applied
