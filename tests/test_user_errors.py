@@ -147,3 +147,13 @@ def test_the_sweep_benchmark_reports_failures_first_and_no_speed_up(monkeypatch,
     assert "speedup" not in out and "t_sequential_s" not in out
     assert " s (process CPU" not in text and "x over sequential" not in text  # no time of a failed run
     assert text.splitlines()[1].startswith("FAILED: ")  # right after the description of the study
+
+
+def test_unknown_scenario_field_suggests_the_closest():
+    from calib.errors import ScenarioError
+    from optimize.formulations.scenario import DPScenario
+
+    with pytest.raises(ScenarioError) as err:
+        DPScenario.from_dict({"T_ambb": -5.0})
+    msg = str(err.value)
+    assert "did you mean 'T_amb'?" in msg and "known:" not in msg

@@ -110,8 +110,8 @@ def run(quick: bool = False, halve: bool = False) -> dict:
                                "n_evaluations": o.n_evaluations, "evals_per_second": o.evals_per_second,
                                "fuel_corrected_g": o.sim.summary()["fuel_corrected_g"], "threads": 1}
     print(f"baseline on its default grid {bg.to_dict()}: {o.n_states} states x {o.n_controls} controls: total "
-          f"{o.t_total:.3f} s (backward {o.t_backward:.3f} s, {o.evals_per_second / 1e6:.0f} M evals/s, generic "
-          f"kernel, 1 thread); corrected fuel {out['baseline_default']['fuel_corrected_g']:.4f} g", flush=True)
+          f"{o.t_total:.3f} s (backward {o.t_backward:.3f} s, {o.evals_per_second / 1e6:.0f} M evals/s, "
+          f"{o.extra.get('kernel', 'generic')} kernel, 1 thread); corrected fuel {out['baseline_default']['fuel_corrected_g']:.4f} g", flush=True)
     # the converged Thermal-Cabin-DP grid (its kernels are compiled by the solve above)
     cg = CABIN_CONVERGED_GRIDS
     o = solve_formulation("thermal_cabin", ps, scen, cg)

@@ -300,7 +300,7 @@ class DPProblem:
 
 @dataclass
 class ValueFunctions:
-    """Output of the backward pass: V (N+1, *grid_shape) float32, optional level L and policy; ``kernel``
+    """Output of the backward pass: ``V`` of shape ``(N+1, *grid_shape)``, float32, optional level ``L`` and policy; ``kernel``
     names the backward kernel that produced them."""
 
     V: np.ndarray

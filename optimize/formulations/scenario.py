@@ -111,7 +111,12 @@ class DPScenario:
         names = {f.name for f in fields(cls)}
         bad = set(d) - names
         if bad:
-            raise ScenarioError(f"unknown scenario field(s) {sorted(bad)}; known: {sorted(names)}")
+            import difflib
+
+            close = {b: difflib.get_close_matches(str(b), sorted(names), 1) for b in sorted(bad)}
+            hints = [f"{b!r} (did you mean {c[0]!r}?)" if c else repr(b) for b, c in close.items()]
+            known = "" if all(close.values()) else f"; known: {', '.join(sorted(names))}"
+            raise ScenarioError(f"unknown scenario field(s) {', '.join(hints)}{known}")
         return cls(**d)
 
     def to_dict(self) -> dict:

@@ -490,6 +490,24 @@ def _solve(b: _Built, engine: str, progress=None):
     return res
 
 
+def _check_drivable(name, b, res) -> None:
+    """A ScenarioError naming the cycle and the time where no state has a feasible way on (every cost-to-go
+    infinite), before an infeasible policy (NaN controls) is re-simulated. Where every step has a feasible
+    state, the drive is possible and :func:`_outcome` names the grids or the terminal condition instead."""
+    if res.feasible or res.V is None:
+        return
+    V = np.asarray(res.V)
+    dead = ~np.isfinite(V.reshape(V.shape[0], -1)).any(axis=1)[:-1]
+    if not dead.any():
+        return
+    k = int(np.flatnonzero(dead)[-1])
+    cyc = b.cyc
+    raise ScenarioError(f"{name}: the cycle {cyc.name} cannot be driven within the car's limits at t = {cyc.t[k]:g} s "
+                        f"({cyc.v[k] * 3.6:.0f} km/h to {cyc.v[k + 1] * 3.6:.0f} km/h in {cyc.Ts:g} s): no power split "
+                        "is feasible there from any state of charge; check the cycle's speeds and time base, or the "
+                        "parameters' power limits (P_e_max_W, P_bat_max_W)")
+
+
 def _outcome(name, params, b, res, scen, grids, sim, t0, on_thermal=None):
     if not res.feasible:
         raise ScenarioError(f"{name}: no feasible charge-sustaining solution on these grids (steps completed "
@@ -534,6 +552,7 @@ def solve_baseline(params, scenario: DPScenario | None = None, grids=None, *,
     b = build_problem(params, scen, grids, 1, warm=True, soc=soc)
     with _threads(threads):
         res = _solve(b, engine, progress)
+    _check_drivable("baseline", b, res)
     mp_warm = b.mp
     e, pbm = res.u[:, 0], res.u[:, 1]
     q = np.full(b.prob.N, scen.Q_heat)
@@ -560,6 +579,7 @@ def solve_thermal(params, scenario: DPScenario | None = None, grids=None, *,
     b = build_problem(params, scen, grids, 2, heater=heater, warm=warm, soc=soc)
     with _threads(threads):
         res = _solve(b, engine, progress)
+    _check_drivable("thermal", b, res)
     mp_used = b.mp
     q = res.u[:, 2]
     sim = resimulate(mp_used if warm else params, b.cyc, res.u[:, 0], res.u[:, 1], q, scen, "Thermal-DP")
@@ -586,6 +606,7 @@ def solve_thermal_cabin(params, scenario: DPScenario | None = None, grids=None, 
     b = build_problem(params, scen, grids, 3, interp=interp, cabin=cabin, soc=soc, hold=hold)
     with _threads(threads):
         res = _solve(b, engine, progress)
+    _check_drivable("thermal_cabin", b, res)
     held = np.zeros(b.prob.N, bool)
     if b.extra["heater_hold"] and res.steps_completed == b.prob.N:
         # the hold control's heat depends on the state: replay the heat the forward pass applied
