@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-from calib.model.equations import IDLE, OFF, ON
+from calib.model.equations import CAT, IDLE, OFF, ON
 
 
 @dataclass
@@ -32,6 +32,11 @@ class RuleParams:
     T_idle_degC: float = 40.0  # thermal rule: idle instead of off below this coolant temperature
     T_heat_on_degC: float = 55.0  # heat requested: the engine keeps running below this coolant temperature
     Q_heat_W: float = 1500.0  # heater demand
+    k_on_W: float = 100e3  # start threshold rises by this many W per unit SOC above target (spend a surplus)
+    t_cat_s: float = 50.0  # catalyst heating after a start with the coolant below T_cat_degC (s)
+    T_cat_degC: float = 60.0  # coolant at the start below which the catalyst is heated first
+    soc_warmup: float = 0.72  # SOC target while the coolant is below T_warm_degC (charge during warm-up)
+    T_warm_degC: float = 70.0  # coolant temperature that ends the warm-up
 
     def to_dict(self) -> dict:
         """The thresholds as a JSON-able dict."""
@@ -57,6 +62,8 @@ class RuleBasedController:
         """Forget the engine state and timers (call before a new drive)."""
         self.on = False
         self.on_time = 0.0
+        self.time = 0.0  # since the start of the drive
+        self.T_cl_start = None  # coolant at the start: decides catalyst heating
         # heat the climate control asks for this step; a wrapper that sets its own request (a cabin
         # thermostat) assigns it before calling, so the engine-on rule sees the real request
         self.heat_request_W = self.rp.Q_heat_W
@@ -67,17 +74,27 @@ class RuleBasedController:
 
     def __call__(self, k, soc, T_cl, T_cab, P_trac, Ts=1.0):
         p, r = self.mp, self.rp
+        if self.T_cl_start is None:
+            self.T_cl_start = T_cl
+        self.time += Ts
         bat_only = (P_trac / p.eta_em if P_trac > 0 else 0.0) + p.P_aux
         must = bat_only > 0.95 * p.P_bat_max or soc < r.soc_low
+        if not must and self.time <= r.t_cat_s and self.T_cl_start < r.T_cat_degC:
+            # catalyst heating: the engine gives no power, the battery drives the car
+            return CAT, 0.0, r.Q_heat_W
+        held = self.keep_running(T_cl)
+        target = max(r.soc_target, r.soc_warmup) if T_cl < r.T_warm_degC else r.soc_target
+        # while the engine must run anyway to warm up, it charges the battery towards the warm-up target
+        charge = held and soc < target
         if self.on:
-            stop = P_trac <= 0.0 or (P_trac < r.P_off_W and self.on_time >= r.t_min_on_s)
+            stop = P_trac <= 0.0 or (P_trac < r.P_off_W and self.on_time >= r.t_min_on_s and not charge)
             if stop and not must:
                 self.on = False
-        elif must or P_trac > r.P_on_W:
+        elif must or P_trac > r.P_on_W + r.k_on_W * max(soc - target, 0.0) or (charge and P_trac >= 0.0):
             self.on, self.on_time = True, 0.0
         if self.on:
             self.on_time += Ts
-            P_chg = r.k_soc_W * (r.soc_target - soc)
+            P_chg = r.k_soc_W * (target - soc)
             P_e = (max(P_trac, 0.0) + P_chg) / p.eta_mech
             P_e = min(max(P_e, r.P_e_min_W), p.P_e_max)
             P_em = P_trac - p.eta_mech * P_e
@@ -89,7 +106,7 @@ class RuleBasedController:
                 return ON, P_bat_mg, r.Q_heat_W
             # hard braking while forced on: nothing left for the engine to do, so it idles
             return IDLE, 0.0, r.Q_heat_W
-        return (IDLE if self.keep_running(T_cl) else OFF), 0.0, r.Q_heat_W
+        return (IDLE if held else OFF), 0.0, r.Q_heat_W
 
     def keep_running(self, T_cl) -> bool:
         """Whether the thermal rules forbid stopping the engine at coolant temperature ``T_cl``."""

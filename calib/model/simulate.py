@@ -266,10 +266,13 @@ def sim_from_arrays(d: dict) -> SimResult:
     """Inverse of :func:`sim_to_arrays`."""
     import json
 
-    from calib.model.params import ModelParams
+    from calib.model.params import ModelParams, default_parameters
 
     # files written before the hysteresis term existed: that model had none, so 0 V is exact there
     d = {"mp__U_hyst": np.asarray(0.0), **d}
+    # files written before catalyst heating was modelled never used that mode: any value reads them exactly
+    dmp = default_parameters().model_params()
+    d = {"mp__W_cat": np.asarray(dmp.W_cat), "mp__w_cat": np.asarray(dmp.w_cat), **d}
     mp = ModelParams(**{f: (d[f"mp__{f}"] if d[f"mp__{f}"].ndim else float(d[f"mp__{f}"]))
                         for f in ModelParams._fields})
     flows = {k[6:]: d[k] for k in d if k.startswith("flow__")}
