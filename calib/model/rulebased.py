@@ -87,7 +87,9 @@ class RuleBasedController:
         # while the engine must run anyway to warm up, it charges the battery towards the warm-up target
         charge = held and soc < target
         if self.on:
-            stop = P_trac <= 0.0 or (P_trac < r.P_off_W and self.on_time >= r.t_min_on_s and not charge)
+            # a charging engine keeps running at a standstill, not while braking (regeneration charges then)
+            stop = P_trac < 0.0 or (not charge and (P_trac == 0.0 or (P_trac < r.P_off_W
+                                                                       and self.on_time >= r.t_min_on_s)))
             if stop and not must:
                 self.on = False
         elif must or P_trac > r.P_on_W + r.k_on_W * max(soc - target, 0.0) or (charge and P_trac >= 0.0):
