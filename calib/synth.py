@@ -151,12 +151,19 @@ def draw_truth(seed: int, spread: float = 0.25, base: ParameterSet | None = None
     return truth
 
 
+#: The plant's controller in synthetic logs: the default rules without catalyst heating. The fits' replay
+#: tells off, idle and on from logged speed and torque; catalyst heating (engine at its own speed, no
+#: torque) is a mode it does not replay, so a synthetic identification drive leaves it out rather than
+#: test the fitters on a mode they cannot represent (docs/cold_start.md).
+IDENTIFICATION_RULES = RuleParams(t_cat_s=0.0)
+
+
 def simulate_truth(truth: ParameterSet, sc: Scenario):
     """The true trajectories of a scenario (a :class:`calib.model.simulate.SimResult`)."""
     from calib.model.simulate import simulate
 
     mp = truth.model_params()
-    ctrl = HvacController(mp, RuleParams(), T_set=sc.T_set, heater_off=sc.heater_off)
+    ctrl = HvacController(mp, IDENTIFICATION_RULES, T_set=sc.T_set, heater_off=sc.heater_off)
     return simulate(truth, sc.cycle, ctrl, T_amb=sc.T_amb, soc0=sc.soc0, T_cl0=sc.T_cl0, T_cab0=sc.T_cab0,
                     T_bat=sc.T_bat)
 

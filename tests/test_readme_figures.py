@@ -15,6 +15,8 @@ def test_readme_blocks_match_the_benchmark_json():
     assert "mutation" in data, "reports/mutation.json missing: run scripts/mutation.py"
     assert figures.check(figures.README.read_text(), data) == []
     assert figures.check(figures.DOCS.read_text(), data, figures.DOC_RENDER) == []
+    assert "epa" in data, "reports/figures/bench-epa.json missing: run `make figures`"
+    assert figures.check(figures.COLD_DOC.read_text(), data, figures.COLD_RENDER) == []
 
 
 def test_check_catches_an_edited_figure():
