@@ -8,6 +8,12 @@ than stopping (Tashiro 2016), and while heat is requested it keeps running until
 ``T_heat_on_degC`` (the production Prius keeps its engine on while the coolant is cold and the heater or
 defroster is on; docs/cold_start.md). The heater requests a fixed demand.
 
+Cold start as the production car runs it (docs/cold_start.md): after a start with the coolant below
+``T_cat_degC`` the engine first heats the catalyst for ``t_cat_s`` (mode ``CAT``: no power, the battery
+drives); while the coolant is below ``T_warm_degC`` the SOC target is ``soc_warmup`` and an engine held on
+by the thermal rules charges towards it rather than idling; above the SOC target the start threshold rises
+by ``k_on_W`` per unit SOC, so the charge is spent.
+
 It lives in ``calib`` because it is also the plant's own controller when logs are synthesised; the
 per-scenario threshold tuning lives in :mod:`optimize.tuning`.
 """
