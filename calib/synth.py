@@ -152,20 +152,22 @@ def draw_truth(seed: int, spread: float = 0.25, base: ParameterSet | None = None
 
 
 #: The plant's controller in synthetic logs: the default rules without the cold-start behaviour of the
-#: production car (catalyst heating, charge during warm-up, the SOC-dependent start threshold). The fits'
-#: replay tells off, idle and on from logged speed and torque; catalyst heating (engine at its own speed,
-#: no torque) is a mode it does not replay, and with the warm-up charge in the truth the thermal fit's
-#: held-out coolant error rises above its gate (docs/cold_start.md, "Effect on the rest of the workbench").
-IDENTIFICATION_RULES = RuleParams(t_cat_s=0.0, soc_warmup=RuleParams().soc_target, k_on_W=0.0)
+#: production car (charge during warm-up, the SOC-dependent start threshold); the plant of these logs has no
+#: catalyst heating either (:func:`simulate_truth`). With the warm-up charge in the truth the thermal fit's
+#: held-out coolant error rose above its gate (docs/cold_start.md, "Effect on the rest of the workbench"),
+#: and the calibration's locked figures rest on these logs.
+IDENTIFICATION_RULES = RuleParams(soc_warmup=RuleParams().soc_target, k_on_W=0.0)
 
 
 def simulate_truth(truth: ParameterSet, sc: Scenario):
-    """The true trajectories of a scenario (a :class:`calib.model.simulate.SimResult`)."""
+    """The true trajectories of a scenario (a :class:`calib.model.simulate.SimResult`): the truth's plant
+    without catalyst heating, under :data:`IDENTIFICATION_RULES`."""
     from calib.model.simulate import simulate
 
-    mp = truth.model_params()
+    plant = truth.with_values(t_cat_s=0.0)
+    mp = plant.model_params()
     ctrl = HvacController(mp, IDENTIFICATION_RULES, T_set=sc.T_set, heater_off=sc.heater_off)
-    return simulate(truth, sc.cycle, ctrl, T_amb=sc.T_amb, soc0=sc.soc0, T_cl0=sc.T_cl0, T_cab0=sc.T_cab0,
+    return simulate(plant, sc.cycle, ctrl, T_amb=sc.T_amb, soc0=sc.soc0, T_cl0=sc.T_cl0, T_cab0=sc.T_cab0,
                     T_bat=sc.T_bat)
 
 

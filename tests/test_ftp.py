@@ -33,8 +33,8 @@ def test_weighting_rejects_wrong_bag_count():
 
 
 def _ctrl(Q_heat, **kw):
-    # the thermal engine-on rules alone: catalyst already warm, no warm-up charge (tested separately below)
-    kw = {"t_cat_s": 0.0, "soc_warmup": RuleParams().soc_target, **kw}
+    # the thermal engine-on rules alone: no warm-up charge (tested separately below)
+    kw = {"soc_warmup": RuleParams().soc_target, **kw}
     return RuleBasedController(default_parameters().model_params(), RuleParams(Q_heat_W=Q_heat, **kw))
 
 
@@ -108,18 +108,6 @@ def test_ftp_comparison_table_has_both_tests():
     assert list(df["epa_mpg"]) == [78.0, 56.3]
 
 
-def test_catalyst_heating_after_a_cold_start_only():
-    rp = RuleParams()
-    c = RuleBasedController(default_parameters().model_params(), rp)
-    modes = [c(k, 0.6, 10.0 + 0.1 * k, 10.0, 2000.0)[0] for k in range(int(rp.t_cat_s) + 5)]
-    assert modes[:int(rp.t_cat_s)] == [CAT] * int(rp.t_cat_s) and CAT not in modes[int(rp.t_cat_s):]
-    warm = RuleBasedController(default_parameters().model_params(), rp)
-    assert warm(0, 0.6, rp.T_cat_degC + 1.0, 10.0, 2000.0)[0] != CAT
-    # a demand the battery cannot meet alone starts the engine even while the catalyst heats
-    strong = RuleBasedController(default_parameters().model_params(), rp)
-    assert strong(0, 0.6, 10.0, 10.0, 30e3)[0] == ON
-
-
 def test_catalyst_heating_burns_its_rate_and_gives_no_power():
     from calib.model.equations import evaluate
 
@@ -131,7 +119,7 @@ def test_catalyst_heating_burns_its_rate_and_gives_no_power():
 
 
 def test_warm_up_charges_the_battery_at_a_standstill():
-    rp = RuleParams(t_cat_s=0.0)
+    rp = RuleParams()
     c = RuleBasedController(default_parameters().model_params(), rp)
     e, pb, _ = c(0, rp.soc_warmup - 0.05, 30.0, 10.0, 0.0)
     assert e == ON and pb < 0.0  # charging
@@ -142,7 +130,7 @@ def test_warm_up_charges_the_battery_at_a_standstill():
 
 
 def test_surplus_charge_raises_the_start_threshold():
-    rp = RuleParams(t_cat_s=0.0)
+    rp = RuleParams()
     P = rp.P_on_W + 0.5 * rp.k_on_W * 0.1
     c = RuleBasedController(default_parameters().model_params(), rp)
     assert c(0, rp.soc_target, 90.0, 20.0, P)[0] == ON

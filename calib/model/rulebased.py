@@ -8,11 +8,11 @@ than stopping (Tashiro 2016), and while heat is requested it keeps running until
 ``T_heat_on_degC`` (the production Prius keeps its engine on while the coolant is cold and the heater or
 defroster is on; docs/cold_start.md). The heater requests a fixed demand.
 
-Cold start as the production car runs it (docs/cold_start.md): after a start with the coolant below
-``T_cat_degC`` the engine first heats the catalyst for ``t_cat_s`` (mode ``CAT``: no power, the battery
-drives); while the coolant is below ``T_warm_degC`` the SOC target is ``soc_warmup`` and an engine held on
-by the thermal rules charges towards it rather than idling; above the SOC target the start threshold rises
-by ``k_on_W`` per unit SOC, so the charge is spent.
+Cold start as the production car runs it (docs/cold_start.md): catalyst heating after a cold start belongs
+to the plant (:mod:`calib.model.catalyst`; the simulator runs it before this controller's commands apply);
+while the coolant is below ``T_warm_degC`` the SOC target is ``soc_warmup`` and an engine held on by the
+thermal rules charges towards it rather than idling; above the SOC target the start threshold rises by
+``k_on_W`` per unit SOC, so the charge is spent.
 
 It lives in ``calib`` because it is also the plant's own controller when logs are synthesised; the
 per-scenario threshold tuning lives in :mod:`optimize.tuning`.
@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-from calib.model.equations import CAT, IDLE, OFF, ON
+from calib.model.equations import IDLE, OFF, ON
 
 
 @dataclass
@@ -39,8 +39,6 @@ class RuleParams:
     T_heat_on_degC: float = 55.0  # heat requested: the engine keeps running below this coolant temperature
     Q_heat_W: float = 1500.0  # heater demand
     k_on_W: float = 100e3  # start threshold rises by this many W per unit SOC above target (spend a surplus)
-    t_cat_s: float = 50.0  # catalyst heating after a start with the coolant below T_cat_degC (s)
-    T_cat_degC: float = 60.0  # coolant at the start below which the catalyst is heated first
     soc_warmup: float = 0.72  # SOC target while the coolant is below T_warm_degC (charge during warm-up)
     T_warm_degC: float = 70.0  # coolant temperature that ends the warm-up
 
@@ -68,8 +66,6 @@ class RuleBasedController:
         """Forget the engine state and timers (call before a new drive)."""
         self.on = False
         self.on_time = 0.0
-        self.time = 0.0  # since the start of the drive
-        self.T_cl_start = None  # coolant at the start: decides catalyst heating
         # heat the climate control asks for this step; a wrapper that sets its own request (a cabin
         # thermostat) assigns it before calling, so the engine-on rule sees the real request
         self.heat_request_W = self.rp.Q_heat_W
@@ -80,14 +76,8 @@ class RuleBasedController:
 
     def __call__(self, k, soc, T_cl, T_cab, P_trac, Ts=1.0):
         p, r = self.mp, self.rp
-        if self.T_cl_start is None:
-            self.T_cl_start = T_cl
-        self.time += Ts
         bat_only = (P_trac / p.eta_em if P_trac > 0 else 0.0) + p.P_aux
         must = bat_only > 0.95 * p.P_bat_max or soc < r.soc_low
-        if not must and self.time <= r.t_cat_s and self.T_cl_start < r.T_cat_degC:
-            # catalyst heating: the engine gives no power, the battery drives the car
-            return CAT, 0.0, r.Q_heat_W
         held = self.keep_running(T_cl)
         target = max(r.soc_target, r.soc_warmup) if T_cl < r.T_warm_degC else r.soc_target
         # while the engine must run anyway to warm up, it charges the battery towards the warm-up target

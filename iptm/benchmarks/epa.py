@@ -58,17 +58,18 @@ def _causes(ps):
     from calib.model.rulebased import RuleParams
 
     d = RuleParams()
-    warmup_off = dict(t_cat_s=0.0, soc_warmup=d.soc_target, k_on_W=0.0)
+    warmup_off = dict(soc_warmup=d.soc_target, k_on_W=0.0)
+    no_cat = ps.with_values(t_cat_s=0.0)
     f_steep = ps.copy()
     fp = f_steep.param("f_cl")
     fp.x, fp.value, fp.prior_sd = [-10.0, 20.0, 50.0, 70.0], [2.0, 1.6, 1.2, 1.0], None
     f_steep.validate()
     cases = [
         ("default", ps, d, None),
-        ("previous controller: no catalyst heating, no warm-up charge, fixed start threshold", ps,
+        ("previous controller: no catalyst heating, no warm-up charge, fixed start threshold", no_cat,
          RuleParams(**warmup_off), None),
-        ("without catalyst heating", ps, RuleParams(t_cat_s=0.0), None),
-        ("catalyst heating only below 40 degC coolant at the start", ps, RuleParams(T_cat_degC=40.0), None),
+        ("without catalyst heating", no_cat, d, None),
+        ("catalyst heating only below 40 degC coolant at the start", ps.with_values(T_cat_degC=40.0), d, None),
         ("without charge during warm-up (SOC target 0.6 throughout)", ps, RuleParams(soc_warmup=d.soc_target),
          None),
         ("warm-up SOC target 0.68", ps, RuleParams(soc_warmup=0.68), None),
