@@ -191,13 +191,43 @@ def _epa_causes(d: dict) -> str:
     return "\n".join(rows)
 
 
+#: Strategy names of the case-study tables.
+_STRATEGY = {"rule": "Rule-based (tuned)", "baseline": "Baseline-DP on thermal model", "thermal": "Thermal-DP",
+             "thermal_cabin": "Thermal-Cabin-DP"}
+
+
+def _case_study(name: str):
+    """The case study ``name`` before and after the cold-start change (``iptm bench epa``, ``case_study``)."""
+
+    def render(d: dict) -> str:
+        c = d["epa"]["case_study"][name]
+        rows = [f"{c['description']}; before / after:", "",
+                "| strategy | fuel g | corrected g | saving over rule-based, corrected | final SOC | mean coolant degC | "
+                "idle s | catalyst heating s | catalyst heating g |", "|---|---|---|---|---|---|---|---|---|"]
+        for r in c["rows"]:
+            b, a = r["before"], r["after"]
+            sav = "-" if r["strategy"] == "rule" else f"{b['saving_pct']:.1f} / {a['saving_pct']:.1f} %"
+            rows.append(f"| {_STRATEGY[r['strategy']]} | {b['fuel_g']:.1f} / {a['fuel_g']:.1f} | "
+                        f"{b['fuel_corrected_g']:.1f} / {a['fuel_corrected_g']:.1f} | {sav} | "
+                        f"{b['soc_final']:.3f} / {a['soc_final']:.3f} | {b['T_cl_mean_degC']:.1f} / "
+                        f"{a['T_cl_mean_degC']:.1f} | {b['idle_s']:.0f} / {a['idle_s']:.0f} | "
+                        f"{b['catalyst_s']:.0f} / {a['catalyst_s']:.0f} | {b['catalyst_g']:.1f} / {a['catalyst_g']:.1f} |")
+        th = c["rule_thresholds"]
+        keys = ("P_on_W", "P_off_W", "P_e_min_W", "k_soc_W", "soc_target")
+        rows += ["", "Tuned rule-based thresholds, before / after: " + ", ".join(
+            f"{k} {th['before'][k]:g} / {th['after'][k]:g}" for k in keys)]
+        return "\n".join(rows)
+    return render
+
+
 RENDER = {"epa": _epa, "epa-bags": _epa_bags, "sim-speed": _sim_speed, "mutation": _mutation, "causal": _causal,
           "ecms-hindsight": _ecms_hindsight}
 #: Blocks of docs/optimization.md rendered the same way.
 DOC_RENDER = {"causal-rule-train": _causal_rule_train, "ecms-hindsight": _ecms_hindsight,
               "causal-fourth": _causal_per_drive}
 #: Blocks of docs/cold_start.md.
-COLD_RENDER = {"epa-bags": _epa_bags, "epa-causes": _epa_causes}
+COLD_RENDER = {"epa-bags": _epa_bags, "epa-causes": _epa_causes, "epa": _epa,
+               "case-study-paper": _case_study("paper"), "case-study-cold-soak": _case_study("cold_soak")}
 
 
 # --------------------------------------------------------------------------------------------------- README blocks

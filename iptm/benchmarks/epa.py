@@ -3,10 +3,13 @@
 Prints every EPA bag (warm FTP, cold FTP, US06, HWFET) with EPA's raw economy next to the model's raw and
 SOC-corrected economy (:func:`calib.model.epa.bag_table`), the warm UDDS/HWFET/US06 table
 (:func:`calib.model.epa.epa_comparison`), the FTP composites at 75 degF and at 20 degF
-(:func:`calib.model.ftp.ftp_comparison`), and, unless ``quick``, the causes: the warm and cold FTP with one
-change at a time. ``--params FILE`` is not taken: this checks the default parameter set.
+(:func:`calib.model.ftp.ftp_comparison`), and, unless ``quick``, the causes (the warm and cold FTP with one
+change at a time) and the case study before and after the cold-start change (:func:`case_study`).
+``--params FILE`` is not taken: this checks the default parameter set.
 """
 from __future__ import annotations
+
+import numpy as np
 
 
 def run(quick: bool = False) -> dict:
@@ -46,6 +49,74 @@ def run(quick: bool = False) -> dict:
            "ftp": ftp.to_dict(orient="records"), "cold_warm_ratio": ratio}
     if not quick:
         out["causes"] = _causes(ps).to_dict(orient="records")
+        out["case_study"] = case_study(ps)
+    return out
+
+
+#: The second case study: everything cold-soaked at the ambient (docs/cold_start.md).
+COLD_SOAK_TOML = "studies/cold_soak_scenario.toml"
+
+
+def _strategy_row(sim) -> dict:
+    from calib.model.equations import CAT
+
+    s = sim.summary()
+    cat = sim.e_mode == CAT
+    return {"fuel_g": s["fuel_g"], "fuel_corrected_g": s["fuel_corrected_g"], "soc_final": s["soc_final"],
+            "T_cl_mean_degC": s["T_cl_mean_degC"], "T_cl_final_degC": s["T_cl_final_degC"],
+            "T_cab_mean_degC": s["T_cab_mean_degC"], "idle_s": s["idle_s"], "engine_on_s": s["engine_on_s"],
+            "heater_MJ": s["heater_delivered_J"] / 1e6,
+            "catalyst_s": float(np.sum(cat) * sim.Ts), "catalyst_g": float(np.sum(sim.flows["W_f"][cat]) * sim.Ts)}
+
+
+def case_study(ps) -> dict:
+    """The case study (``iptm optimize``: tuned rule-based against the DP formulations, each on its default
+    grid) on the paper's scenario and on the cold-soaked one, before and after the cold-start change.
+
+    Before: the car without catalyst heating and the previous rules (no warm-up charge, fixed start
+    threshold), the rule-based thresholds tuned on them; after: the default car and rules. The same
+    ``fuel_scale`` in both."""
+    from pathlib import Path
+
+    from calib.model.rulebased import RuleParams
+    from iptm.pipeline import load_scenario
+    from optimize.casestudy import run_case_study
+    from optimize.formulations.scenario import DEFAULT_GRIDS, DPScenario
+    from optimize.tuning import tune_rule_based
+
+    d = RuleParams()
+    before_ps, before_rules = ps.with_values(t_cat_s=0.0), RuleParams(soc_warmup=d.soc_target, k_on_W=0.0)
+    soak, soak_grids, _, _ = load_scenario(Path(__file__).resolve().parents[2] / COLD_SOAK_TOML)
+    studies = [("paper", "ARTEMIS Urban, -10 degC, coolant 70 degC, cabin 20 degC", DPScenario(), DEFAULT_GRIDS,
+                ("rule", "baseline", "thermal", "thermal_cabin")),
+               ("cold_soak", f"{COLD_SOAK_TOML}: ARTEMIS Urban, everything soaked at -10 degC", soak, soak_grids,
+                ("rule", "baseline", "thermal"))]
+    out = {}
+    for name, desc, scen, grids, strategies in studies:
+        print(f"\ncase study '{name}' ({desc}), before and after the cold-start change:", flush=True)
+        cs = {"after": run_case_study(ps, scen, strategies, progress=False, grids=grids),
+              "before": run_case_study(before_ps, scen, [k for k in strategies if k != "rule"], progress=False,
+                                       grids=grids)}
+        tr = tune_rule_based(before_ps, scen.load_cycle(), T_amb=scen.T_amb, soc0=scen.soc0, T_cl0=scen.T_cl0,
+                             T_cab0=scen.T_cab0, Q_heat=scen.Q_heat, base=before_rules)
+        cs["before"].sims = {"rule": tr.result, **cs["before"].sims}
+        rows = []
+        for key in strategies:
+            row = {"strategy": key}
+            for when in ("before", "after"):
+                r = _strategy_row(cs[when].sims[key])
+                ref = cs[when].sims["rule"].summary()["fuel_corrected_g"]
+                r["saving_pct"] = 100.0 * (1.0 - r["fuel_corrected_g"] / ref)
+                row[when] = r
+            rows.append(row)
+            a, b = row["after"], row["before"]
+            print(f"  {key:14s} fuel {b['fuel_g']:7.1f} -> {a['fuel_g']:7.1f} g, corrected {b['fuel_corrected_g']:7.1f} "
+                  f"-> {a['fuel_corrected_g']:7.1f} g, saving over rule-based {b['saving_pct']:+.1f} -> "
+                  f"{a['saving_pct']:+.1f} %, final SOC {a['soc_final']:.3f}, mean coolant {a['T_cl_mean_degC']:.1f} "
+                  f"degC, idle {a['idle_s']:.0f} s, catalyst heating {a['catalyst_s']:.0f} s / {a['catalyst_g']:.1f} g",
+                  flush=True)
+        out[name] = {"description": desc, "rows": rows,
+                     "rule_thresholds": {"before": tr.rule.to_dict(), "after": cs["after"].rule["thresholds"]}}
     return out
 
 
