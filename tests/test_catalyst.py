@@ -155,3 +155,19 @@ def test_replay_without_engine_speed_keeps_idle(ps):
     cat = catalyst_heating(n, np.ones(n.size, bool), mp)
     assert cat[5:65].all() and not cat[:5].any() and not cat[65:].any()  # not after the start's window
     assert not catalyst_heating(n, np.ones(n.size, bool), mp._replace(t_cat=0.0)).any()
+
+
+@pytest.mark.parametrize("name,nx", [("baseline", 1), ("thermal", 2), ("thermal_cabin", 3)])
+def test_every_formulation_counts_the_prelude(ps, name, nx):
+    from optimize.formulations import DPGrids, DPScenario
+    from optimize.formulations.solve import dp_objective, solve_formulation
+
+    scen = DPScenario(duration_s=150.0, T_cl0=20.0)
+    o = solve_formulation(name, ps, scen, DPGrids(soc=0.01, tcl=4.0, tcab=1.0, pbat=2000.0, qheat=150.0))
+    n = o.extra["prelude"]["steps"]
+    assert n == round(ps["t_cat_s"]) and (o.sim.e_mode[:n] == CAT).all() and CAT not in o.sim.e_mode[n:]
+    assert o.dp.feasible and o.charge_sustaining()
+    assert o.sim.summary()["energy_balance_residual_rel"] < 1e-9
+    # the forward pass after the prelude plus the prelude's fuel is the re-simulated drive's fuel
+    assert np.sum(o.dp.stage_cost) + o.extra["prelude"]["fuel_g"] == pytest.approx(o.sim.fuel_g, rel=1e-9)
+    assert o.dp_cost == pytest.approx(dp_objective(ps, o.sim, scen, nx), rel=1e-9)

@@ -14,6 +14,14 @@ COARSE3 = DPGrids(soc=0.02, tcl=4.0, tcab=1.0, pbat=2000.0, qheat=150.0)
 
 
 @pytest.fixture(scope="module")
+def params(params):
+    """The default car without catalyst heating: these tests check the DP's kernels and transitions on drives
+    of a few seconds from a cold start, which the 50-s catalyst-heating prelude would cover whole (the DP
+    with the prelude: tests/test_catalyst.py)."""
+    return params.with_values(t_cat_s=0.0)
+
+
+@pytest.fixture(scope="module")
 def base(params):
     return solve_baseline(params, SHORT_FREE, DPGrids())
 
