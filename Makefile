@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test test-slow test-browser screenshots browser bench venv clean mutation mutation-sample figures figures-check lint
+.PHONY: run test test-slow test-browser screenshots browser bench venv clean mutation mutation-sample figures figures-check lint docs
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -57,6 +57,11 @@ figures: $(STAMP)
 
 figures-check: $(STAMP)
 	$(BIN)/python scripts/figures.py check
+
+## the documentation site (Sphinx, from docs/ and the docstrings) into docs/_build/html; warnings are errors
+docs: $(STAMP)
+	test -x $(BIN)/sphinx-build || $(BIN)/python -m pip install -q -e ".[docs]"
+	$(BIN)/sphinx-build -W --keep-going -b html docs docs/_build/html
 
 clean:
 	rm -rf $(VENV) .pytest_cache

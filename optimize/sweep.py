@@ -137,8 +137,13 @@ class Study:
                 raise ScenarioError(f"study {self.name}: [link] {k} = {src!r}: both must be scenario fields; "
                                     f"known: {sorted(known)}")
         # validate field names early (one-line errors before anything is submitted)
+        # every value of [vary] checked once here (not every combination), so a bad one is refused on loading
+        first = {k: v[0] for k, v in self.vary.items()}
         for entry in self.cases or [{}]:
-            self._scenario({**self.scenario, **entry, **{k: v[0] for k, v in self.vary.items()}})
+            self._scenario({**self.scenario, **entry, **first})
+            for k, values in self.vary.items():
+                for v in values[1:]:
+                    self._scenario({**self.scenario, **entry, **first, k: v})
         if not self.param_sets:
             from calib.model.params import default_parameters
 
@@ -147,11 +152,18 @@ class Study:
     def _scenario(self, d: dict):
         from optimize.formulations.scenario import DPScenario
 
-        scen = DPScenario.from_dict(d)
-        if self.link:
-            from dataclasses import replace
+        from calib.errors import ScenarioError
 
-            scen = replace(scen, **{k: getattr(scen, src) for k, src in self.link.items()})
+        try:
+            scen = DPScenario.from_dict(d)
+            if self.link:
+                from dataclasses import replace
+
+                scen = replace(scen, **{k: getattr(scen, src) for k, src in self.link.items()})
+        except ScenarioError as exc:
+            if self.source and not self.source.startswith("<") and self.source not in str(exc):
+                raise ScenarioError(f"{self.source}: {exc}") from None
+            raise
         return scen
 
     def expand(self) -> list[dict]:
@@ -425,15 +437,16 @@ def run_study(study, client=None, store_dir=None, progress_callback=None, *, n_w
               retries: int = 2, retry_failed: bool = False) -> pd.DataFrame:
     """Run a study; return the tidy table (:func:`results_table`).
 
-    study: a :class:`Study` or a path to a study TOML.
-    client: a ``distributed.Client``, a scheduler address (``"tcp://host:8786"``), or None for a
-        ``LocalCluster`` of ``n_workers`` processes (started and closed here). Nothing else changes.
-    store_dir: the content-keyed result store (default ``.iptm-cache/sweep``); cases found there are not
-        recomputed; each finished case is stored as soon as it arrives (an interrupted study resumes).
-    progress_callback: ``f(done, total, record)`` after each case (cached cases first, record None).
-    retries: extra attempts per case on top of dask's rescheduling after a worker death.
-    retry_failed: recompute cases whose stored record holds an error (errors are stored: an infeasible
-        scenario fails the same way every time).
+    Args:
+        study: a :class:`Study` or a path to a study TOML.
+        client: a ``distributed.Client``, a scheduler address (``"tcp://host:8786"``), or None for a
+            ``LocalCluster`` of ``n_workers`` processes (started and closed here). Nothing else changes.
+        store_dir: the content-keyed result store (default ``.iptm-cache/sweep``); cases found there are not
+            recomputed; each finished case is stored as soon as it arrives (an interrupted study resumes).
+        progress_callback: ``f(done, total, record)`` after each case (cached cases first, record None).
+        retries: extra attempts per case on top of dask's rescheduling after a worker death.
+        retry_failed: recompute cases whose stored record holds an error (errors are stored: an infeasible
+            scenario fails the same way every time).
     """
     from calib.store import Store
 

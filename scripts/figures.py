@@ -1,16 +1,19 @@
-"""README figures that cannot drift: the blocks between ``<!-- figures:NAME -->`` and ``<!-- /figures:NAME -->``
-in README.md (and docs/optimization.md's) are rendered from the benchmarks' JSON (``iptm bench SUITE --json``), committed under
-reports/figures/, from the mutation report reports/mutation.json (written by scripts/mutation.py, which
-``run`` does not re-run: it takes hours) and from the causal comparisons' reports/causal-SET-VALUATION.json
-(``iptm bench causal``; not re-run either).
+"""Figures in the README and the docs that cannot drift: the blocks between ``<!-- figures:NAME -->`` and
+``<!-- /figures:NAME -->`` in the files of ``FILES`` are rendered from the benchmarks' JSON (``iptm bench SUITE
+--json``, committed under reports/figures/), from the main job's summary (``iptm run --json
+reports/figures/run.json``), from the mutation report reports/mutation.json (written by scripts/mutation.py,
+which ``run`` does not re-run: it takes hours), from the causal comparisons' reports/causal-SET-VALUATION.json
+(``iptm bench causal``; not re-run either) and from the FASTSim drive selections'
+reports/figures/calib-selections.json (``python -m iptm.benchmarks.calib --selections``; not re-run).
 
-    python scripts/figures.py run      # re-run the benchmarks, write their JSON, rewrite the README blocks
-    python scripts/figures.py render   # rewrite the README blocks from the committed JSON (no benchmark)
-    python scripts/figures.py check    # exit 1 when a README block differs from what the JSON renders
+    python scripts/figures.py run      # re-run the benchmarks and the main job, write their JSON, rewrite the blocks
+    python scripts/figures.py render   # rewrite the blocks from the committed JSON (nothing re-run)
+    python scripts/figures.py check    # exit 1 when a block differs from what the JSON renders
 
-Deterministic figures (the EPA table) are printed to the README's precision and must match exactly; a
-timing is quoted as the median and the range of its repetitions with the machine's load at the time, so
-the README says how noisy it is. ``check`` never re-runs a benchmark (it is part of the test suite).
+Deterministic figures (the EPA table, the main job's table) are printed to the page's precision and must
+match exactly; a timing is quoted as the median and the range of its repetitions with the machine's load at
+the time, so the page says how noisy it is. ``check`` never re-runs anything (it is part of the test suite).
+A block belongs to one file: moving it to another page means moving its renderer in ``FILES`` too.
 """
 from __future__ import annotations
 
@@ -24,9 +27,11 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 README = ROOT / "README.md"
-DOCS = ROOT / "docs" / "optimization.md"
-COLD_DOC = ROOT / "docs" / "cold_start.md"
 JSON_DIR = ROOT / "reports" / "figures"
+#: ``iptm run --json reports/figures/run.json`` on the bundled logs (``run`` re-runs it: minutes)
+RUN_JSON = JSON_DIR / "run.json"
+#: ``python -m iptm.benchmarks.calib --selections --json reports/figures/calib-selections.json`` (not re-run)
+SELECTIONS_JSON = JSON_DIR / "calib-selections.json"
 SUITES = ("sim", "epa")
 MUTATION_JSON = ROOT / "reports" / "mutation.json"
 #: ``iptm bench causal --drives SET --valuation V --json reports/causal-SET-V.json`` (each run takes minutes:
@@ -98,7 +103,7 @@ def _causal(d: dict) -> str:
 
 def _causal_rule_train(d: dict) -> str:
     """Per drive, the rule tuned on the training cycles against Thermal-DP and the rule tuned on the drive,
-    and the causal controllers' savings against it (docs/optimization.md s.7)."""
+    and the causal controllers' savings against it (docs/studies/causal_controllers.md, per drive)."""
     out = []
     for valuation in CAUSAL_VALUATIONS:
         out += ["", f"{valuation.capitalize()} valuation:", "",
@@ -123,7 +128,7 @@ def _causal_rule_train(d: dict) -> str:
 
 def _causal_per_drive(d: dict, drives: str = "fourth") -> str:
     """Per drive of one set, both valuations: Thermal-DP, the rule tuned on the drive, the SDP and the ECMS
-    (docs/optimization.md s.7)."""
+    (docs/studies/causal_controllers.md, per drive)."""
     out = []
     for valuation in CAUSAL_VALUATIONS:
         c = d.get("causal", {}).get((drives, valuation))
@@ -162,6 +167,39 @@ def _ecms_hindsight(d: dict) -> str:
         worst = ", ".join(f"{s[f'{k}_max_gap_pct']:+.2f} %" for k in ("causal", "adaptive", "constant"))
         rows.append(f"| {v} | {n} | " + " | ".join(cells) + f" | {worst} |")
     return "\n".join(rows)
+
+
+def _headline(d: dict) -> str:
+    """The main job's comparison, corrected fuel first (the fair figure), raw fuel beside it."""
+    from optimize.labels import LABELS
+
+    r = d["run"]
+
+    def pct(v):
+        return "-" if v is None or v != v else f"{v:.2f} %"
+
+    rows = ["| strategy | corrected fuel g | saving vs rule-based, corrected | L/100 km, corrected | fuel g (raw) | "
+            "saving vs rule-based, raw | L/100 km, raw | SOC_N | final coolant degC |", "|---|---|---|---|---|---|---|---|---|"]
+    for key, v in r["strategies"].items():
+        if key == "baseline_warm":  # its own model's optimum, not a row of the comparison
+            continue
+        ref = key == "rule"  # the reference: no saving against itself
+        rows.append(f"| {LABELS.get(key, key)} | **{v['fuel_corrected_g']:.2f}** | "
+                    f"{'-' if ref else '**' + pct(v['saving_vs_rule_pct']) + '**'} | {v['L_per_100km_corrected']:.2f} | "
+                    f"{v['fuel_g']:.2f} | {'-' if ref else pct(v['raw_saving_vs_rule_pct'])} | {v['L_per_100km']:.2f} | "
+                    f"{v['soc_final']:.3f} | "
+                    f"{v['T_cl_final_degC']:.1f} |")
+    rows += ["", f"Calibration: {r['n_estimated']} parameters estimated, {r['n_weak']} weakly informed. "
+                 f"Terminal condition `{r['terminal']}`. Printed by the run: \"{r['ordering']}\"."]
+    return "\n".join(rows)
+
+
+def _calib_selections(d: dict) -> str:
+    """The FASTSim drive selections (``python -m iptm.benchmarks.calib --selections --json
+    reports/figures/calib-selections.json``; ``run`` does not re-run them), rendered by the benchmark's own table."""
+    from iptm.benchmarks.calib import selections_table
+
+    return selections_table(d["calib_selections"])
 
 
 def _epa_bags(d: dict) -> str:
@@ -220,14 +258,18 @@ def _case_study(name: str):
     return render
 
 
-RENDER = {"epa": _epa, "epa-bags": _epa_bags, "sim-speed": _sim_speed, "mutation": _mutation, "causal": _causal,
-          "ecms-hindsight": _ecms_hindsight}
-#: Blocks of docs/optimization.md rendered the same way.
-DOC_RENDER = {"causal-rule-train": _causal_rule_train, "ecms-hindsight": _ecms_hindsight,
-              "causal-fourth": _causal_per_drive}
-#: Blocks of docs/cold_start.md.
-COLD_RENDER = {"epa-bags": _epa_bags, "epa-causes": _epa_causes, "epa": _epa,
-               "case-study-paper": _case_study("paper"), "case-study-cold-soak": _case_study("cold_soak")}
+#: Every file with generated blocks, and the renderer of each of its blocks.
+FILES = {
+    "README.md": {"headline": _headline},
+    "docs/cold_start.md": {"epa": _epa, "sim-speed": _sim_speed, "epa-bags": _epa_bags, "epa-causes": _epa_causes,
+                           "case-study-paper": _case_study("paper"), "case-study-cold-soak": _case_study("cold_soak")},
+    "docs/calibration_robustness.md": {"calib-selections": _calib_selections},
+    "docs/testing.md": {"mutation": _mutation},
+    "docs/studies/causal.md": {"causal": _causal, "ecms-hindsight": _ecms_hindsight},
+    "docs/studies/causal_controllers.md": {"causal-rule-train": _causal_rule_train, "ecms-hindsight": _ecms_hindsight,
+                                           "causal-fourth": _causal_per_drive},
+}
+RENDER = FILES["README.md"]
 
 
 # --------------------------------------------------------------------------------------------------- README blocks
@@ -253,10 +295,28 @@ def load() -> dict:
     hind = {v: json.loads(p.read_text()) for v in CAUSAL_VALUATIONS if (p := hindsight_json(v)).exists()}
     if hind:
         d["ecms_hindsight"] = hind
+    if RUN_JSON.exists():
+        d["run"] = json.loads(RUN_JSON.read_text())
+    if SELECTIONS_JSON.exists():
+        d["calib_selections"] = json.loads(SELECTIONS_JSON.read_text())["selections"]
     if MUTATION_JSON.exists():
         m = json.loads(MUTATION_JSON.read_text())
         d["mutation"] = {k: m.get(k) for k in ("score", "killed", "survived", "equivalent", "run", "sample", "seed")}
     return d
+
+
+#: Where each part of the data comes from, named when it is missing.
+SOURCE_OF = {"sim": "reports/figures/bench-sim.json (`make figures`)",
+             "run": "reports/figures/run.json (`make figures`)",
+             "mutation": "reports/mutation.json (scripts/mutation.py)",
+             "calib_selections": "reports/figures/calib-selections.json "
+                                 "(`python -m iptm.benchmarks.calib --selections --json FILE`)",
+             "causal": "reports/causal-SET-VALUATION.json (`iptm bench causal`)",
+             "ecms_hindsight": "reports/ecms-hindsight-VALUATION.json (scripts/ecms_hindsight.py)"}
+
+
+class MissingData(Exception):
+    """A block's JSON is missing: the message names the file and the command that writes it."""
 
 
 def blocks(text: str) -> dict:
@@ -265,11 +325,15 @@ def blocks(text: str) -> dict:
 
 def rendered(data: dict, body: str, name: str, render: dict = RENDER) -> str:
     """A block's new body, keeping its inline/multi-line layout (a table starts on its own line)."""
-    out = render[name](data)
+    try:
+        out = render[name](data)
+    except KeyError as exc:
+        key = exc.args[0] if exc.args else "?"
+        raise MissingData(f"block {name!r} needs {SOURCE_OF.get(key, repr(key))}, which is missing") from None
     return f"\n{out}\n" if body.startswith("\n") else out
 
 
-def render_readme(text: str, data: dict, render: dict = RENDER) -> str:
+def render_text(text: str, data: dict, render: dict = RENDER) -> str:
     def sub(m):
         return m.group(1) + rendered(data, m["body"], m["name"], render) + m.group(4)
 
@@ -277,15 +341,19 @@ def render_readme(text: str, data: dict, render: dict = RENDER) -> str:
 
 
 def check(text: str, data: dict, render: dict = RENDER) -> list:
-    """Differences between a file's blocks (README: ``RENDER``; docs/optimization.md: ``DOC_RENDER``) and the
-    JSON: list of (block, in the file, from JSON)."""
+    """Differences between a file's blocks and the JSON (``render``: that file's renderers, ``FILES``): list of
+    (block, in the file, from JSON)."""
     found = blocks(text)
     bad = [(n, "(no block)", "") for n in render if n not in found]
     for n, body in found.items():
         if n not in render:
             bad.append((n, body, "(unknown block)"))
             continue
-        want = rendered(data, body, n, render)
+        try:
+            want = rendered(data, body, n, render)
+        except MissingData as exc:
+            bad.append((n, body.strip(), f"({exc})"))
+            continue
         if body.strip() != want.strip():
             bad.append((n, body.strip(), want.strip()))
     return bad
@@ -303,6 +371,19 @@ def run_benchmarks():
         out = bench_json(s)
         out.with_suffix(".tmp").write_text(json.dumps(d, indent=2) + "\n")
         out.with_suffix(".tmp").replace(out)
+    with tempfile.TemporaryDirectory() as td:  # the report itself is not kept: only its summary
+        tmp = Path(td) / "run.json"
+        subprocess.run([sys.executable, "-m", "iptm.cli", "run", "--quiet", "--reports", str(Path(td) / "reports"),
+                        "--json", str(tmp)], cwd=ROOT, check=True)
+        d = json.loads(tmp.read_text())
+    d.pop("report_dir", None)  # a temporary path
+    RUN_JSON.with_suffix(".tmp").write_text(json.dumps(d, indent=2) + "\n")
+    RUN_JSON.with_suffix(".tmp").replace(RUN_JSON)
+
+
+def check_all(data: dict) -> list:
+    """Differences in every file of ``FILES``: list of (file, block, in the file, from JSON)."""
+    return [(f, *b) for f, render in FILES.items() for b in check((ROOT / f).read_text(), data, render)]
 
 
 def main(argv=None) -> int:
@@ -311,27 +392,34 @@ def main(argv=None) -> int:
         run_benchmarks()
         cmd = "render"
     data = load()
-    text = README.read_text()
     if cmd == "render":
-        for path, render in ((README, RENDER), (DOCS, DOC_RENDER), (COLD_DOC, COLD_RENDER)):
+        missing = []
+        for f, render in FILES.items():
+            path = ROOT / f
             old = path.read_text()
-            new = render_readme(old, data, render)
+            try:
+                new = render_text(old, data, render)
+            except MissingData as exc:  # that file is left as it is; the others are rendered
+                missing.append(f"{f}: {exc}")
+                continue
             if new != old:
                 tmp = path.with_suffix(".tmp")
                 tmp.write_text(new)
                 tmp.replace(path)
-        src = ([bench_json(s) for s in SUITES] + [MUTATION_JSON]
+        src = ([bench_json(s) for s in SUITES] + [RUN_JSON, SELECTIONS_JSON, MUTATION_JSON]
                + [causal_json(a, b) for a in CAUSAL_SETS for b in CAUSAL_VALUATIONS]
                + [hindsight_json(b) for b in CAUSAL_VALUATIONS])
-        print(f"README figures rendered from {', '.join(str(p.relative_to(ROOT)) for p in src if p.exists())}")
-        return 0
+        print(f"figures of {', '.join(FILES)} rendered from "
+              f"{', '.join(str(p.relative_to(ROOT)) for p in src if p.exists())}")
+        for m in missing:
+            print(f"not rendered: {m}", file=sys.stderr)
+        return 2 if missing else 0
     if cmd == "check":
-        bad = (check(text, data) + check(DOCS.read_text(), data, DOC_RENDER)
-               + check(COLD_DOC.read_text(), data, COLD_RENDER))
-        for n, have, want in bad:
-            print(f"block {n!r} differs from the benchmark JSON:\n  file: {have}\n  JSON: {want}")
+        bad = check_all(data)
+        for f, n, have, want in bad:
+            print(f"{f}: block {n!r} differs from the JSON:\n  file: {have}\n  JSON: {want}")
         if not bad:
-            print("README, docs/optimization.md and docs/cold_start.md figures match the benchmark JSON")
+            print(f"the figures of {', '.join(FILES)} match the JSON")
         return 1 if bad else 0
     print(__doc__)
     return 2

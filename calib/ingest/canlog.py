@@ -571,7 +571,8 @@ def decode_can_signals(path, *, fmt: str, dbc=None, signals=None, signal_map=Non
         rows = []
         for key in keys:
             acc = col.acc[key]
-            t = np.frombuffer(acc.t, dtype=float) - col.t_first
+            with np.errstate(invalid="ignore", over="ignore"):  # a non-finite time is counted later
+                t = np.frombuffer(acc.t, dtype=float) - col.t_first
             data = np.frombuffer(bytes(acc.data), dtype=np.uint8).reshape(-1, 8)
             dlc = np.frombuffer(acc.dlc, dtype=np.uint8)
             pos = np.frombuffer(acc.pos, dtype=np.int64)

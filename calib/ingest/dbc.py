@@ -79,14 +79,16 @@ def extract_signal(data: np.ndarray, sig) -> np.ndarray:
         half = 1 << (sig.length - 1)
         r = np.where(r >= half, r - (1 << sig.length), r)
         sna = r == -half
-        phys = r * float(sig.scale) + float(sig.offset)
+        with np.errstate(over="ignore", invalid="ignore"):  # an absurd scale gives inf, dropped by range
+            phys = r * float(sig.scale) + float(sig.offset)
         if sig.minimum is not None:
             sna &= phys < float(sig.minimum)
         else:
             sna[:] = False
     else:
         sna = raw == mask
-        phys = raw.astype(np.float64) * float(sig.scale) + float(sig.offset)
+        with np.errstate(over="ignore", invalid="ignore"):  # an absurd scale gives inf, dropped by range
+            phys = raw.astype(np.float64) * float(sig.scale) + float(sig.offset)
         if sig.maximum is not None:
             sna &= phys > float(sig.maximum)
         else:

@@ -235,7 +235,9 @@ def _read_mdf(MDF, path, column_map, dmg, meta, tmp):
     meta.damage = dmg.finish(t_first if np.isfinite(t_first) else 0.0, t_last if cut_groups else None)
     streams = {}
     for ch, (t, v, name, unit) in parts.items():
-        s = make_series(t - t_first, v, ch, meta)
+        with np.errstate(invalid="ignore", over="ignore"):  # a non-finite time is counted by make_series
+            rel = t - t_first
+        s = make_series(rel, v, ch, meta)
         if len(s):
             streams[ch] = s
         meta.channel_sources[ch] = name
