@@ -147,7 +147,7 @@ def test_replay_of_a_log_with_catalyst_heating(ps):
     assert err < 1.0 and err < 0.5 * err_idle, (err, err_idle)
 
 
-def test_replay_without_engine_speed_keeps_idle(ps):
+def test_catalyst_heating_is_told_only_after_a_cold_start(ps):
     from calib.fit.replay import catalyst_heating
 
     mp = ps.model_params()
@@ -155,6 +155,8 @@ def test_replay_without_engine_speed_keeps_idle(ps):
     cat = catalyst_heating(n, np.ones(n.size, bool), mp)
     assert cat[5:65].all() and not cat[:5].any() and not cat[65:].any()  # not after the start's window
     assert not catalyst_heating(n, np.ones(n.size, bool), mp._replace(t_cat=0.0)).any()
+    assert not catalyst_heating(n, np.ones(n.size, bool), mp, T_cl0=mp.T_cat + 1.0).any()  # a warm start
+    assert catalyst_heating(n, np.ones(n.size, bool), mp, T_cl0=mp.T_cat - 1.0)[5:65].all()
 
 
 @pytest.mark.parametrize("name,nx", [("baseline", 1), ("thermal", 2), ("thermal_cabin", 3)])

@@ -128,15 +128,16 @@ def input_segments(known, T_out, dt=1.0, min_s=MIN_SEGMENT_S, min_obs=3):
 CAT_WINDOW = 2.0
 
 
-def catalyst_heating(n_rpm, no_output, mp, dt=1.0):
+def catalyst_heating(n_rpm, no_output, mp, dt=1.0, T_cl0=None):
     """True where a log shows catalyst heating (:mod:`calib.model.catalyst`): the engine turns within 10 % of
     the catalyst-heating speed with no output (``no_output``), in the first ``CAT_WINDOW t_cat_s`` after it
-    first turns in the log. All False for a car without catalyst heating (``t_cat_s`` 0)."""
+    first turns in the log. All False for a car without catalyst heating (``t_cat_s`` 0) and for a log whose
+    coolant at the start, ``T_cl0`` (None: not logged), is at or above ``T_cat_degC``."""
     n = np.asarray(n_rpm, float)
     out = np.zeros(n.shape, bool)
     n_cat = mp.w_cat / RPM
     turning = np.flatnonzero(np.nan_to_num(n) >= N_STOPPED_RPM)
-    if mp.t_cat <= 0.0 or not turning.size:
+    if mp.t_cat <= 0.0 or not turning.size or (T_cl0 is not None and np.isfinite(T_cl0) and T_cl0 >= mp.T_cat):
         return out
     k0 = turning[0]
     k1 = min(n.size, k0 + int(math.ceil(CAT_WINDOW * mp.t_cat / dt)) + 1)
@@ -464,7 +465,8 @@ def log_arrays(log, mp, cabin_balance=True, heater=None) -> LogArrays:
     # engine operating point
     if la.has("engine_speed_rpm", "engine_torque_Nm"):
         with np.errstate(invalid="ignore"):
-            cat = catalyst_heating(ch["engine_speed_rpm"], np.abs(ch["engine_torque_Nm"]) < 2.0, mp, dt)
+            cat = catalyst_heating(ch["engine_speed_rpm"], np.abs(ch["engine_torque_Nm"]) < 2.0, mp, dt,
+                                   first_valid_mean(ch["coolant_temp_degC"], 5, np.nan))
         la.mode = engine_mode(ch["engine_speed_rpm"], ch["engine_torque_Nm"], n_idle, cat)
         la.stable = stable_mode(la.mode)
         la.P_e = np.where(la.mode == ON, ch["engine_speed_rpm"] * RPM * ch["engine_torque_Nm"], 0.0)
@@ -521,7 +523,8 @@ def log_arrays(log, mp, cabin_balance=True, heater=None) -> LogArrays:
             la.mode = np.where(on, ON, np.where(idle, IDLE, np.where(off, OFF, 0))).astype(np.int64)
             if la.has("engine_speed_rpm"):
                 # running without output at the catalyst-heating speed after the start: catalyst heating
-                cat = catalyst_heating(fill_short(ch["engine_speed_rpm"], dt), idle, mp, dt)
+                cat = catalyst_heating(fill_short(ch["engine_speed_rpm"], dt), idle, mp, dt,
+                                       first_valid_mean(ch["coolant_temp_degC"], 5, np.nan))
                 if cat.any():
                     la.mode[cat] = CAT
                     la.inferred["catalyst heating"] = (f"{int(cat.sum()) * dt:.0f} s running without output at "
