@@ -106,6 +106,7 @@ class CalibrationResult:
     advice: list = None
     diagnostics: dict = None  # {"fitted": {log: ...}, "held_out": {log: ...}} (see calib.fit.validate.diagnostics)
     data_warnings: list = None  # each subsystem that used a channel which lost samples or is an estimate
+    timings: dict = None  # wall seconds per step: each subsystem fit, "validation", "diagnostics"
 
     def plot(self, path=None, title=None):
         """How much the data informed each fitted parameter (``1 - posterior sd / prior sd``), by subsystem
@@ -352,11 +353,14 @@ def calibrate(logs, *, base=None, fit=None, fix=None, validate=None, progress=Tr
     work = base.copy()
     fits = {}
     bar = tqdm(total=len(steps) + (1 if validate else 0), desc="calibrate", disable=not progress, leave=False)
+    timings = {}
     for name, fn in steps:
         bar.set_postfix_str(name)
+        t_step = time.perf_counter()
         f = fn(logs, work, allowed=allowed, **({"heater": heater} if name in ("thermal", "cabin") else {}))
         fits[name] = f
         _merge(work, f, allowed, fixed)
+        timings[name] = time.perf_counter() - t_step
         bar.update(1)
     for n in fixed:
         work.param(n).status = "fixed"
@@ -370,19 +374,23 @@ def calibrate(logs, *, base=None, fit=None, fix=None, validate=None, progress=Tr
     diag = {"fitted": {}, "held_out": {}}
     if validate:
         bar.set_postfix_str("validation")
+        t_step = time.perf_counter()
         val = run_validation(validate, work, heater=heater)
+        timings["validation"] = time.perf_counter() - t_step
         bar.update(1)
     if diagnose:
+        t_step = time.perf_counter()
         for kind, group in (("fitted", logs), ("held_out", validate or [])):
             for lg in group:
                 rep = replay(lg, work, heater=heater)
                 diag[kind][rep.name] = diagnostics(rep)
+        timings["diagnostics"] = time.perf_counter() - t_step
     bar.close()
     return CalibrationResult(params=work, fits=fits, validation=val, logs=[_log_info(lg) for lg in logs],
                              validation_logs=[_log_info(lg) for lg in (validate or [])],
                              wall_s=time.perf_counter() - t0, date=stamp, version=__version__,
                              advice=advise(fits), diagnostics=diag if diagnose else None,
-                             data_warnings=data_warnings(fits, logs))
+                             data_warnings=data_warnings(fits, logs), timings=timings)
 
 
 def data_warnings(fits: dict, logs) -> list[str]:

@@ -35,7 +35,10 @@ The posterior sd includes the calibration uncertainty of the inputs (engine powe
 coolant temperature 1 K and a coolant sensor response time of 20 s), propagated linearly.
 
 Every evaluation calls :func:`calib.model.equations.fuel_rate` in a compiled loop
-(:func:`calib.fit.replay.fuel_replay`).
+(:func:`calib.fit.replay.fuel_replay`). The minimiser is the trust-region reflective one with the bounds held
+as bounds and an analytic Jacobian (:func:`_jacobian`): most increments of ``f_cl`` sit at their bound 0, where
+Levenberg-Marquardt's bound transform stalled after tens of thousands of differenced evaluations on
+power-only logs (FASTSim's), short of the posterior mode.
 """
 from __future__ import annotations
 
@@ -108,6 +111,60 @@ def _f_cl_jacobian(r, n):
     for j in range(r + 1, n):
         M[j, r:j] = -1.0
     return M
+
+
+def _jacobian(mode, P, T, Pbp, Tbp, rT, mp0, eta_names, fit_idle, d_names, u_names, f_sd, f_bounds, tables):
+    """``jac(ps) -> (J_data, J_extra)`` of the fuel fit, in the order of the varied parameters: the
+    derivatives of :func:`calib.model.equations.fuel_rate` (interpolation weights of the efficiency and
+    ``f_cl`` tables, the idle floor, the table's clip at its bounds) and of the smoothness priors. It steers
+    the minimiser only: the residuals are :func:`calib.fit.replay.fuel_replay`'s, and the posterior
+    covariance is differenced from them (tests/test_fit_speed.py checks this Jacobian against differences)."""
+    on = mode == ON
+    HP, HT = hat_basis(P, Pbp), hat_basis(T, Tbp)
+    M = _f_cl_jacobian(rT, len(Tbp))
+    inc = list(d_names) + list(u_names)
+    keep = np.arange(len(Tbp)) != rT
+    D1 = np.diff(np.eye(len(Tbp)), axis=0) / np.diff(Tbp)[:, None]  # slope of f per interval
+    D2T = np.diff(D1, axis=0) / F_SLOPE_SD
+    m = len(Pbp) - 1
+    D2P = np.diff(np.eye(m), 2, axis=0) / SMOOTH_SD
+
+    def jac(ps):
+        names = [k for k in ps if ps[k].vary]
+        col = {k: i for i, k in enumerate(names)}
+        v = ps.valuesdict()
+        eta, f = tables(v)
+        W_idle = float(v.get("W_idle_g_per_s", mp0.W_idle))
+        fk = HT @ f
+        ek = HP @ eta
+        wmap = mp0.fuel_scale * P / (ek * mp0.LHV)
+        above = on & (wmap > W_idle)
+        wm = np.where(above, wmap, W_idle)
+        Jd = np.zeros((P.size, len(names)))
+        Je = []
+        if eta_names:
+            dW = np.where(above, -wmap / ek * fk, 0.0)
+            for j, nm in enumerate(eta_names, start=1):
+                Jd[:, col[nm]] = dW * HP[:, j]
+            je = np.zeros((m - 2, len(names)))
+            for j, nm in enumerate(eta_names, start=1):
+                je[:, col[nm]] = D2P[:, j - 1] / eta[j]
+            Je.append(je)
+        if fit_idle:
+            Jd[:, col["W_idle_g_per_s"]] = np.where(above, 0.0, fk)
+        if inc:
+            # an entry held at the table's bounds does not move with the increments
+            free = (f > f_bounds[0]) & (f < f_bounds[1])
+            Mc = M * free[:, None]
+            dF = (HT @ Mc) * wm[:, None]
+            jf = np.zeros((int(keep.sum()) + D2T.shape[0], len(names)))
+            for i, nm in enumerate(inc):
+                Jd[:, col[nm]] = dF[:, i]
+                jf[:, col[nm]] = np.concatenate([Mc[keep, i] / f_sd[keep], D2T @ Mc[:, i]])
+            Je.append(jf)
+        return Jd, (np.vstack(Je) if Je else np.zeros((0, len(names))))
+
+    return jac
 
 
 def _data_start(mode, P, T, W, mp0, Tbp, rT, eta_names, d_names, u_names, eta_bounds):
@@ -318,12 +375,15 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
     def segments(ps, sW=1.0, **kw):
         return np.split(model_of(ps, **kw) - sW * W, bounds_idx)
 
+    jac = _jacobian(mode, P, T, Pbp, Tbp, rT, mp0, eta_names, fit_idle, d_names, u_names, f_sd, pf.bounds,
+                    tables)
+
     # the fuel rate is not proportional to the engine power: the power's shift by a central difference
     perturbed = [(lambda ps: segments(ps, sP=1.0 + INPUT_REL_SD), lambda ps: segments(ps, sP=1.0 - INPUT_REL_SD)),
                  lambda ps: segments(ps, dT=T_SD),
                  lambda ps: segments(ps, sW=1.0 + FUEL_METER_REL_SD), lambda ps: segments(ps, lag=True)]
     out = map_fit(make_params, segments, cand, prior=prior, prior_sd=psd, noise_sd=NOISE_G_PER_S, extra=extra,
-                  perturbed=perturbed, floor=0.002, max_tau=MAX_TAU,
+                  perturbed=perturbed, floor=0.002, max_tau=MAX_TAU, jac=jac,
                   starts=_data_start(mode, P, T, W, mp0, Tbp, rT, eta_names, d_names, u_names, pe.bounds))
     fit.metrics.update(rmse_g_per_s=out["rmse"], n_eff=out["n_eff"], noise_sd_g_per_s=out["noise_sd"])
     fit.correlations = {k: v for k, v in out["correl"].items()}

@@ -251,9 +251,11 @@ def fit_thermal(logs, base, *, allowed=None, heater=None) -> SubsystemFit:
     perturbed.append(lambda ps: segments(ps, dT=T_SENSOR_SD))
     def run():
         free = [q for q in q_names if q not in at_zero]
+        # trust-region reflective: on power-only logs Levenberg-Marquardt's bound transform ran into its
+        # limit of evaluations (16000) short of the mode
         return map_fit(lambda: make(set(cand)), segments, cand, prior={**prior, **{q: nuis_prior[q] for q in free}},
                        prior_sd={**psd, **{q: nuis_sd[q] for q in free}}, noise_sd=T_SENSOR_SD, perturbed=perturbed,
-                       floor=0.05)
+                       floor=0.05, trf=True)
 
     out = run()
     neg = {q for q in q_names if out["params"][q].value < 0.0}
