@@ -152,11 +152,12 @@ def draw_truth(seed: int, spread: float = 0.25, base: ParameterSet | None = None
 
 
 #: The plant's controller in synthetic logs: the default rules without the cold-start behaviour of the
-#: production car (charge during warm-up, the SOC-dependent start threshold); the plant of these logs has no
-#: catalyst heating either (:func:`simulate_truth`). With the warm-up charge in the truth the thermal fit's
+#: production car (no warm-up phase, so no charge during warm-up; no SOC-dependent start threshold), which
+#: are exactly the rules before that behaviour was modelled; the plant of these logs has no catalyst heating
+#: either (:func:`simulate_truth`). With the warm-up charge in the truth the thermal fit's
 #: held-out coolant error rose above its gate (docs/cold_start.md, "Effect on the rest of the workbench"),
 #: and the calibration's locked figures rest on these logs.
-IDENTIFICATION_RULES = RuleParams(soc_warmup=RuleParams().soc_target, k_on_W=0.0)
+IDENTIFICATION_RULES = RuleParams(soc_warmup=RuleParams().soc_target, k_on_W=0.0, T_warm_degC=-273.0)
 
 
 def simulate_truth(truth: ParameterSet, sc: Scenario):

@@ -35,12 +35,9 @@ def test_cold_start_balances_close_with_heater_shortfall(params):
 
 
 def test_epa_within_3_percent(params):
-    # README: the default parameter set is within 3 % (SOC-corrected mpg) of EPA on UDDS and HWFET, 3.5 % on
-    # US06: fuel_scale stays 1.07, not the 1.065 tune_fuel_scale gives under the cold-start rules, at which
-    # the FASTSim Sonata's fuel fit falls into another mode (docs/cold_start.md, "fuel_scale")
-    df = epa_comparison(params).set_index("cycle")
-    assert (df.loc[["UDDS", "HWFET"], "error_pct"].abs() <= 3.0).all(), df.to_string()
-    assert abs(df.loc["US06", "error_pct"]) <= 3.5, df.to_string()
+    # README: the default parameter set is within 3 % (SOC-corrected mpg) of EPA on UDDS, HWFET and US06
+    df = epa_comparison(params)
+    assert (df["error_pct"].abs() <= 3.0).all(), df.to_string()
 
 
 def test_results_object(winter, tmp_path):

