@@ -173,3 +173,30 @@ def test_every_formulation_counts_the_prelude(ps, name, nx):
     # the forward pass after the prelude plus the prelude's fuel is the re-simulated drive's fuel
     assert np.sum(o.dp.stage_cost) + o.extra["prelude"]["fuel_g"] == pytest.approx(o.sim.fuel_g, rel=1e-9)
     assert o.dp_cost == pytest.approx(dp_objective(ps, o.sim, scen, nx), rel=1e-9)
+
+
+def test_warm_up_charge_only_in_the_warm_up_after_a_cold_start():
+    """A warm engine cooled by the heater is not warming up: it runs for heat by the thermal rules, with the
+    normal SOC target; the same coolant trace after a cold start charges towards the warm-up target."""
+    from dataclasses import replace
+
+    from calib.model.params import default_parameters
+    from calib.model.rulebased import RuleBasedController, RuleParams
+
+    mp = default_parameters().model_params()
+    rp = RuleParams()
+    no_warmup = replace(rp, soc_warmup=rp.soc_target)
+
+    def run(rules, T_cl_trace):
+        c = RuleBasedController(mp, rules)
+        return [c(k, 0.6, T, 20.0, 2000.0) for k, T in enumerate(T_cl_trace)]
+
+    warm_then_cooled = [75.0, 72.0, 68.0, 60.0, 50.0, 45.0]
+    assert run(rp, warm_then_cooled) == run(no_warmup, warm_then_cooled)
+    cold_start = [30.0, 35.0, 40.0, 45.0, 50.0, 55.0]
+    assert run(rp, cold_start) != run(no_warmup, cold_start)
+    # once warmed up, a later dip below T_warm_degC does not start a second warm-up
+    # (after the engine's minimum on-time has run out)
+    warmed = [30.0, 45.0, 71.0] + [60.0] * 10 + [50.0, 45.0, 42.0]
+    a, b = run(rp, warmed), run(no_warmup, warmed)
+    assert a[:2] != b[:2] and a[-3:] == b[-3:]

@@ -10,9 +10,10 @@ defroster is on; docs/cold_start.md). The heater requests a fixed demand.
 
 Cold start as the production car runs it (docs/cold_start.md): catalyst heating after a cold start belongs
 to the plant (:mod:`calib.model.catalyst`; the simulator runs it before this controller's commands apply);
-while the coolant is below ``T_warm_degC`` the SOC target is ``soc_warmup`` and an engine held on by the
-thermal rules charges towards it rather than idling; above the SOC target the start threshold rises by
-``k_on_W`` per unit SOC, so the charge is spent.
+during the warm-up (a drive started with the coolant below ``T_warm_degC``, until it first reaches it) the SOC
+target is ``soc_warmup`` and an engine held on by the thermal rules charges towards it rather than idling; a
+warm engine cooled later by the heater is not warming up (it runs for heat by the thermal rules, not to
+charge); above the SOC target the start threshold rises by ``k_on_W`` per unit SOC, so the charge is spent.
 
 It lives in ``calib`` because it is also the plant's own controller when logs are synthesised; the
 per-scenario threshold tuning lives in :mod:`optimize.tuning`.
@@ -69,6 +70,8 @@ class RuleBasedController:
         # heat the climate control asks for this step; a wrapper that sets its own request (a cabin
         # thermostat) assigns it before calling, so the engine-on rule sees the real request
         self.heat_request_W = self.rp.Q_heat_W
+        # warm-up phase: decided at the drive's first step, over once the coolant reaches T_warm_degC
+        self.warming_up = None
 
     def describe(self) -> str:
         """The controller's name and thresholds, one line."""
@@ -79,9 +82,11 @@ class RuleBasedController:
         bat_only = (P_trac / p.eta_em if P_trac > 0 else 0.0) + p.P_aux
         must = bat_only > 0.95 * p.P_bat_max or soc < r.soc_low
         held = self.keep_running(T_cl)
-        target = max(r.soc_target, r.soc_warmup) if T_cl < r.T_warm_degC else r.soc_target
+        if self.warming_up is None or T_cl >= r.T_warm_degC:
+            self.warming_up = bool(self.warming_up is None and T_cl < r.T_warm_degC)
+        target = max(r.soc_target, r.soc_warmup) if self.warming_up else r.soc_target
         # while the engine must run anyway to warm up, it charges the battery towards the warm-up target
-        charge = held and T_cl < r.T_warm_degC and soc < target
+        charge = held and self.warming_up and soc < target
         if self.on:
             # a charging engine keeps running at a standstill, not while braking (regeneration charges then)
             stop = P_trac < 0.0 or (not charge and (P_trac == 0.0 or (P_trac < r.P_off_W
