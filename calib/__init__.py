@@ -1,12 +1,15 @@
 """calib: the physics of the workbench: the vehicle model, parameter sets, ingestion of drive logs,
 calibration with uncertainty and validation.
 
-A script needs only this front door::
+A script needs only this front door (run from the repository root, whose ``logs/`` holds the bundled
+SYNTHETIC logs; the test suite runs it as a doctest):
 
-    import calib
-    log = calib.read_log("logs/winter_cold_start.blf")
-    result = calib.fit.driver([log], validate=[calib.read_log("logs/winter_warm_restart.blf")])
-    sim = calib.model.simulate(result.params, "udds", T_amb=-7.0)
+>>> import calib
+>>> log = calib.read_log("logs/winter_cold_start.blf")
+>>> result = calib.calibrate([log], validate=[calib.read_log("logs/winter_warm_restart.blf")], progress=False)
+>>> sim = calib.simulate(result.params, "udds", T_amb=-7.0)
+>>> print(f"UDDS at -7 degC: {sim.fuel_g:.0f} g of fuel")  # doctest: +ELLIPSIS
+UDDS at -7 degC: ... g of fuel
 
 Sub-packages: :mod:`calib.model` (equations, parameters, cycles, simulation, stock controller, fuel maps),
 :mod:`calib.ingest` (readers, writers, resampling, channel report), :mod:`calib.fit` (identification

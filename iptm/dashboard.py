@@ -39,6 +39,7 @@ OPT = "iptm_optimisation"
 SCENARIO = "iptm_scenario"
 UPLOADS = "iptm_upload_history"
 UPLOAD_IDS = "iptm_upload_ids"  # upload file id -> the name of the session log it became
+TMP_OWNER = "iptm_tmpdir_owner"  # its finaliser removes the folder when the session state is dropped
 
 DEFAULT_MAX_UPLOAD_MB = 200.0
 #: Extensions the readers understand (calib.ingest); anything else is refused up front with a message.
@@ -129,6 +130,9 @@ def end_session(state) -> None:
     import shutil
 
     d = state.pop(TMP, None)
+    owner = state.pop(TMP_OWNER, None)
+    if owner is not None:
+        owner.remove()
     if d:
         shutil.rmtree(d, ignore_errors=True)
     for k in (LOGS, SEEN, UPLOAD_IDS):
@@ -143,9 +147,84 @@ def session_dir(state) -> Path:
         root = _session_root()
         root.mkdir(parents=True, exist_ok=True)
         remove_stale_sessions(root=root)
-        d = tempfile.mkdtemp(prefix="iptm-session-", dir=root)
+        sid = _streamlit_session_id()
+        d = tempfile.mkdtemp(prefix=f"iptm-session-{sid}-" if sid else "iptm-session-", dir=root)
         state[TMP] = d
+        state[TMP_OWNER] = _FolderOwner(d)
+        if sid:
+            _start_janitor(root)
     return Path(d)
+
+
+_SESSION_ID = re.compile(r"iptm-session-([0-9a-f]{8}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{12})-")
+JANITOR_S = 5.0  # how often the server looks for folders of sessions Streamlit has closed
+_janitors: set = set()
+
+
+def _streamlit_session_id() -> str | None:
+    """The Streamlit session's id inside a running app; None elsewhere (tests, the CLI)."""
+    try:
+        from streamlit.runtime.scriptrunner import get_script_run_ctx
+
+        ctx = get_script_run_ctx(suppress_warning=True)
+    except Exception:  # noqa: BLE001 - no Streamlit runtime: no session to follow
+        return None
+    sid = getattr(ctx, "session_id", None)
+    return sid if isinstance(sid, str) and _SESSION_ID.match(f"iptm-session-{sid}-") else None
+
+
+def remove_closed_sessions(root, is_open) -> int:
+    """Remove the folders of sessions for which ``is_open(session_id)`` is False; returns how many."""
+    import shutil
+
+    n = 0
+    for d in Path(root).glob("iptm-session-*"):
+        m = _SESSION_ID.match(d.name)
+        if m and not is_open(m.group(1)):
+            shutil.rmtree(d, ignore_errors=True)
+            n += 1
+    return n
+
+
+def _start_janitor(root) -> None:
+    """One daemon thread per folder root: removes a session's folder once Streamlit has closed the session
+    (a tab closed and not reconnected within ``server.disconnectedSessionTTL``)."""
+    import threading
+    import time
+
+    key = str(root)
+    if key in _janitors:
+        return
+    _janitors.add(key)
+
+    def is_open(sid: str) -> bool:
+        from streamlit.runtime import Runtime
+
+        return not Runtime.exists() or Runtime.instance().get_app_session(sid) is not None
+
+    def sweep():
+        while True:
+            time.sleep(JANITOR_S)
+            try:
+                remove_closed_sessions(root, is_open)
+            except Exception:  # noqa: BLE001, S112 - a failed sweep is retried; the start-up sweep remains
+                continue
+
+    threading.Thread(target=sweep, name="iptm-session-janitor", daemon=True).start()
+
+
+class _FolderOwner:
+    """Owns a session folder: when Streamlit drops an ended session, its state and this object are freed
+    and the folder is removed (also at interpreter exit); the start-up sweep catches a killed server."""
+
+    def __init__(self, folder):
+        import shutil
+        import weakref
+
+        self._finalizer = weakref.finalize(self, shutil.rmtree, str(folder), True)
+
+    def remove(self) -> None:
+        self._finalizer()
 
 
 def logs(state) -> dict:

@@ -58,11 +58,15 @@ def _fmt(v):
     return v
 
 
-def render(title: str, sections: list[Section], banner: str = "") -> str:
+def render(title: str, sections: list[Section], banner: str = "", warnings=()) -> str:
+    """The page: ``banner`` (the SYNTHETIC-data notice) and each of ``warnings`` (e.g. subsystems left at their
+    priors) above everything else, then the sections."""
     out = [f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'><title>{html.escape(title)}</title>",
            f"<style>{CSS}</style></head><body><h1>{html.escape(title)}</h1>"]
     if banner:
         out.append(f"<p class='synthetic'>{html.escape(banner)}</p>")
+    for w in warnings:
+        out.append(f"<p class='warn banner'>{html.escape(w)}</p>")
     out.append("<nav>" + "".join(f"<a href='#{s.id}'>{html.escape(s.title)}</a>" for s in sections) + "</nav>")
     for s in sections:
         out.append(f"<h2 id='{s.id}'>{html.escape(s.title)}</h2>")

@@ -49,6 +49,8 @@ class RunConfig:
     progress: bool = True
     command_line: str = ""
     convergence: bool = True  # also solve Baseline- and Thermal-DP with every grid step halved
+    #: ``on_progress(k, n, stage, fraction, text)`` at every stage's start, advance and end (the dashboard's bar)
+    on_progress: object = None
 
 
 def load_scenario(path=None):
@@ -120,13 +122,67 @@ def _say(msg: str, progress: bool) -> None:
         print(msg, file=sys.stderr, flush=True)
 
 
+class StageProgress:
+    """The main job's progress: one line per stage on stderr (``[k/n] stage: bar | elapsed text``, the bar
+    advancing within the stage) and, for the dashboard, ``callback(k, n, stage, fraction, text)``. A stage's
+    work reports into its own line; nothing nests a second counter inside it."""
+
+    TICKS = 1000
+
+    def __init__(self, stages, show: bool = True, callback=None):
+        self.stages, self.show, self.callback = list(stages), show, callback
+        self._bar, self._stage, self._text = None, None, ""
+
+    def _emit(self, fraction: float) -> None:
+        if self.callback is not None:
+            self.callback(self.stages.index(self._stage) + 1, len(self.stages), self._stage,
+                          min(max(float(fraction), 0.0), 1.0), self._text)
+
+    def start(self, stage: str, text: str = "") -> None:
+        """Close the stage before and open ``stage`` (one of ``stages``) at 0."""
+        from tqdm import tqdm
+
+        self.close()
+        self._stage, self._text = stage, text
+        k = self.stages.index(stage) + 1
+        self._bar = tqdm(total=self.TICKS, desc=f"[{k}/{len(self.stages)}] {stage}", disable=not self.show,
+                         file=sys.stderr, bar_format="{desc}: {bar:20}| {elapsed}{postfix}")
+        self._bar.set_postfix_str(text)
+        self._emit(0.0)
+
+    def update(self, fraction: float, text: str | None = None) -> None:
+        """The current stage ``fraction`` (0..1) done; ``text`` says what it is doing."""
+        if self._stage is None:
+            return
+        if text is not None:
+            self._text = text
+            self._bar.set_postfix_str(text, refresh=False)
+        self._bar.n = int(round(min(max(fraction, 0.0), 1.0) * self.TICKS))
+        self._bar.refresh()
+        self._emit(fraction)
+
+    def abort(self) -> None:
+        """Stop showing the current stage (the run failed): its line stays where it stopped."""
+        if self._bar is not None:
+            self._bar.close()
+        self._bar, self._stage = None, None
+
+    def close(self, text: str | None = None) -> None:
+        """The current stage is done (``text``: its result)."""
+        if self._stage is not None and self._bar is not None:
+            self.update(1.0, text)
+            self._bar.close()
+        self._bar, self._stage = None, None
+
+
 # ---------------------------------------------------------------------------------------------------
 # stages
 # ---------------------------------------------------------------------------------------------------
-def ingest_all(paths, store: Store | None, dbc=None, progress=True, strict=False):
+def ingest_all(paths, store: Store | None, dbc=None, progress=True, strict=False, on_log=None):
     """Read every log (cached); any bad log stops the run here, before heavy work, naming the file.
 
     A damaged log is read as far as it can be trusted (its label says [RECOVERED]) unless ``strict``.
+    ``on_log(i, n, path)``: called after each log is read (the main job's stage line).
     """
     from tqdm import tqdm
 
@@ -134,7 +190,8 @@ def ingest_all(paths, store: Store | None, dbc=None, progress=True, strict=False
     from calib.ingest.damage import warn_damage
 
     logs = []
-    for p in tqdm(list(paths), desc="ingest", unit="log", disable=not progress, file=sys.stderr):
+    paths = list(paths)
+    for p in tqdm(paths, desc="ingest", unit="log", disable=not progress, file=sys.stderr):
         p = Path(p)
         if not p.is_file():
             raise IptmError(f"{p}: no such log file")
@@ -158,6 +215,8 @@ def ingest_all(paths, store: Store | None, dbc=None, progress=True, strict=False
             if store is not None:
                 write_canonical(log, cached)
         logs.append((p, log, channel_report(log)))
+        if on_log is not None:
+            on_log(len(logs), len(paths), p)
     return logs
 
 
@@ -225,6 +284,33 @@ def _figures(folder: Path) -> list[Path]:
             + sorted(folder.glob("residuals.png")))
 
 
+class _StageBar:
+    """A strategy's share of the main job's optimisation stage, with tqdm's ``set_postfix_str``/``update``:
+    strategy ``i`` of ``n`` covers ``[i/n, (i+1)/n]`` of the stage; :meth:`steps` advances it within."""
+
+    def __init__(self, stage: StageProgress, i: int, n: int, name: str):
+        self.stage, self.i, self.n, self.name = stage, i, n, name
+        self.fraction = i / n  # of the stage; never moves back
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def set_postfix_str(self, text: str) -> None:
+        self.stage.update(self.fraction, f"{self.name}: {text}")
+
+    def steps(self, done: int, total: int) -> None:
+        """The DP's backward pass: ``done`` of ``total`` steps."""
+        self.fraction = max(self.fraction, (self.i + min(done / max(total, 1), 1.0)) / self.n)
+        self.stage.update(self.fraction, f"{self.name}: solving, step {done} of {total}")
+
+    def update(self, _n: int = 1) -> None:
+        self.fraction = (self.i + 1) / self.n
+        self.stage.update(self.fraction)
+
+
 class _StoredOutcome:
     """What the report needs of a DP outcome, restored from the cache."""
 
@@ -254,11 +340,13 @@ def _states_text(outcome: dict | None) -> str:
 
 
 def optimize_cached(params, scen, grids, strategies, store: Store | None, progress=True, cycle_log=None,
-                    hold: bool | None = None):
+                    hold: bool | None = None, stage: StageProgress | None = None):
     """Run the case study strategy by strategy, reusing cached results keyed by parameter values,
     scenario (with the cycle file's hash), grids, strategy, solver options (``hold``: Thermal-Cabin-DP's
     hold-the-bound heater control; None: its default) and software version. ``grids``: as
-    :func:`optimize.casestudy.run_case_study`; each strategy's key holds its own grid."""
+    :func:`optimize.casestudy.run_case_study`; each strategy's key holds its own grid. ``stage``: the main
+    job's stage line, which then shows the strategies (and a DP's backward pass, where the solver reports
+    it) in place of a bar per strategy."""
     from dataclasses import replace
 
     from tqdm import tqdm
@@ -290,10 +378,14 @@ def optimize_cached(params, scen, grids, strategies, store: Store | None, progre
                           *([opts] if opts else []))
         entry = store.get_json("dp", key) if store else None
         arrays = {name: store.get_npz("dp", f"{key}-{name}") for name in (entry or {}).get("sims", [])}
-        # one bar per strategy, named, with its state count: a single bar over all strategies gives a
-        # time-left estimate that jumps whenever a strategy of another size starts
-        with tqdm(total=1, desc=f"[{i + 1}/{len(strategies)}] {LABELS.get(strat, strat)}", unit="strategy",
-                  disable=not progress, file=sys.stderr, bar_format="{desc}: {bar:20}| {elapsed} {postfix}") as bar:
+        # alone (``iptm optimize``): one bar per strategy, named, with its state count (a single bar over all
+        # strategies gives a time-left estimate that jumps whenever a strategy of another size starts); in the
+        # main job the stage's own line shows the strategy, with no second counter inside it
+        name = LABELS.get(strat, strat)
+        bar = _StageBar(stage, i, len(strategies), name) if stage is not None else tqdm(
+            total=1, desc=f"[{i + 1}/{len(strategies)}] {name}", unit="strategy", disable=not progress,
+            file=sys.stderr, bar_format="{desc}: {bar:20}| {elapsed} {postfix}")
+        with bar:
             if entry is not None and all(a is not None for a in arrays.values()):
                 for name, a in arrays.items():
                     sims[name] = sim_from_arrays(a)
@@ -304,7 +396,8 @@ def optimize_cached(params, scen, grids, strategies, store: Store | None, progre
                 bar.set_postfix_str(_states_text(entry.get("outcome")) + "from the cache")
             else:
                 bar.set_postfix_str("solving" if strat != "rule" else "tuning the thresholds")
-                cs = run_case_study(params, scen, (strat,), progress=False, grids=grids, hold=hold)
+                cs = run_case_study(params, scen, (strat,), progress=False, grids=grids, hold=hold,
+                                    step_progress=bar.steps if stage is not None else None)
                 sims.update(cs.sims)
                 outcomes.update(cs.outcomes)
                 timings.update(cs.timings)
@@ -351,25 +444,13 @@ class RunOutcome:
     wall_s: float
 
 
-def run(cfg: RunConfig) -> RunOutcome:
-    """The whole chain; returns where the report is and the headline figures."""
-    from calib.model.params import ParameterSet, default_parameters
-    from optimize.formulations.scenario import DPScenario, FormulationGrids
-
-    t0 = time.perf_counter()
-    scen = cfg.scenario or DPScenario()
-    grids = FormulationGrids.coerce(cfg.grids)
-    store = Store(cfg.cache_dir) if cfg.cache_dir else None
-    paths = [Path(p) for p in cfg.logs]
-    val_paths = [Path(p) for p in cfg.validate]
-    if not val_paths and len(paths) > 1:
-        val_paths = [paths[-1]]  # hold out the last log for validation
-    fit_paths = [p for p in paths if p not in val_paths]
-    base = ParameterSet.load(cfg.base_params) if cfg.base_params else default_parameters()
-
+def _run_stages(cfg, stage, t0, scen, grids, store, paths, val_paths, fit_paths, base, halve):
     # 1. every log is read before any heavy work: a bad one stops the run here, naming the file
-    _say(f"[1/4] ingesting {len(paths) + len([p for p in val_paths if p not in paths])} log(s)", cfg.progress)
-    ingested = ingest_all(list(dict.fromkeys(paths + val_paths)), store, cfg.dbc, cfg.progress, cfg.strict)
+    to_read = list(dict.fromkeys(paths + val_paths))
+    stage.start("ingest", f"{len(to_read)} log(s)")
+    ingested = ingest_all(to_read, store, cfg.dbc, False, cfg.strict,
+                          on_log=lambda i, n, p: stage.update(i / n, f"read {p.name} ({i} of {n})"))
+    stage.close()
     by_path = {p: lg for p, lg, _ in ingested}
     from calib.ingest.drives import split_fit_validation
 
@@ -386,27 +467,27 @@ def run(cfg: RunConfig) -> RunOutcome:
     else:
         cyc_log = None
 
-    # 2. calibration
-    _say(f"[2/4] calibrating on {', '.join(lg.label() for lg in fit_logs)}"
-         + (f"; validating on {', '.join(lg.label() for lg in val_logs)}" if val_logs else ""), cfg.progress)
-    params, calib_info, calib_text, val_pngs, artifact = calibrate_cached(fit_logs, val_logs, base, store,
-                                                                         cfg.progress)
+    # 2. calibration (the fitters report no steps: the line says what is fitted and when it is done)
+    stage.start("calibrate", f"fitting on {', '.join(lg.label() for lg in fit_logs)}"
+                + (f"; validating on {', '.join(lg.label() for lg in val_logs)}" if val_logs else ""))
+    params, calib_info, calib_text, val_pngs, artifact = calibrate_cached(fit_logs, val_logs, base, store, False)
+    stage.close("done")
 
     # 3. optimisation
-    _say(f"[3/4] optimising {', '.join(cfg.strategies)} on {scen.cycle if cyc_log is None else cyc_log.label()}",
-         cfg.progress)
-    cs = optimize_cached(params, scen, grids, cfg.strategies, store, cfg.progress, cycle_log=cyc_log)
-    if cfg.convergence:
-        from optimize.convergence import ROUTINE_HALVING, case_study_halving
+    stage.start("optimise", f"{', '.join(cfg.strategies)} on {scen.cycle if cyc_log is None else cyc_log.label()}")
+    cs = optimize_cached(params, scen, grids, cfg.strategies, store, cfg.progress, cycle_log=cyc_log, stage=stage)
+    stage.close()
+    if halve:
+        stage.start("grid convergence", f"{', '.join(halve)} with every grid step halved")
+        cs_half = optimize_cached(params, scen, grids.halved(), halve, store, cfg.progress, cycle_log=cyc_log,
+                                  stage=stage)
+        from optimize.convergence import case_study_halving
 
-        halve = [s for s in cfg.strategies if s in ROUTINE_HALVING]
-        if halve:
-            _say(f"[3/4] grid convergence: {', '.join(halve)} with every grid step halved", cfg.progress)
-            cs_half = optimize_cached(params, scen, grids.halved(), halve, store, cfg.progress, cycle_log=cyc_log)
-            cs.convergence = case_study_halving(cs, cs_half)
+        cs.convergence = case_study_halving(cs, cs_half)
+        stage.close()
 
     # 4. report
-    _say("[4/4] writing the report", cfg.progress)
+    stage.start("report", "writing the report")
     from iptm.report import build_report
 
     run_key = content_key([lg.content_digest() for _, lg, _ in ingested], scen.to_dict(), grids.to_dict(),
@@ -417,5 +498,36 @@ def run(cfg: RunConfig) -> RunOutcome:
         artifact=artifact, case_study=cs, scenario=scen, grids=grids, base_params=cfg.base_params,
         command_line=cfg.command_line, wall_s=time.perf_counter() - t0, drive_warnings=drive_warnings,
         truth=truth)
+    stage.close(f"written: {report_dir.name}")
+    return report_dir, ingested
+
+
+def run(cfg: RunConfig) -> RunOutcome:
+    """The whole chain; returns where the report is and the headline figures."""
+    from calib.model.params import ParameterSet, default_parameters
+    from optimize.formulations.scenario import DPScenario, FormulationGrids
+
+    t0 = time.perf_counter()
+    scen = cfg.scenario or DPScenario()
+    grids = FormulationGrids.coerce(cfg.grids)
+    store = Store(cfg.cache_dir) if cfg.cache_dir else None
+    paths = [Path(p) for p in cfg.logs]
+    val_paths = [Path(p) for p in cfg.validate]
+    if not val_paths and len(paths) > 1:
+        val_paths = [paths[-1]]  # hold out the last log for validation
+    fit_paths = [p for p in paths if p not in val_paths]
+    base = ParameterSet.load(cfg.base_params) if cfg.base_params else default_parameters()
+
+    from optimize.convergence import ROUTINE_HALVING
+
+    halve = [s for s in cfg.strategies if s in ROUTINE_HALVING] if cfg.convergence else []
+    # one line per stage, numbered over the stages this run has
+    stages = ["ingest", "calibrate", "optimise"] + (["grid convergence"] if halve else []) + ["report"]
+    stage = StageProgress(stages, cfg.progress, cfg.on_progress)
+    try:
+        report_dir, _ = _run_stages(cfg, stage, t0, scen, grids, store, paths, val_paths, fit_paths, base, halve)
+    except BaseException:
+        stage.abort()  # a failed stage is not shown as done
+        raise
     summary = json.loads((report_dir / "report.json").read_text())["summary"]
     return RunOutcome(report_dir, summary, time.perf_counter() - t0)

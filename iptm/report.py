@@ -20,7 +20,9 @@ from calib.fileio import write_json, write_text
 from html import escape as html_escape
 
 from iptm.html import Section, render
+from iptm.present import counts_text, parameter_counts, prior_banner
 from optimize.formulations.scenario import FORMULATIONS
+from optimize.labels import PAPER_CONDITION
 
 FIG_SERIES = {  # what the paper-style figures plot, per strategy
     "soc": "soc", "T_cl_degC": "T_cl", "T_cab_degC": "T_cab",
@@ -50,18 +52,27 @@ def _clean(o):
     return o
 
 
-#: The comparison table's columns: (source column, header with unit, decimals).
+#: The comparison table's columns: (source column, header with unit, decimals). Corrected fuel (final SOC,
+#: coolant and cabin heat valued) is the headline and comes first; raw fuel (as burnt) is labelled raw.
+PAPER_HEADER = f"paper [%] ({PAPER_CONDITION})"
 COMPARISON = [
-    ("strategy", "strategy", None), ("fuel_g", "fuel [g]", 1), ("L_per_100km", "L/100 km", 2), ("mpg", "mpg", 1),
-    ("fuel_corrected_g", "corrected fuel [g]", 1), ("soc_final", "final SOC [-]", 3),
+    ("strategy", "strategy", None), ("fuel_corrected_g", "corrected fuel [g]", 1),
+    ("L_per_100km_corrected", "corrected L/100 km", 2), ("mpg_corrected", "corrected mpg", 1),
+    ("fuel_g", "raw fuel [g]", 1), ("L_per_100km", "raw L/100 km", 2), ("mpg", "raw mpg", 1),
+    ("soc_final", "final SOC [-]", 3),
     ("T_cl_final_degC", "final coolant [degC]", 1), ("T_cl_mean_degC", "mean coolant [degC]", 1),
     ("T_cab_final_degC", "final cabin [degC]", 1), ("T_cab_mean_degC", "mean cabin [degC]", 1),
     ("engine_starts", "engine starts", 0), ("idle_s", "idle [s]", 0), ("charge_sustaining", "charge-sustaining", None),
     ("saving_vs_rule_pct", "saving vs rule-based, corrected [%]", 2),
-    ("raw_saving_vs_rule_pct", "saving vs rule-based, raw [%]", 2), ("paper_vs_rule_pct", "paper [%]", 2),
+    ("raw_saving_vs_rule_pct", "saving vs rule-based, raw [%]", 2), ("paper_vs_rule_pct", PAPER_HEADER, 2),
     ("saving_vs_baseline_pct", "saving vs Baseline-DP, corrected [%]", 2),
-    ("raw_saving_vs_baseline_pct", "saving vs Baseline-DP, raw [%]", 2), ("paper_vs_baseline_pct", "paper [%] ", 2),
+    ("raw_saving_vs_baseline_pct", "saving vs Baseline-DP, raw [%]", 2),
+    ("paper_vs_baseline_pct", PAPER_HEADER.replace("[%]", "[%] vs Baseline-DP"), 2),
 ]
+#: The headline per strategy (the Report page and the report's summary).
+SUMMARY = [c for c in COMPARISON if c[0] in (
+    "strategy", "fuel_corrected_g", "L_per_100km_corrected", "mpg_corrected", "fuel_g", "L_per_100km", "mpg",
+    "saving_vs_rule_pct", "raw_saving_vs_rule_pct")]
 
 
 def _cell(v, dec):
@@ -82,13 +93,32 @@ def comparison_table(tab: pd.DataFrame) -> pd.DataFrame:
 
 
 def summary_table(tab: pd.DataFrame) -> pd.DataFrame:
-    """Headline per strategy: grams, L/100 km, mpg and the saving against rule-based."""
-    keep = [("strategy", "strategy", None), ("fuel_g", "fuel [g]", 1), ("L_per_100km", "L/100 km", 2),
-            ("mpg", "mpg", 1), ("fuel_corrected_g", "corrected fuel [g]", 1),
-            ("saving_vs_rule_pct", "saving vs rule-based, corrected [%]", 2),
-            ("raw_saving_vs_rule_pct", "saving vs rule-based, raw [%]", 2)]
-    keep = [k for k in keep if k[0] in tab.columns]
+    """Headline per strategy: corrected fuel with its L/100 km and mpg, the raw ones beside them, and the
+    savings against rule-based (corrected, then raw)."""
+    keep = [k for k in SUMMARY if k[0] in tab.columns]
     return pd.DataFrame([{h: _cell(r[c], d) for c, h, d in keep} for _, r in tab.iterrows()])
+
+
+def validation_rows(metrics: dict, logs_by_label: dict) -> list[dict]:
+    """The validation metrics of held-out logs as table rows; a channel the log does not carry is "not
+    scored" (:func:`iptm.present.channel_scores`), never RMSE 0."""
+    from iptm.present import channel_scores
+
+    rows = []
+    for lname, chans in (metrics or {}).items():
+        for r in channel_scores(chans, logs_by_label.get(lname)):
+            rows.append({"log": lname, "channel": r["channel"],
+                         "RMSE": "not scored" if not r["scored"] else f"{r['rmse']:.4g}",
+                         "max abs": "" if not r["scored"] else f"{r['max_abs']:.4g}",
+                         "bias": "" if not r["scored"] else f"{r['bias']:+.4g}", "unit": r["unit"],
+                         "note": r["why"]})
+        cum = (chans or {}).get("cumulative_fuel")
+        lg = logs_by_label.get(lname)
+        if isinstance(cum, dict) and "error_pct" in cum and (lg is None or lg.has("fuel_rate_g_per_s")):
+            rows.append({"log": lname, "channel": "cumulative fuel", "RMSE": "", "max abs": "", "bias": "",
+                         "unit": "g", "note": f"measured {cum['measured_g']:.1f} g, simulated {cum['simulated_g']:.1f} g, "
+                                              f"error {cum['error_pct']:+.2f} %"})
+    return rows
 
 
 def build_report(*, reports_dir: Path, run_id: str, ingested, fit_logs, val_logs, params, calib_info, calib_text,
@@ -175,13 +205,13 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
         ptab.append({"parameter": n, "value": val, "unit": p.unit, "stderr": se, "status": p.status_text(),
                      "note": p.note})
     cal.table(pd.DataFrame(ptab))
+    counts = parameter_counts(params)
+    priors = prior_banner(calib_info)
+    cal.p(f"Calibration: {counts_text(counts)}.")
+    for w in priors:
+        cal.raw(f"<p class='warn'>{html_escape(w)}</p>")
     val = (calib_info.get("validation") or {}).get("metrics", {})
-    vrows = []
-    for lname, chans in val.items():
-        for ch, m in (chans or {}).items():
-            if isinstance(m, dict):
-                vrows.append({"log": lname, "channel": ch, **{k: v for k, v in m.items()
-                                                               if isinstance(v, (int, float, str))}})
+    vrows = validation_rows(val, {lg.label(): lg for _, lg, _ in ingested})
     if vrows:
         cal.table(pd.DataFrame(vrows), "validation on held-out logs: the calibrated model replayed from the "
                                        "logged inputs")
@@ -211,9 +241,10 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
           f"coolant {scenario.T_cl0:g} degC, cabin {scenario.T_cab0:g} degC, heater {scenario.Q_heat:g} W "
           f"(Thermal-Cabin: {scenario.Q_heat_min:g}-{scenario.Q_heat_max:g} W). Grid steps: "
           + grids.describe([f for f in FORMULATIONS if f in cs.outcomes]) + ".")
-    opt.table(comparison_table(tab), "one row per strategy: fuel (with L/100 km and mpg), fuel corrected for "
-                                     "differences in final stored electric and thermal energy, final states, and "
-                                     "savings next to the paper's (Gong et al., CCTA 2019).")
+    opt.table(comparison_table(tab), "one row per strategy: corrected fuel (final SOC, coolant and cabin heat "
+                                     "valued: the headline) with its L/100 km and mpg, raw fuel (as burnt) beside "
+                                     "it, final states, and savings next to the paper's (Gong et al., CCTA 2019; "
+                                     f"{PAPER_CONDITION}).")
     if "baseline_warm" in set(tab["key"]):
         opt.p("Baseline-DP is solved on a model without the engine thermal dynamics (coolant factor f_cl = 1): "
               "the row 'Baseline-DP (own optimum, f_cl = 1)' is the fuel that model predicts for its own "
@@ -253,15 +284,16 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
     summ = Section("summary", "Summary")
     strat = {}
     for r in cs.to_dict()["table"]:
-        strat[r["key"]] = {k: r.get(k) for k in ("fuel_g", "L_per_100km", "mpg", "fuel_corrected_g", "soc_final",
+        strat[r["key"]] = {k: r.get(k) for k in ("fuel_corrected_g", "L_per_100km_corrected", "mpg_corrected",
+                                                  "fuel_g", "L_per_100km", "mpg", "soc_final",
                                                   "T_cl_final_degC",
                                                   "T_cab_final_degC", "T_cab_mean_degC", "saving_vs_rule_pct",
                                                   "raw_saving_vs_rule_pct", "saving_vs_baseline_pct",
                                                   "charge_sustaining")}
-    statuses = [params.param(n).status for n in params]
     summary = {"run_id": run_id, "synthetic_data": synthetic, "strategies": strat, "ordering_ok": ok,
                "ordering": ordering, "terminal": scenario.terminal,
-               "n_estimated": statuses.count("estimated"), "n_weak": statuses.count("weak"),
+               "n_estimated": counts["estimated"], "n_partly": counts["partly"], "n_weak": counts["weak"],
+               "calibration_text": counts_text(counts), "at_prior": priors,
                "convergence": None if getattr(cs, "convergence", None) is None else [
                    {k: r[k] for k in ("formulation", "rel_change_corrected_pct", "T_cab_mean_change_K", "converged")}
                    for r in cs.convergence],
@@ -275,15 +307,15 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
                "entries estimated" for n in params
                if params.param(n).status == "estimated" and params.param(n).n_entries_estimated()
                and params.param(n).n_entries_estimated()[0] < params.param(n).n_entries_estimated()[1]]
-    summ.p(f"Calibration: {summary['n_estimated']} parameters estimated, {summary['n_weak']} weakly informed "
-           f"(posterior mostly the prior)" + (f"; tables only partly determined: {'; '.join(partial)}" if partial else "")
-           + ".")
+    summ.p(f"Calibration: {counts_text(counts)}" + (f"; tables only partly determined: {'; '.join(partial)}"
+                                                     if partial else "") + ".")
     for w in drive_warnings:
         summ.raw(f"<p class='warn'>Warning: {html_escape(w)}</p>")
 
     banner = ("SYNTHETIC DATA: the logs in this report were simulated by the workbench from known truth "
               "parameters; they are not measurements.") if synthetic else ""
-    html = render(f"iptm report {run_id}", [summ, data, cal, opt, pr], banner=banner)
+    html = render(f"iptm report {run_id}", [summ, data, cal, opt, pr], banner=banner,
+                  warnings=[f"Not fitted: {w}" for w in priors])
     write_text(out / "index.html", html)
     write_json(out / "report.json", _clean({
         "summary": summary, "provenance": prov, "channel_reports": {k: v.to_dict(orient="records")

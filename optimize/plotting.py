@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 
 from calib.plotting import finish_figure
-from optimize.labels import LABELS, NAMES, PAPER_SAVINGS
+from optimize.labels import LABELS, NAMES, PAPER_CONDITION, PAPER_SAVINGS
 
 __all__ = ["plot_case_study", "plot_study", "plot_policy", "plot_dp_result"]
 
@@ -66,7 +66,9 @@ def plot_case_study(cs, outdir) -> list:
                 ax.plot(t, y, color=colors[k], lw=0.9, label=LABELS[k])
             if name == "cabin" and "thermal_cabin" in cs.outcomes:
                 ex = cs.outcomes["thermal_cabin"].extra
-                ax.axhline(ex.get("T_cab_ub", np.nan), color="0.5", ls=":", lw=0.8, label="upper bound")
+                # the scenario's bound, which the DP enforces (the cabin grid's top lies above it)
+                ax.axhline(cs.scenario.T_cab_ub, color="0.5", ls=":", lw=0.8,
+                           label=f"upper bound {cs.scenario.T_cab_ub:g} degC")
                 lb = getattr(cs.outcomes["thermal_cabin"], "T_cab_lb", None)
                 if lb is not None:  # the comfort bound at steps 1..N, which Thermal-Cabin-DP may ride
                     tt = cs.sims["thermal_cabin"].t
@@ -79,35 +81,41 @@ def plot_case_study(cs, outdir) -> list:
             ax.legend(fontsize=8, loc="best")
             ax.set_title(title, fontsize=10)
         save(fig, name)
-    # fuel bars: the saving of each strategy against the reference (rule-based when present), on fuel and
-    # on corrected fuel, every bar labelled; differences of a few percent stay visible, unlike grams from 0
+    # fuel bars: the saving of each strategy against the reference (rule-based when present). Corrected fuel
+    # (final SOC, coolant and cabin heat valued) is the headline: the solid bar on top; raw fuel (as burnt)
+    # beside it, lighter. Savings rather than grams from 0 keep differences of a few percent visible.
     ref = "rule" if "rule" in keys else keys[0]
     fuel = {k: cs.sims[k].fuel_g for k in keys}
     corr = {k: cs.sims[k].summary()["fuel_corrected_g"] for k in keys}
     sav = [100 * (1 - fuel[k] / fuel[ref]) for k in keys]
     sav_c = [100 * (1 - corr[k] / corr[ref]) for k in keys]
-    fig, ax = plt.subplots(figsize=(8, 0.75 * len(keys) + 1.9))
+    fig, ax = plt.subplots(figsize=(8, 0.75 * len(keys) + 2.5))
     y = np.arange(len(keys))[::-1]
     h = 0.38
-    ax.barh(y + h / 2, sav, h, color=[colors[k] for k in keys], label="fuel")
-    ax.barh(y - h / 2, sav_c, h, color=[colors[k] for k in keys], alpha=0.45, hatch="//",
-            label="corrected fuel (final SOC, coolant and cabin energy)")
+    ax.barh(y + h / 2, sav_c, h, color=[colors[k] for k in keys], label="corrected fuel (final SOC, coolant and "
+            "cabin heat valued)")
+    ax.barh(y - h / 2, sav, h, color=[colors[k] for k in keys], alpha=0.3, label="raw fuel (as burnt)")
     papers = [PAPER_SAVINGS.get(k, {}).get("vs_rule") for k in keys] if ref == "rule" else []
     span = max([abs(v) for v in sav + sav_c] + [p for p in papers if p is not None] + [0.5])
     for yi, k, v, vc in zip(y, keys, sav, sav_c):
-        for yy, val, g in ((yi + h / 2, v, fuel[k]), (yi - h / 2, vc, corr[k])):
-            txt = f"{g:.1f} g" + (" (reference)" if k == ref else f", {val:+.2f} %")
-            ax.text(max(val, 0) + 0.02 * span, yy, txt, va="center", ha="left", fontsize=8)
         paper = PAPER_SAVINGS.get(k, {}).get("vs_rule") if ref == "rule" else None
-        if paper is not None:
-            ax.plot([paper], [yi + h / 2], marker="D", color="k", ms=5, ls="none",
-                    label="paper (fuel)" if k == "thermal" else None)
+        if paper is not None:  # the paper's figure is raw fuel: drawn on the raw bar
+            ax.plot([paper], [yi - h / 2], marker="D", color="k", ms=5, ls="none",
+                    label=f"paper ({PAPER_CONDITION})" if k == "thermal" else None)
+        for yy, val, g, what, c, mark in ((yi + h / 2, vc, corr[k], "corrected", "k", None),
+                                          (yi - h / 2, v, fuel[k], "raw", "0.35", paper)):
+            txt = f"{what} {g:.1f} g" + (" (reference)" if k == ref else f", {val:+.2f} %")
+            ax.text(max(val, 0, mark or 0) + 0.03 * span, yy, txt, va="center", ha="left", fontsize=8, color=c)
     ax.axvline(0, color="0.3", lw=0.8)
     ax.set_yticks(y, [LABELS[k].replace(" on thermal model", "\non thermal model") for k in keys], fontsize=8)
-    ax.set_xlim(min(0.0, min(sav + sav_c)) - 0.1 * span, 1.45 * span)
+    ax.set_xlim(min(0.0, min(sav + sav_c)) - 0.1 * span, 1.6 * span)
     ax.set_xlabel(f"saving vs {LABELS[ref]} [%]")
-    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=3, frameon=False)
-    ax.set_title(f"fuel saving - {title}", fontsize=10)
+    handles, names = ax.get_legend_handles_labels()
+    # the headline first, raw beside it, the paper's figures last
+    first = sorted(range(len(names)), key=lambda i: (not names[i].startswith("corrected"), not names[i].startswith("raw")))
+    ax.legend([handles[i] for i in first], [names[i] for i in first], fontsize=8, loc="upper center",
+              bbox_to_anchor=(0.5, -0.16), ncol=1, frameon=False)
+    ax.set_title(f"fuel saving - {title} (terminal condition: {cs.scenario.terminal})", fontsize=10)
     save(fig, "fuel_bars")
     return paths
 
@@ -128,8 +136,9 @@ def plot_study(df: pd.DataFrame, outdir, metric="both") -> list[str]:
     ok = df[(df["status"] == "ok") & (df["strategy"] != df["reference"])]
     if ok.empty:
         return paths
-    metrics = ["saving_pct", "saving_corrected_pct"] if metric == "both" else [metric]
-    labels = {"saving_pct": "fuel saving vs {ref} [%]",
+    # corrected first (the headline), raw beside it
+    metrics = ["saving_corrected_pct", "saving_pct"] if metric == "both" else [metric]
+    labels = {"saving_pct": "raw fuel saving vs {ref} [%]",
               "saving_corrected_pct": "corrected-fuel saving vs {ref} [%]"}
     ref = NAMES.get(df["reference"].iloc[0], df["reference"].iloc[0])
     name = df["study"].iloc[0] if "study" in df else ""

@@ -340,28 +340,51 @@ def _error_text(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {msg[0] if msg else ''}".strip()
 
 
-def _limit_threads():
-    """Inside a dask worker, numba uses one thread (the worker processes are the parallelism)."""
+def _in_dask_worker() -> bool:
+    """True in a dask worker process: in a task, or in a function the client runs there (``Client.run``,
+    which ``get_worker`` does not see)."""
     try:
         from distributed import get_worker
-
-        get_worker()
-    except (ImportError, ValueError):
-        return
+        from distributed.worker import Worker
+    except ImportError:
+        return False
     try:
-        import numba
-        from numba.core import config as nb_config
-        from numba.np.ufunc import parallel as nb_parallel
+        get_worker()
+        return True
+    except ValueError:
+        return bool(getattr(Worker, "_instances", ()))
 
-        # The worker's NUMBA_NUM_THREADS=1 may postdate numba's import; numba re-reads the environment at
-        # every compilation and refuses a changed thread count once its pool runs, so read it now, before a
-        # cached parallel kernel starts the pool and a later (uncached) compilation would fail.
-        if not nb_parallel._is_initialized:
-            nb_config.reload_config()
-        if numba.get_num_threads() != 1:
-            numba.set_num_threads(1)
-    except Exception:  # noqa: BLE001 - never fail a case over a thread setting
-        pass
+
+def _agree_numba_threads():
+    """Make the environment's ``NUMBA_NUM_THREADS`` agree with numba's thread count.
+
+    numba reads the variable at import and again at every compilation, and refuses (RuntimeError, "Cannot set
+    NUMBA_NUM_THREADS...") a count that differs from the one its thread pool started with. A dask nanny sets
+    the worker's environment after the worker imported numba (it unpickles the caller's modules first), so
+    the two differ there; once the pool runs (a warm-up that ran a parallel kernel), every later compilation
+    of the study would fail."""
+    from numba.core import config
+    from numba.np.ufunc import parallel
+
+    env = os.environ.get("NUMBA_NUM_THREADS")
+    if env is None or env.strip() == str(config.NUMBA_NUM_THREADS):
+        return
+    if not parallel._is_initialized:
+        config.reload_config()  # the pool will start with the environment's count
+    else:
+        # the pool runs with config's count and cannot be resized: the environment follows it (the count
+        # this process uses is capped with numba.set_num_threads instead)
+        os.environ["NUMBA_NUM_THREADS"] = str(config.NUMBA_NUM_THREADS)
+
+
+def _limit_threads():
+    """numba's environment made consistent in any process; inside a dask worker, numba uses one thread (the
+    worker processes are the parallelism). numba's count is per calling thread: this runs in each case."""
+    _agree_numba_threads()
+    if _in_dask_worker():
+        import numba
+
+        numba.set_num_threads(1)
 
 
 def run_case(case: dict) -> dict:

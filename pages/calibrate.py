@@ -6,9 +6,12 @@ import streamlit as st
 
 from calib.store import content_key
 from iptm import dashboard as dash
+from iptm import present
 
 state = st.session_state
 st.title("Calibrate")
+# the run's progress is drawn here, at the top, whatever the page's length (the button is further down)
+PROGRESS = st.container()
 
 
 @st.cache_resource(show_spinner=False, max_entries=8)
@@ -96,7 +99,9 @@ def _page():
     if run:
         from calib.model.params import default_parameters
 
-        bar = st.progress(0.0, text="preparing the logs")
+        state.pop(dash.CALIB, None)  # a failed run leaves no earlier result that reads as this one's
+        with PROGRESS:
+            bar = st.progress(0.0, text="preparing the logs")
         try:
             fit_logs = [dash.truncate(session_logs[n].log, trunc) for n in fit_names]
             val_logs = [dash.truncate(session_logs[n].log, trunc) for n in val_names]
@@ -123,7 +128,7 @@ def _page():
             bar.progress(1.0, text=f"done in {res.wall_s:.1f} s")
         except Exception as exc:  # noqa: BLE001 - the page stays usable
             bar.empty()
-            st.error(dash.plain(f"Calibration failed: {dash.error_message(exc)}"))
+            PROGRESS.error(dash.plain(f"Calibration failed: {dash.error_message(exc)}"))
 
     cal = state.get(dash.CALIB)
     if cal is None:
@@ -132,13 +137,15 @@ def _page():
 
     res = cal["result"]
     st.subheader("Calibrated parameters")
+    for w in present.prior_banner(res):
+        st.warning(dash.plain(f"Not fitted: {w}"))
     tbl = dash.parameter_table(res.params)
-    n_est = int((tbl["identifiable"] == "yes").sum())
-    n_und = int((tbl["identifiable"] == "weak").sum())
+    counts = present.parameter_counts(res.params)  # the same count as the report and `iptm run`
     m1, m2, m3 = st.columns(3)
-    m1.metric("estimated (identifiable)", n_est)
-    m2.metric("weakly informed (mostly prior)", n_und)
+    m1.metric("parameters estimated", counts["estimated"])
+    m2.metric("weakly informed (mostly prior)", counts["weak"])
     m3.metric("wall time", f"{res.wall_s:.1f} s")
+    st.caption(present.counts_text(counts) + ".")
     if res.params.meta.get("synthetic"):
         st.warning("Calibrated from SYNTHETIC logs.")
     st.dataframe(tbl, hide_index=True, width="stretch")
@@ -146,18 +153,13 @@ def _page():
     st.download_button("Download the calibration file (TOML)", cal["artifact"], file_name="calibration.toml",
                        mime="application/toml", key="cal_download")
 
+    # each log as calibrated (truncated as chosen), by its label: a channel it lacks is "not scored"
+    by_label = {session_logs[n].label: session_logs[n].log for n in session_logs}
     if res.validation:
         st.subheader("Validation on held-out logs")
-        rows = []
-        for lg, m in res.validation.items():
-            for ch, v in m.items():
-                if ch == "cumulative_fuel":
-                    rows.append({"log": lg, "channel": "cumulative fuel", "RMSE": None, "max_abs": None, "bias": None,
-                                 "unit": "g", "fuel error %": v.get("error_pct")})
-                else:
-                    rows.append({"log": lg, "channel": ch, "RMSE": v.get("rmse"), "max_abs": v.get("max_abs"),
-                                 "bias": v.get("bias"), "unit": v.get("unit"), "fuel error %": None})
-        st.dataframe(rows, hide_index=True, width="stretch")
+        from iptm.report import validation_rows
+
+        st.dataframe(validation_rows(res.validation, by_label), hide_index=True, width="stretch")
 
     st.subheader("Measured vs simulated")
     st.caption("Interactive: drag to pan, mouse wheel to zoom the time axis (all panels of a log follow), "
@@ -166,11 +168,9 @@ def _page():
 
     tabs = st.tabs([f"{lbl} ({'held out' if held_out else 'fitted'})" for lbl, _, held_out in cal["plots"]]
                    + ["residuals"])
-    for tab, (_lbl, rep, _held_out) in zip(tabs, cal["plots"]):
+    for tab, (lbl, rep, _held_out) in zip(tabs, cal["plots"]):
         with tab:
-            m = rep.metrics()
-            st.caption(", ".join(f"{k} RMSE {v['rmse']:.3g} {v['unit']}" for k, v in m.items() if "rmse" in v)
-                       or "no channel to compare")
+            st.caption(present.scores_text(rep.metrics(), by_label.get(lbl)))
             chart = validation_chart(rep)
             if chart is not None:
                 st.altair_chart(chart, width="stretch")

@@ -12,17 +12,41 @@ from iptm import dashboard as dash
 
 state = st.session_state
 st.title("Optimize")
+# the run's progress is drawn here, at the top, whatever the page's length (the button is further down)
+PROGRESS = st.container()
 
+PREVIEW_DIFF = "iptm_preview_diff"  # {"key", "diff", "where"}: the preview's measured error
 STRATS = {"rule": "Rule-based (tuned)", "baseline": "Baseline-DP", "thermal": "Thermal-DP",
           "thermal_cabin": "Thermal-Cabin-DP"}
 
 
 @st.cache_resource(show_spinner=False, max_entries=32)
-def _solve(key, _params, _scenario, _grids, strategy):
-    """One strategy of the case study, cached by content (parameters, scenario incl. cycle file hash, grids)."""
+def _solve(key, _params, _scenario, _grids, strategy, _steps=None):
+    """One strategy of the case study, cached by content (parameters, scenario incl. cycle file hash, grids).
+    ``_steps(done, total)``: the DP's backward pass, where the solver reports it."""
     from optimize.casestudy import run_case_study
 
-    return run_case_study(_params, _scenario, strategies=(strategy,), progress=False, grids=_grids)
+    return run_case_study(_params, _scenario, strategies=(strategy,), progress=False, grids=_grids,
+                          step_progress=_steps)
+
+
+def _solve_all(order, params, scenario, grids, cyc, bars):
+    """Every chosen strategy, one progress bar each (its DP steps when the solver reports them)."""
+    base_key = content_key(params.to_dict()["parameters"], dash.scenario_key(scenario), grids.to_dict())
+    parts = []
+    for s in order:
+        bars[s].progress(0.0, text=f"{STRATS[s]}: solving on {cyc.n_steps} steps ...")
+        t0 = time.perf_counter()
+
+        def steps(d, n, s=s):
+            bars[s].progress(min(d / max(n, 1), 1.0), text=f"{STRATS[s]}: backward pass, step {d} of {n}")
+
+        part = _solve(content_key(base_key, s), params, scenario, grids, s, steps)
+        parts.append(part)
+        o = part.outcomes.get(s)
+        size = f"{o.n_states:,} states x {o.n_controls:,} controls, " if o is not None else ""
+        bars[s].progress(1.0, text=f"{STRATS[s]}: done - {size}{time.perf_counter() - t0:.1f} s")
+    return dash.merge_case_studies(parts), base_key
 
 
 @st.cache_data(show_spinner=False, max_entries=64)
@@ -38,7 +62,8 @@ def _estimate(key, _params, _scenario, _grids, strategy):
 
 from calib.model.cycles import available_cycles  # noqa: E402
 from calib.model.params import ParameterSet, default_parameters  # noqa: E402
-from optimize.formulations.scenario import FORMULATIONS, DPGrids, DPScenario  # noqa: E402
+from optimize.formulations.scenario import FORMULATIONS, TERMINALS, DPGrids, DPScenario  # noqa: E402
+from iptm import present  # noqa: E402
 
 
 
@@ -56,6 +81,9 @@ def _run_sweep(key, _study, _bar):
 def _sweep_section(params, scenario, grids, strategies):
     """A sweep over the ambient temperature with the scenario above (optimize.sweep)."""
     with st.expander("Sweep over the ambient temperature (optimize.sweep on a local dask cluster)"):
+        st.caption("Grids: " + ("the custom steps above, for every formulation." if isinstance(grids, DPGrids)
+                                else "each formulation's converged grid (as `iptm sweep` without [grids]; a preview "
+                                     "is not used here)."))
         txt = st.text_input("Ambient temperatures [degC], comma separated", "-20, -10, 0", key="sweep_Tamb")
         if not st.button("Run sweep", key="sweep_run"):
             res = state.get("iptm_sweep")
@@ -73,8 +101,10 @@ def _sweep_section(params, scenario, grids, strategies):
                     raise dash.IptmError("give at least one ambient temperature")
                 base = {k: v for k, v in scenario.to_dict().items() if k != "T_amb"}
                 order = [k for k in STRATS if k in strategies]
+                # a sweep replaces every formulation's converged steps by one set (or none: the converged)
                 study = Study(name="dashboard", strategies=tuple(order), reference=order[0],
-                              grids=grids.to_dict(), scenario=base, vary={"T_amb": temps},
+                              grids=grids.to_dict() if isinstance(grids, DPGrids) else {}, scenario=base,
+                              vary={"T_amb": temps},
                               param_sets=[ParamSpec("session", None, params)])
                 key = content_key([c["key"] for c in study.expand()], dash.scenario_key(scenario))
                 df = _run_sweep(key, study, bar)
@@ -94,6 +124,33 @@ def _sweep_section(params, scenario, grids, strategies):
             st.dataframe(res["df"], width="stretch", hide_index=True)
             for f in res["figures"]:
                 st.image(f, width="stretch")
+
+
+def _preview_section(opt, cs):
+    """A preview result says so, with its error against the converged grids once measured (both solved on
+    this scenario; the converged solve is cached like any other)."""
+    last = state.get(PREVIEW_DIFF)
+    if last and last["key"] == opt["key"]:
+        st.info(f"Preview grids: corrected fuel differs from the converged grids' by {present.difference_text(last['diff'])} "
+                "(preview minus converged, measured on this scenario).")
+        return
+    st.info("Preview grids: every step of the converged grids doubled. Its error on this scenario is not measured "
+            "yet.")
+    if st.button("Measure the preview against the converged grids", key="opt_measure_preview"):
+        order = [k for k in STRATS if k in cs.sims and k in FORMULATIONS]
+        with PROGRESS:
+            box = st.empty()
+            with box.container():
+                bars = {k: st.progress(0.0, text=f"{STRATS[k]} (converged grids): waiting") for k in order}
+        try:
+            conv_cs, _ = _solve_all(order, opt["params"], cs.scenario, present.converged_grids(),
+                                    cs.scenario.load_cycle(), bars)
+            state[PREVIEW_DIFF] = {"key": opt["key"], "diff": present.preview_difference(cs, conv_cs),
+                                   "where": f"{opt['cycle']['name']}, {cs.scenario.T_amb:g} degC"}
+            st.rerun()
+        except Exception as exc:  # noqa: BLE001
+            box.empty()
+            PROGRESS.error(dash.plain(f"Measuring the preview failed: {dash.error_message(exc)}"))
 
 
 def _page():
@@ -168,15 +225,42 @@ def _page():
     Q_max = c7.number_input("Thermal-Cabin heater max [W]", 0.0, 6000.0, float(d.Q_heat_max), 100.0, key="opt_Qmax")
     dur = c8.number_input("Use the first ... s of the cycle (0 = whole)", 0.0, 100000.0, 0.0, 60.0, key="opt_duration")
 
-    st.markdown("**DP grid steps**, the same for every formulation (the paper's Table II: SOC 0.01, coolant 1 degC, "
-                "cabin 1 degC, battery 500 W, heater 50 W; coarser runs faster; `iptm optimize` without `--grid` "
-                "gives each formulation its converged grid)")
-    g1, g2, g3, g4, g5 = st.columns(5)
-    gs = g1.number_input("SOC [-]", 0.001, 0.1, 0.02, 0.005, format="%.3f", key="opt_g_soc")
-    gt = g2.number_input("coolant [degC]", 0.1, 10.0, 2.0, 0.5, key="opt_g_tcl")
-    gc = g3.number_input("cabin [degC]", 0.1, 10.0, 2.0, 0.5, key="opt_g_tcab")
-    gp = g4.number_input("battery [W]", 50.0, 5000.0, 1000.0, 100.0, key="opt_g_pbat")
-    gq = g5.number_input("heater [W]", 10.0, 1000.0, 100.0, 10.0, key="opt_g_qheat")
+    terminal = st.selectbox(
+        "Terminal condition on coolant and cabin (as `iptm optimize --terminal`)", TERMINALS,
+        index=TERMINALS.index(d.terminal), key="opt_terminal",
+        help="valued: heat left in coolant and cabin is worth its fuel equivalent (the corrected fuel; the "
+             "default); match: at least the rule-based run's final coolant and cabin; continued: the final state "
+             "valued by a common continuation drive; free: the paper's, no condition (a DP may end colder).")
+
+    st.markdown("**DP grids**")
+    conv, prev = present.converged_grids(), present.preview_grids()
+    grid_opts = ["converged", "preview", "custom"]
+    # the preview's error, measured on this session's last scenario where both grids were solved
+    last = state.get(PREVIEW_DIFF)
+
+    def _grid_label(o):
+        if o == "converged":
+            return "converged: each formulation's own grid, as `iptm optimize` and `iptm run` use"
+        if o == "custom":
+            return "custom steps, the same for every formulation"
+        return ("preview: every converged step doubled, faster; corrected fuel vs converged "
+                + (f"measured {present.difference_text(last['diff'])} ({last['where']})" if last and last["diff"]
+                   else "not measured yet (run the preview, then measure it)"))
+
+    gsel = st.radio("DP grids", grid_opts, format_func=_grid_label, key="opt_grid_choice", label_visibility="collapsed")
+    if gsel == "custom":
+        p0 = DPGrids()  # the paper's Table II as the starting point
+        st.caption("The paper's Table II steps are the starting point; coarser steps run faster and cost accuracy.")
+        g1, g2, g3, g4, g5 = st.columns(5)
+        gs = g1.number_input("SOC [-]", 0.001, 0.1, p0.soc, 0.005, format="%.3f", key="opt_g_soc")
+        gt = g2.number_input("coolant [degC]", 0.1, 10.0, p0.tcl, 0.5, key="opt_g_tcl")
+        gc = g3.number_input("cabin [degC]", 0.1, 10.0, p0.tcab, 0.5, key="opt_g_tcab")
+        gp = g4.number_input("battery [W]", 50.0, 5000.0, p0.pbat, 100.0, key="opt_g_pbat")
+        gq = g5.number_input("heater [W]", 10.0, 1000.0, p0.qheat, 10.0, key="opt_g_qheat")
+        chosen_grids = DPGrids(soc=gs, tcl=gt, tcab=gc, pbat=gp, qheat=gq)
+    else:
+        chosen_grids = conv if gsel == "converged" else prev
+        st.caption(("Grid steps: " if gsel == "converged" else "Preview grid steps: ") + chosen_grids.describe())
     strategies = st.multiselect("Strategies", list(STRATS), default=list(STRATS), format_func=STRATS.get,
                                 key="opt_strategies")
 
@@ -185,8 +269,8 @@ def _page():
     if cycle_ok and cycle is not None:
         try:
             scenario = DPScenario(cycle=cycle, T_amb=T_amb, soc0=soc0, T_cl0=T_cl0, T_cab0=T_cab0, Q_heat=Q_heat,
-                                  Q_heat_min=Q_min, Q_heat_max=Q_max, duration_s=dur or None)
-            grids = DPGrids(soc=gs, tcl=gt, tcab=gc, pbat=gp, qheat=gq)
+                                  Q_heat_min=Q_min, Q_heat_max=Q_max, duration_s=dur or None, terminal=terminal)
+            grids = chosen_grids
             state[dash.SCENARIO] = {"scenario": scenario, "grids": grids, "strategies": tuple(strategies)}
         except Exception as exc:  # noqa: BLE001
             st.error(dash.plain(f"Invalid scenario: {dash.error_message(exc)}"))
@@ -198,7 +282,7 @@ def _page():
         ekey = content_key(params.to_dict()["parameters"], dash.scenario_key(scenario), grids.to_dict())
         lines = []
         for s in [s for s in STRATS if s in strategies and s in FORMULATIONS]:
-            est, err = _estimate(content_key(ekey, s), params, scenario, grids, s)
+            est, err = _estimate(content_key(ekey, s), params, scenario, grids.of(s) if hasattr(grids, "of") else grids, s)
             if err:
                 st.error(dash.plain(f"{STRATS[s]}: {err}"))
                 ready = False
@@ -209,31 +293,25 @@ def _page():
             st.caption("Problem size: " + "; ".join(lines))
     if st.button("Run optimisation", type="primary", disabled=not ready, key="opt_run"):
         order = [s for s in STRATS if s in strategies]
-        # one bar per strategy, named, with its state count when solved: a single bar's time-left estimate
-        # jumps as strategies of very different sizes follow each other
-        bars = {s: st.progress(0.0, text=f"{STRATS[s]}: waiting") for s in order}
-        bar = st.progress(0.0, text="loading the cycle")
+        state.pop(dash.OPT, None)  # a failed run leaves no earlier result or bar that reads as this one's
+        with PROGRESS:
+            # one bar per strategy, named, with its state count when solved: a single bar's time-left estimate
+            # jumps as strategies of very different sizes follow each other
+            box = st.empty()
+            with box.container():
+                bars = {s: st.progress(0.0, text=f"{STRATS[s]}: waiting") for s in order}
+                bar = st.progress(0.0, text="loading the cycle")
         try:
             cyc = scenario.load_cycle()  # a bad cycle or duration fails here, before any DP
-            base_key = content_key(params.to_dict()["parameters"], dash.scenario_key(scenario), grids.to_dict())
-            parts = []
-            for s in order:
-                bars[s].progress(0.0, text=f"{STRATS[s]}: solving on {cyc.n_steps} steps ...")
-                t0 = time.perf_counter()
-                part = _solve(content_key(base_key, s), params, scenario, grids, s)
-                parts.append(part)
-                o = part.outcomes.get(s)
-                size = f"{o.n_states:,} states x {o.n_controls:,} controls, " if o is not None else ""
-                bars[s].progress(1.0, text=f"{STRATS[s]}: done - {size}{time.perf_counter() - t0:.1f} s")
-            cs = dash.merge_case_studies(parts)
+            cs, base_key = _solve_all(order, params, scenario, grids, cyc, bars)
             bar.progress(0.5, text="drawing the figures")
-            figdir = dash.session_dir(state) / "figures" / base_key
-            figs = cs.plot(figdir)
-            state[dash.OPT] = {"cs": cs, "figures": figs, "cycle": cyc.describe(), "key": base_key}
+            figs = cs.plot(dash.session_dir(state) / "figures" / base_key)
+            state[dash.OPT] = {"cs": cs, "figures": figs, "cycle": cyc.describe(), "key": base_key,
+                               "grid_choice": gsel, "params": params}
             bar.progress(1.0, text=f"done ({sum(cs.timings.values()):.1f} s of solver time)")
         except Exception as exc:  # noqa: BLE001
-            bar.empty()
-            st.error(dash.plain(f"Optimisation failed: {dash.error_message(exc)}"))
+            box.empty()  # the bars of a failed run go; the error says why
+            PROGRESS.error(dash.plain(f"Optimisation failed: {dash.error_message(exc)}"))
 
     if importlib.util.find_spec("optimize.sweep") is not None and params_ok and scenario is not None and strategies:
         _sweep_section(params, scenario, grids, strategies)
@@ -262,11 +340,13 @@ def _page():
         # the paper's figure is a reference, not a change: a caption, not a delta arrow
         col.metric(f"{STRATS[key]} saving vs {other} (corrected fuel)", f"{v:.2f} %" if v == v else "-")
         if paper == paper:
-            col.caption(f"paper (Gong et al.): {paper:.2f} %")
+            col.caption(f"paper (Gong et al.): {paper:.2f} % ({present.PAPER_CONDITION})")
     st.caption(f"Terminal condition on coolant and cabin: {cs.scenario.terminal}. " + cs.ordering_statement() + ".")
     if not cs.ordering_ok():
-        st.warning("Corrected fuel is not ordered rule >= Baseline >= Thermal >= Thermal-Cabin on these grids: refine "
-                   "the grids (coarse grids cost accuracy) or compare with the valued terminal condition.")
+        st.warning("Corrected fuel is not ordered rule >= Baseline >= Thermal >= Thermal-Cabin. "
+                   + present.ordering_advice(cs))
+    if opt.get("grid_choice") == "preview":
+        _preview_section(opt, cs)
     from iptm.report import comparison_table
 
     st.dataframe(comparison_table(tbl.reset_index()), hide_index=True, width="stretch")

@@ -7,9 +7,12 @@ from pathlib import Path
 import streamlit as st
 
 from iptm import dashboard as dash
+from iptm import present
 
 state = st.session_state
 st.title("Report")
+# the run's progress, at the top of the page: one bar over the run's stages (iptm.pipeline.StageProgress)
+PROGRESS = st.container()
 
 
 
@@ -20,7 +23,7 @@ def _page():
         st.page_link("pages/logs.py", label="Go to Logs")
         return
 
-    from optimize.formulations.scenario import DPGrids, DPScenario  # noqa: E402
+    from optimize.formulations.scenario import DPScenario  # noqa: E402
 
     names = list(session_logs)
     sel = st.multiselect("Logs (the last one is held out for validation)", names, default=names,
@@ -31,9 +34,10 @@ def _page():
         st.caption("Scenario, grids and strategies: as set on the Optimize page.")
     else:
         scenario = DPScenario(duration_s=120.0)
-        grids = DPGrids(soc=0.02, tcl=2.0, tcab=2.0, pbat=1000.0, qheat=100.0)
+        grids = present.converged_grids()  # as `iptm run`
         strategies = ("rule", "baseline", "thermal", "thermal_cabin")
-        st.caption("Scenario: the default (first 120 s of the cycle, coarse grids); change it on the Optimize page.")
+        st.caption("Scenario: the default (first 120 s of the cycle, each formulation's converged grid, as "
+                   "`iptm run`); change it on the Optimize page.")
     with st.expander("Scenario used"):
         st.json({"scenario": scenario.to_dict(), "grids": grids.to_dict(), "strategies": list(strategies)},
                 expanded=False)
@@ -41,22 +45,29 @@ def _page():
     if st.button("Build the report", type="primary", disabled=not sel or not strategies, key="rep_run"):
         from iptm.pipeline import RunConfig, run
 
-        bar = st.progress(0.1, text="ingest, calibration, optimisation and report (cached steps are reused)")
+        state.pop("iptm_report", None)  # a failed run leaves no earlier report that reads as this one's
+        with PROGRESS:
+            bar = st.progress(0.0, text="starting (cached steps are reused)")
+
+        def on_progress(k, n, stage, fraction, text):
+            # a cycle or log in the session folder is named by its file name, never by the server's path
+            bar.progress(min(((k - 1) + fraction) / n, 1.0),
+                         text=dash.plain(dash.scrub_paths(f"[{k}/{n}] {stage}: {text}")))
+
         try:
             t0 = time.perf_counter()
-            with st.spinner("building the report..."):
-                cfg = RunConfig(logs=[str(session_logs[n].path) for n in sel], scenario=scenario, grids=grids,
-                                strategies=tuple(strategies), reports_dir=dash.session_dir(state) / "reports",
-                                cache_dir=dash.cache_dir(), progress=False,
-                                command_line="streamlit dashboard (Report page)")
-                out = run(cfg)
+            cfg = RunConfig(logs=[str(session_logs[n].path) for n in sel], scenario=scenario, grids=grids,
+                            strategies=tuple(strategies), reports_dir=dash.session_dir(state) / "reports",
+                            cache_dir=dash.cache_dir(), progress=False, on_progress=on_progress,
+                            command_line="streamlit dashboard (Report page)")
+            out = run(cfg)
             rd = Path(out.report_dir)
             state["iptm_report"] = {"dir": str(rd), "summary": out.summary, "wall_s": out.wall_s,
                                     "html": (rd / "index.html").read_bytes(), "json": (rd / "report.json").read_bytes()}
             bar.progress(1.0, text=f"done in {time.perf_counter() - t0:.1f} s")
         except Exception as exc:  # noqa: BLE001 - the page stays usable
-            bar.empty()
-            st.error(dash.plain(f"Report failed: {dash.error_message(exc)}"))
+            bar.empty()  # the bar of a failed run goes; the error says why
+            PROGRESS.error(dash.plain(f"Report failed: {dash.error_message(exc)}"))
 
     rep = state.get("iptm_report")
     if rep is None:
@@ -79,9 +90,13 @@ def _page():
     if summ.get("synthetic_data"):
         st.warning("Built from SYNTHETIC logs.")
     st.dataframe(summary_table(pd.DataFrame(full["case_study"]["table"])), hide_index=True, width="stretch")
+    for w in summ.get("at_prior") or []:
+        st.warning(dash.plain(f"Not fitted: {w}"))
     m1, m2, m3 = st.columns(3)
     m1.metric("parameters estimated", summ.get("n_estimated", 0))
     m2.metric("weakly informed (mostly prior)", summ.get("n_weak", 0))
+    if summ.get("calibration_text"):
+        st.caption(summ["calibration_text"] + ".")
     m3.metric("corrected-fuel ordering rule > Baseline > Thermal > Thermal-Cabin",
               "holds" if summ.get("ordering_ok") else "does not hold")
     with st.expander("Summary as JSON"):

@@ -311,7 +311,8 @@ def test_calibrate_optimize_report_flow(small_csv):
     comp = at.dataframe[0].value
     assert comp["strategy"].tolist()[:4] == ["Rule-based (tuned)", "Baseline-DP on thermal model", "Thermal-DP",
                                             "Thermal-Cabin-DP"]
-    assert {"fuel [g]", "L/100 km", "mpg"} <= set(comp.columns)
+    assert {"corrected fuel [g]", "corrected L/100 km", "corrected mpg", "raw fuel [g]", "raw L/100 km", "raw mpg"} <= set(comp.columns)
+    assert list(comp.columns).index("corrected fuel [g]") < list(comp.columns).index("raw fuel [g]")
     # interactive trajectories (one Vega-Lite chart, panels with a shared time axis)
     charts = at.get("vega_lite_chart")
     assert len(charts) == 1 and '"vconcat"' in charts[0].proto.spec
@@ -353,8 +354,8 @@ def test_calibrate_optimize_report_flow(small_csv):
     # a formatted summary (a row per strategy, economy units) and a preview of the HTML report, not raw JSON
     summ = at.dataframe[0].value
     assert summ["strategy"].tolist() == ["Rule-based (tuned)", "Thermal-DP"]
-    assert {"fuel [g]", "L/100 km", "mpg"} <= set(summ.columns)
-    assert all(len(v.split(".")[1]) <= 2 for v in summ["fuel [g]"])  # no 16-digit numbers
+    assert {"corrected fuel [g]", "corrected L/100 km", "corrected mpg", "raw fuel [g]", "raw L/100 km", "raw mpg"} <= set(summ.columns)
+    assert all(len(v.split(".")[1]) <= 2 for v in summ["corrected fuel [g]"])  # no 16-digit numbers
     assert at.get("iframe") and "<table" in at.get("iframe")[0].proto.srcdoc
 
 
@@ -454,3 +455,31 @@ def test_stale_session_folders_are_removed(tmp_path):
         os.utime(f, (t, t))
     assert remove_stale_sessions(root=tmp_path) == 1
     assert not old.exists() and new.exists()
+
+
+def test_session_folder_removed_when_the_session_state_is_dropped(tmp_path, monkeypatch):
+    """Streamlit frees an ended session's state; the folder goes with it, without waiting for staleness."""
+    import gc
+
+    from iptm import dashboard as dash
+
+    monkeypatch.setenv("IPTM_SESSION_ROOT", str(tmp_path / "sessions"))
+    state = {}
+    d = dash.session_dir(state)
+    (d / "upload.csv").write_text("time [s],speed [km/h]\n0,1\n")
+    assert d.is_dir()
+    del state
+    gc.collect()
+    assert not d.exists()
+
+
+def test_folders_of_closed_sessions_removed_by_the_janitors_sweep(tmp_path):
+    from iptm import dashboard as dash
+
+    open_id, closed_id = "0f8fad5b-d9cb-469f-a165-70867728950e", "7c9e6679-7425-40de-944b-e07fc1f90ae7"
+    kept = [tmp_path / f"iptm-session-{open_id}-abc", tmp_path / "iptm-session-nosession"]
+    gone = tmp_path / f"iptm-session-{closed_id}-def"
+    for d in [*kept, gone]:
+        (d / "uploads").mkdir(parents=True)
+    assert dash.remove_closed_sessions(tmp_path, lambda sid: sid == open_id) == 1
+    assert not gone.exists() and all(d.exists() for d in kept)

@@ -2,7 +2,7 @@
 system's headless Chromium (``scripts/install_browser.sh`` installs both).
 
 Uploads a corrupt log (message shown, and still shown after the next upload) and a 300-s log, runs a
-calibration, an optimisation on 60 s with coarse grids and the report (the downloaded HTML, opened in the
+calibration, an optimisation on 60 s on the default grids and the report (the downloaded HTML, opened in the
 browser, has a labelled row per strategy in its comparison table), and saves a screenshot of each page to
 ``reports/figures/page_{logs,calibrate,optimize,report}.png`` (shown in the README). Two users calibrate at
 once, each seeing only their own logs. One user uploads a unit bomb, a decompression bomb and a log whose header
@@ -64,6 +64,9 @@ def sync_playwright():
     return sync_playwright
 
 
+SESSION_TTL_S = 5  # how long Streamlit keeps a closed tab's session for a reconnect
+
+
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("browser")
@@ -74,7 +77,8 @@ def server(tmp_path_factory):
     proc = subprocess.Popen(
         [sys.executable, "-m", "streamlit", "run", str(ROOT / "app.py"), "--server.headless", "true",
          "--server.port", str(port), "--server.address", "127.0.0.1", "--browser.gatherUsageStats", "false",
-         "--server.fileWatcherType", "none", "--client.toolbarMode", "viewer", "--global.developmentMode", "false"],
+         "--server.fileWatcherType", "none", "--client.toolbarMode", "viewer", "--global.developmentMode", "false",
+         "--server.disconnectedSessionTTL", str(SESSION_TTL_S)],
         cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
     url = f"http://127.0.0.1:{port}"
     try:
@@ -128,7 +132,7 @@ def _goto(page, title):
 
 
 # IPTM_README_SHOTS=1: the README's screenshots (bundled logs, whole cycle, paper grids) into
-# reports/figures/; otherwise the quick CI flow (a 300-s upload, 60 s on coarse grids) into a temp folder.
+# reports/figures/; otherwise the quick CI flow (a 300-s upload, 60 s on the default grids) into a temp folder.
 README_MODE = os.environ.get("IPTM_README_SHOTS") == "1"
 SHOTS = FIGS if README_MODE else Path(os.environ.get("IPTM_SHOT_DIR", "/tmp/iptm-browser-shots"))
 
@@ -182,10 +186,13 @@ def test_dashboard_in_chromium(sync_playwright, server):
             assert page.locator('[data-testid="stException"]').count() == 0
             _shot(page, "page_calibrate.png")
 
-            # optimisation on 60 s, coarse grids (the page's defaults)
+            # optimisation on 60 s on the page's default grids (each formulation's converged grid); README mode:
+            # the paper's grids, set as custom steps
             _goto(page, "Optimize")
             fields = {"Use the first ... s of the cycle (0 = whole)": "0" if README_MODE else "60"}
             if README_MODE:
+                page.get_by_text("custom steps, the same for every formulation").click()
+                _idle(page)
                 fields.update({"SOC [-]": "0.01", "coolant [degC]": "1", "cabin [degC]": "1", "battery [W]": "500",
                                "heater [W]": "50"})
             for label, value in fields.items():
@@ -489,3 +496,27 @@ def test_hostile_uploads_in_one_session_leave_another_sessions_calibration_on_ti
             assert prov.get_by_text(f'"warning: {WARN_MD}"').count() == 1
         finally:
             browser.close()
+
+
+def test_closing_the_tab_removes_the_sessions_folder(sync_playwright, server):
+    url, tmp, _ = server
+    sessions = tmp / "sessions"
+    before = set(sessions.glob("iptm-session-*"))
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
+        try:
+            page = browser.new_page(viewport={"width": 1400, "height": 1800})
+            page.goto(url, wait_until="domcontentloaded")
+            page.get_by_role("heading", name="Logs").first.wait_for(timeout=60_000)
+            _idle(page)
+            page.locator('[data-testid="stFileUploader"] input[type="file"]').first.set_input_files(
+                str(_small_csv(tmp / "to_forget.csv", seconds=60.0)))
+            _idle(page)
+            mine = set(sessions.glob("iptm-session-*")) - before
+            assert len(mine) == 1 and any(mine.pop().rglob("*.csv"))
+        finally:
+            browser.close()
+    deadline = time.time() + SESSION_TTL_S + 60
+    while time.time() < deadline and set(sessions.glob("iptm-session-*")) - before:
+        time.sleep(1)
+    assert not set(sessions.glob("iptm-session-*")) - before, "the closed session's folder is still there"

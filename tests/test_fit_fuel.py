@@ -1,4 +1,5 @@
 """Fuel fit: truth recovery on small synthetic logs; a log that never warms up cannot give the warm map."""
+import copy
 import functools
 
 import numpy as np
@@ -176,3 +177,56 @@ def test_f_cl_above_the_thermostat_stays_at_its_prior_without_hot_data():
     assert fit.metrics["f_cl_hot_weak_degC"] == [x[j] for j in range(r + 1, len(x))]
     # the cold side is still determined by the same log
     assert f.entry_status[1] == "estimated"
+
+
+def test_regime_scale_gives_each_regime_its_own_scatter():
+    from calib.fit.fuel import RESOLUTION_G_PER_S, _regime_scale
+
+    rng = np.random.default_rng(0)
+    groups = np.repeat([0, 1, 2], [200, 200, 10])
+    r = np.concatenate([rng.normal(0, 1.0, 200), rng.normal(0, 0.1, 200), rng.normal(0, 5.0, 10)])
+    sc = _regime_scale(r, groups)
+    tot = np.sqrt(np.mean(r ** 2))
+    assert abs(sc[0] - 1.0 / tot) < 0.15 / tot and abs(sc[250] - 0.1 / tot) < 0.02 / tot
+    assert np.all(sc[groups == 2] == 1.0)  # too few bins to say: the overall scatter
+    assert np.all(_regime_scale(np.zeros(5), np.zeros(5, int)) == 1.0)
+    assert _regime_scale(np.r_[np.zeros(40), np.ones(40)], np.repeat([0, 1], 40))[0] == RESOLUTION_G_PER_S / np.sqrt(0.5)
+
+
+def _cold_misfit(logs):
+    """The logs with the fuel rate of every bin below 60 degC coolant off by a slow +-40 % wave: a cold
+    engine the coolant table cannot follow, which a single noise sd would let set the warm bins' weight."""
+    out = []
+    for lg in logs:
+        lg2 = copy.deepcopy(lg)
+        d = lg2.data
+        cold = d["coolant_temp_degC"].to_numpy() < 60.0
+        t = d.index.to_numpy(dtype=float)  # time_s
+        w = d["fuel_rate_g_per_s"].to_numpy().copy()
+        w[cold] *= 1.0 + 0.4 * np.sin(2 * np.pi * t[cold] / 60.0)
+        d["fuel_rate_g_per_s"] = w
+        out.append(lg2)
+    return out
+
+
+@pytest.mark.parametrize("weighted", [True, False])
+def test_warm_bins_keep_their_weight_beside_a_cold_misfit(weighted, monkeypatch):
+    """With one noise sd for every bin the cold bins' misfit drowns the warm bins: the entry of f_cl above
+    the thermostat (90 degC) is then left to its prior (weak); with a scatter per regime the warm bins
+    inform it, and the warm fuel rate stays within 2 % of the truth."""
+    import calib.fit.fuel as fuel
+    from calib.fit.toolkit import WEAK_INFORMED
+
+    if not weighted:  # the check below must fail then
+        monkeypatch.setattr(fuel, "_regime_scale", lambda r, g: np.ones(np.size(r)))
+    truth, logs = logs_for(1)
+    base = default_parameters()
+    fit = fuel.fit_fuel(_cold_misfit(logs), base)
+    f = fit.estimates["f_cl"]
+    j90 = base.param("f_cl").x.index(90.0)
+    assert (f.informed[j90] >= WEAK_INFORMED) == weighted, f.informed
+    if weighted:
+        e = fit.estimates["eta_ool"]
+        w = warm_rate(e.value, base["fuel_scale"], 14.2e3) / warm_rate(truth["eta_ool"], truth["fuel_scale"], 14.2e3)
+        assert abs(w - 1) < 0.02
+        assert set(fit.metrics["noise_sd_by_regime_g_per_s"]) >= {"engine on, 20-60 degC", "engine on, 80-90 degC"}

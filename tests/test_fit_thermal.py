@@ -1,8 +1,11 @@
 """Engine thermal fit: output-error truth recovery, the thermostat flags, missing coolant channel."""
+import dataclasses
 import functools
 
+import numpy as np
 import pytest
 
+import calib.fit.thermal as thermal
 from calib.fit.thermal import fit_thermal
 from calib.ingest import to_drivelog
 from calib.model.params import default_parameters
@@ -45,6 +48,7 @@ def test_thermal_recovers_truth(seed):
     for e in fit.estimates.values():
         assert e.stderr is not None and e.prior_sd is not None and 0 <= e.informed <= 1
     assert fit.metrics["rmse_degC"] < 0.6
+    assert fit.metrics["above_regulation_s"] == 0.0  # a radiator that regulates: nothing is left out
 
 
 def test_winter_log_below_thermostat_flags_T_open_and_k_rad():
@@ -78,3 +82,28 @@ def test_kappa_without_bay_temperature_stays_at_prior():
     h = fit.estimates["hA_eng_W_per_K"]
     if h.status == "estimated":
         assert "only as hA_eng (1 - kappa)" in h.note
+
+
+def test_coolant_beyond_the_radiator_span_does_not_drag_k_rad(monkeypatch):
+    """A 300 s excursion to 50 K above the regulated coolant (a radiator that did not hold it, like one that
+    cools only at a standstill) is left out: k_rad stays with the truth; fitted, it drags k_rad down."""
+    truth, logs = logs_for(1)
+    lg = logs[2]  # warm US06 start: the thermostat regulates
+    T = lg.data["coolant_temp_degC"].to_numpy(float)
+    a = T.size // 3
+    d = lg.data.copy()
+    d["coolant_temp_degC"] = T + np.interp(np.arange(T.size), [a, a + 150, a + 300], [0.0, 50.0, 0.0])
+    hot = [logs[0], logs[1], dataclasses.replace(lg, data=d)]
+    base = default_parameters()
+    limit = thermal.regulation_limit(base)
+    assert limit == pytest.approx(base["T_open_degC"] + base["Q_rad_max_W"] / base["k_rad_W_per_K"])
+    fit = fit_thermal(hot, base)
+    e, tv = fit.estimates["k_rad_W_per_K"], truth["k_rad_W_per_K"]
+    n_hot = int(np.sum(d["coolant_temp_degC"].to_numpy(float) > limit))
+    assert n_hot > 60 and fit.metrics["above_regulation_s"] == pytest.approx(n_hot * lg.dt)
+    assert "above the thermostat" in fit.used[hot[2].label()]
+    assert f"{limit:.0f} degC informs it" in e.note
+    assert abs(e.value - tv) < 2 * e.stderr
+    monkeypatch.setattr(thermal, "regulation_limit", lambda p: np.inf)
+    dragged = fit_thermal(hot, base).estimates["k_rad_W_per_K"]
+    assert dragged.value < 0.7 * tv and abs(dragged.value - tv) > 2 * dragged.stderr

@@ -128,6 +128,55 @@ def test_fuel_chart_labels_every_bar(rule_baseline_cs, tmp_path, monkeypatch):
     assert "saving vs Rule-based (tuned) [%]" == ax.get_xlabel()
     leg = ax.get_legend()
     assert leg is not None and leg.get_bbox_to_anchor().y0 < ax.bbox.y0  # below the axes, covering no bar
+    # corrected fuel is the headline: the solid bar above each pair, first in the legend; raw is lighter
+    n = len(bars) // 2
+    corrected, raw = bars[:n], bars[n:]
+    assert all(b.get_alpha() in (None, 1.0) for b in corrected) and all(b.get_alpha() < 0.5 for b in raw)
+    assert all(c.get_y() > r.get_y() for c, r in zip(corrected, raw))
+    names = [t.get_text() for t in leg.get_texts()]
+    assert names[0].startswith("corrected fuel") and any(t.startswith("raw fuel") for t in names)
+    assert sum(t.startswith("corrected") for t in texts) == sum(t.startswith("raw") for t in texts) == n
+
+
+def test_paper_figures_are_labelled_raw_with_a_free_terminal_state(rule_baseline_cs):
+    from iptm.report import comparison_table
+    from optimize.labels import PAPER_CONDITION
+
+    head = list(comparison_table(rule_baseline_cs.table().reset_index()).columns)
+    assert head[1:4] == ["corrected fuel [g]", "corrected L/100 km", "corrected mpg"]
+    assert head[4:7] == ["raw fuel [g]", "raw L/100 km", "raw mpg"]
+    assert any("paper" in h and PAPER_CONDITION in h for h in head)
+    assert "raw" in PAPER_CONDITION and "free" in PAPER_CONDITION
+
+
+def test_corrected_economy_is_the_corrected_fuel_over_the_distance(rule_baseline_cs):
+    from calib import economy
+
+    for key, sim in rule_baseline_cs.sims.items():
+        s = sim.summary()
+        row = rule_baseline_cs.table().set_index("key").loc[key]
+        assert row["L_per_100km_corrected"] == pytest.approx(economy.l_per_100km(s["fuel_corrected_g"],
+                                                                                 s["distance_km"]), rel=1e-12)
+        assert row["mpg_corrected"] == pytest.approx(economy.mpg(s["fuel_corrected_g"], s["distance_km"]), rel=1e-12)
+        assert row["L_per_100km"] == pytest.approx(s["L_per_100km"], rel=1e-12)
+    txt = rule_baseline_cs.format_table()
+    head = txt.splitlines()[1]
+    assert head.index("corr g") < head.index("raw g") and "corr L/100" in head
+
+
+def test_one_count_and_the_priors_banner_in_the_report(run):
+    from calib.model.params import ParameterSet
+    from iptm.present import counts_text, parameter_counts, prior_banner
+
+    _, out = run
+    rep = json.loads((out.report_dir / "report.json").read_text())
+    counts = parameter_counts(ParameterSet.load(out.report_dir / "calibration.toml"))
+    assert rep["summary"]["n_estimated"] == counts["estimated"] and rep["summary"]["n_weak"] == counts["weak"]
+    html = (out.report_dir / "index.html").read_text()
+    assert counts_text(counts) in html
+    assert rep["summary"]["at_prior"] == prior_banner(rep["calibration"])
+    for w in rep["summary"]["at_prior"]:
+        assert f"Not fitted: {w}" in html
 
 
 def test_case_study_draws_no_empty_cabin_figures(rule_baseline_cs, tmp_path):

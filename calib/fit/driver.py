@@ -13,7 +13,8 @@ did not (:mod:`calib.fit.advice`):
                           SOC alone: ``C_bat_Ah``, the level of ``R_int_ohm``, ``R_int_tc_per_K`` and
                           ``U_hyst_V`` (MAP fit of the SOC balance; ``U_oc_V`` stays the prior)
 :mod:`calib.fit.fuel`     ``eta_ool`` (the warm fuel rate along the operating line), ``W_idle_g_per_s``,
-                          ``f_cl`` (monotone, smooth), on stable 1 s bins
+                          ``f_cl`` (monotone, smooth), on stable 1 s bins, a noise sd per regime
+                          (engine mode x coolant interval)
 :mod:`calib.fit.thermal`  ``kappa`` (bay temperature, linear), ``C_eng_J_per_K``, ``gamma_exh``,
                           ``hA_eng_W_per_K``, ``T_open_degC``, ``k_rad_W_per_K`` (output error)
 :mod:`calib.fit.cabin`    ``C_cab_J_per_K``, ``UA_cab_W_per_K``, ``Q_sun_W`` (output error),

@@ -31,6 +31,14 @@ within 3 % of both neighbours; when the engine follows the optimal operating lin
 off the line by > 0.5 % mix two operating points and are dropped. The coolant temperature is smoothed
 over 21 s (its 1 degC quantisation).
 
+Noise: one sd per regime (engine mode x interval of the ``f_cl`` table the coolant falls in), not one for
+every bin (:func:`_regime_scale`). A cold engine's fuel rate scatters about the model far more than a warm
+one's (enrichment and catalyst heating, and a warm-up curve the table follows only at its breakpoints; the
+metric ``noise_sd_by_regime_g_per_s`` prints each regime's). With one sd, that scatter set the weight of
+the warm bins too, and the priors on the cold entries then outweighed them: the fit bought a smaller cold
+factor with a warm level too high on its own warm bins (docs/calibration.md). The fit runs once with one
+sd, sets each regime's from its residuals, and runs again from there.
+
 The posterior sd includes the calibration uncertainty of the inputs (engine power 1 %, fuel meter 2 %,
 coolant temperature 1 K and a coolant sensor response time of 20 s), propagated linearly.
 
@@ -66,6 +74,7 @@ T_SD = 1.0  # degC: sensor calibration (0.5 K) plus what smoothing a 1 degC-quan
 FUEL_METER_REL_SD = 0.02
 SENSOR_LAG_S = 20.0
 NOISE_G_PER_S = 0.02  # a priori noise sd of a fuel-flow reading in a 1 s bin
+RESOLUTION_G_PER_S = 0.002  # the smallest noise sd a fit assumes (a fuel meter's resolution)
 SMOOTH_SD = 0.05  # second difference of log(eta / eta_prior) per breakpoint
 F_SLOPE_SD = 0.03  # change of the f_cl slope (1/K) between adjacent intervals
 #: The stable bins are operating points, not a time series: their residuals' autocorrelation (a warm-up
@@ -205,6 +214,46 @@ def _data_start(mode, P, T, W, mp0, Tbp, rT, eta_names, d_names, u_names, eta_bo
     return starts
 
 
+def _regime_groups(mode, T, Tbp):
+    """Regime of every bin: the engine mode and the interval of the coolant table the bin falls in."""
+    return np.searchsorted(np.asarray(Tbp, float), T) * 4 + np.asarray(mode)
+
+
+def _regime_scale(r, groups):
+    """Scatter of the residuals ``r`` in each regime over their overall scatter (1 in a regime with fewer
+    than :data:`MIN_COVER` bins; never below :data:`RESOLUTION_G_PER_S`).
+
+    A cold engine's fuel rate scatters more about any smooth model than a warm one's (enrichment, wall
+    wetting, catalyst heating, and a warm-up curve the coolant table follows only at its breakpoints): with
+    one noise sd for every bin, that scatter sets the weight of the warm bins too, and priors then outweigh
+    what the warm bins say about the warm level. Each regime gets its own sd (a variance component per
+    regime), estimated from a first fit's residuals."""
+    r = np.asarray(r, float)
+    ok = np.isfinite(r)
+    tot = math.sqrt(float(np.mean(r[ok] ** 2))) if ok.any() else 0.0
+    out = np.ones(r.size)
+    if tot <= 0.0:
+        return out
+    for g in np.unique(groups):
+        sel = (groups == g) & ok
+        if sel.sum() >= MIN_COVER:
+            out[groups == g] = max(math.sqrt(float(np.mean(r[sel] ** 2))), RESOLUTION_G_PER_S) / max(tot, RESOLUTION_G_PER_S)
+    return out
+
+
+def _regime_sd_text(sd, groups, Tbp):
+    """``{"engine on, 20-60 degC": sd, ...}`` (g/s) of the regimes :func:`_regime_groups` forms."""
+    edges = [-math.inf] + [float(x) for x in Tbp] + [math.inf]
+    names = {ON: "engine on", IDLE: "idle"}
+    out = {}
+    for g in np.unique(groups):
+        k, m = divmod(int(g), 4)
+        lo, hi = edges[k], edges[k + 1]
+        span = f"below {hi:g}" if lo == -math.inf else (f"above {lo:g}" if hi == math.inf else f"{lo:g}-{hi:g}")
+        out[f"{names.get(m, m)}, {span} degC"] = float(np.median(sd[groups == g]))
+    return out
+
+
 def _gather(use, mp0, fit):
     mode, P, T, W, seg, TL = [], [], [], [], [], []
     for lg in use:
@@ -331,7 +380,7 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
         bnd["W_idle_g_per_s"] = pw.bounds
     cand = eta_names + (["W_idle_g_per_s"] if fit_idle else []) + d_names + u_names
 
-    def make_params():
+    def make_params(init=None):
         ps = lmfit.Parameters()
         for nm in eta_names + (["W_idle_g_per_s"] if fit_idle else []):
             lo, hi = bnd[nm]
@@ -341,6 +390,8 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
         for j, nm in enumerate(u_names, start=rT + 1):
             # the table's lower bound over the increments above the reference
             ps.add(nm, value=max(float(d0[j - 1]), 2e-3), min=0.0, max=(1.0 - pf.bounds[0]) / max(len(u_names), 1))
+        for nm, v in (init or {}).items():
+            ps[nm].set(value=float(np.clip(v, ps[nm].min, ps[nm].max)))
         return ps
 
     def tables(v):
@@ -372,20 +423,40 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
             out.append(np.diff(slope) / F_SLOPE_SD)
         return np.concatenate(out) if out else np.zeros(0)
 
-    def segments(ps, sW=1.0, **kw):
-        return np.split(model_of(ps, **kw) - sW * W, bounds_idx)
+    # residuals in units of their regime's scatter (:func:`_regime_scale`; 1 until the first fit has set it)
+    wsc = np.ones(W.size)
 
-    jac = _jacobian(mode, P, T, Pbp, Tbp, rT, mp0, eta_names, fit_idle, d_names, u_names, f_sd, pf.bounds,
-                    tables)
+    def segments(ps, sW=1.0, **kw):
+        return np.split((model_of(ps, **kw) - sW * W) / wsc, bounds_idx)
+
+    jac0 = _jacobian(mode, P, T, Pbp, Tbp, rT, mp0, eta_names, fit_idle, d_names, u_names, f_sd, pf.bounds,
+                     tables)
+
+    def jac(ps):
+        jd, je = jac0(ps)
+        return jd / wsc[:, None], je
 
     # the fuel rate is not proportional to the engine power: the power's shift by a central difference
     perturbed = [(lambda ps: segments(ps, sP=1.0 + INPUT_REL_SD), lambda ps: segments(ps, sP=1.0 - INPUT_REL_SD)),
                  lambda ps: segments(ps, dT=T_SD),
                  lambda ps: segments(ps, sW=1.0 + FUEL_METER_REL_SD), lambda ps: segments(ps, lag=True)]
-    out = map_fit(make_params, segments, cand, prior=prior, prior_sd=psd, noise_sd=NOISE_G_PER_S, extra=extra,
-                  perturbed=perturbed, floor=0.002, max_tau=MAX_TAU, jac=jac,
+    kw = dict(prior=prior, prior_sd=psd, noise_sd=NOISE_G_PER_S, extra=extra, perturbed=perturbed, floor=RESOLUTION_G_PER_S,
+              max_tau=MAX_TAU, jac=jac)
+    out = map_fit(make_params, segments, cand, **kw,
                   starts=_data_start(mode, P, T, W, mp0, Tbp, rT, eta_names, d_names, u_names, pe.bounds))
-    fit.metrics.update(rmse_g_per_s=out["rmse"], n_eff=out["n_eff"], noise_sd_g_per_s=out["noise_sd"])
+    groups = _regime_groups(mode, T, Tbp)
+    scale = _regime_scale(np.concatenate(segments(out["params"])), groups)
+    if np.any(np.abs(scale - 1.0) > 0.05):
+        wsc[:] = scale
+        first = {nm: out["values"][nm] for nm in cand}
+        out = map_fit(lambda: make_params(first), segments, cand, **kw)
+    resid = np.concatenate(segments(out["params"])) * wsc
+    resid = resid[np.isfinite(resid)]
+    sd = out["noise_sd"] * wsc  # g/s, each bin's regime
+    # noise_sd_g_per_s: the root mean square of the bins' sds (one sd for all when no regime stands out)
+    fit.metrics.update(rmse_g_per_s=float(np.sqrt(np.mean(resid ** 2))) if resid.size else math.nan,
+                       n_eff=out["n_eff"], noise_sd_g_per_s=float(np.sqrt(np.mean(sd ** 2))) if sd.size else math.nan,
+                       noise_sd_by_regime_g_per_s=_regime_sd_text(sd, groups, Tbp))
     fit.correlations = {k: v for k, v in out["correl"].items()}
     fit.confounded = confounded_pairs(out["correl"])
     names_cov = out["cov_names"]

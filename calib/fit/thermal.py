@@ -12,9 +12,11 @@
   :func:`calib.model.equations.coolant_flows`), against the logged coolant temperature; one residual vector
   across logs, one initial temperature per log as a nuisance parameter. Samples where the coolant was not
   logged are left out. A log whose coolant never nears the thermostat leaves ``T_open`` and ``k_rad`` at
-  their prior (the posterior equals it), and the note says so. The posterior sd includes the calibration
-  uncertainty of the inputs (fuel rate, engine power, heater power: 1 % each) and of the coolant sensor
-  (0.5 K offset).
+  their prior (the posterior equals it), and the note says so. Samples with the coolant above
+  :func:`regulation_limit` (the prior opening plus the span of the prior radiator) are left out too, and the
+  replay restarts below it: ``T_open`` and ``k_rad`` are informed by the coolant near the opening only. The
+  posterior sd includes the calibration uncertainty of the inputs (fuel rate, engine power, heater power:
+  1 % each) and of the coolant sensor (0.5 K offset).
 
 Sparse inputs: an input is bridged across its short gaps only (:func:`calib.fit.replay.fill_short`); a bin
 where the engine state, the fuel rate of a running engine, the engine power, the heater heat or the ambient
@@ -52,6 +54,15 @@ HEATER_PRIOR_W = 1000.0
 HEATER_PRIOR_SD_W = 1500.0
 HEATER_MAX_W = 8000.0
 HEATER_RAMP_K = 30.0
+
+
+def regulation_limit(params) -> float:
+    """Coolant temperature (degC) above which the fit leaves the logged coolant out: the prior opening plus
+    ``Q_rad_max / k_rad``, the span over which the prior radiator's heat grows with the coolant. Beyond it
+    that radiator is saturated, so ``k_rad`` has no leverage there; a logged coolant up there is a radiator
+    that did not hold it (one that cools only at a standstill, or none), and fitting it pulls ``k_rad`` to
+    whatever gain mimics that structure."""
+    return float(params["T_open_degC"]) + float(params["Q_rad_max_W"]) / float(params["k_rad_W_per_K"])
 
 
 def fuel_input(la):
@@ -151,7 +162,9 @@ def fit_thermal(logs, base, *, allowed=None, heater=None) -> SubsystemFit:
                 work = base.with_values(kappa=ke.value)
     kappa_known = "kappa" in fit.estimates and fit.estimates["kappa"].status == "estimated"
     mp0 = work.model_params()
-    data, q_names, q_of, left_out = [], [], {}, {}
+    T_open0 = float(work["T_open_degC"])
+    T_reg = regulation_limit(work)
+    data, q_names, q_of, left_out, over, hot_max = [], [], {}, {}, {}, []
     for i, (lg, la) in enumerate(use):
         c = la.ch
         T = la.logged("coolant_temp_degC")
@@ -162,7 +175,9 @@ def fit_thermal(logs, base, *, allowed=None, heater=None) -> SubsystemFit:
         Q = np.zeros(T.size) if est else np.maximum(la.Q_heat, 0.0)
         T_amb = fill_short(c["ambient_temp_degC"], la.dt)
         known = np.isfinite(W) & np.isfinite(P) & np.isfinite(Q) & np.isfinite(T_amb)
-        segs = input_segments(known, T, la.dt)
+        # a coolant beyond the prior radiator's span is a radiator the model does not have (regulation_limit)
+        hot = T > T_reg
+        segs = input_segments(known & ~hot, T, la.dt)
         used = {"engine power": la.engine_source, "heater heat": la.heater_source, "fuel heat": fuel_label(lg),
                 **{f"inferred {k}": v for k, v in la.inferred.items()}}
         if est:
@@ -174,10 +189,21 @@ def fit_thermal(logs, base, *, allowed=None, heater=None) -> SubsystemFit:
                                    "not run")
         if not segs:
             fit.skipped[lg.label()] = ("no run of at least 60 s with every input known (engine state, fuel rate, "
-                                       "engine power, heater heat, ambient) and the coolant logged")
+                                       "engine power, heater heat, ambient) and the coolant logged at or below "
+                                       f"{T_reg:.0f} degC (prior thermostat opening + Q_rad_max / k_rad)")
             continue
         fit.used[lg.label()] = used
-        n_out = int(T.size - sum(b - a for a, b in segs))
+        n_hot = int(np.sum(hot))
+        if n_hot:
+            over[lg.label()] = n_hot * la.dt
+            hot_max.append(float(np.max(T[hot])))
+            used["above the thermostat"] = (f"{n_hot * la.dt:.0f} s with the coolant above {T_reg:.0f} degC (prior "
+                                            "opening + Q_rad_max / k_rad) left out: a radiator that regulates "
+                                            "holds the coolant below that")
+        in_seg = np.zeros(T.size, bool)
+        for a, b in segs:
+            in_seg[a:b] = True
+        n_out = int(np.sum(~in_seg & ~hot))
         if n_out:
             left_out[lg.label()] = n_out * la.dt
             used["left out"] = (f"{n_out * la.dt:.0f} s where an input is unknown (no value within its short-gap "
@@ -196,13 +222,13 @@ def fit_thermal(logs, base, *, allowed=None, heater=None) -> SubsystemFit:
         return not_fitted(fit, base, names, "engine thermal parameters not fitted: no log has a run of known inputs ("
                           + "; ".join(f"{k}: {v}" for k, v in fit.skipped.items()) + ")")
     fit.logs = [lg for lg in fit.used]
-    Tmax = max(float(np.nanmax(d["T"])) for d in data)
+    Tmax = max([float(np.nanmax(d["T"])) for d in data] + hot_max)
     fit.metrics["coolant_max_degC"] = Tmax
     if left_out:
         fit.metrics["left_out_s"] = float(sum(left_out.values()))
+    fit.metrics["above_regulation_s"] = float(sum(over.values()))
     cand = [n for n in ("C_eng_J_per_K", "gamma_exh", "hA_eng_W_per_K", "T_open_degC", "k_rad_W_per_K")
             if n in allowed]
-    T_open0 = float(work["T_open_degC"])
     above = sum(float(np.sum(d["T"][d["ok"]] > T_open0 - 5.0)) * d["dt"] for d in data)
     off_s = sum(float(np.sum(~d["heater_on"] & d["ok"] & (d["T"] > d["T_amb"] + 20))) * d["dt"] for d in data)
     fit.metrics.update(time_near_thermostat_s=above, heater_off_warm_s=off_s)
@@ -281,6 +307,9 @@ def fit_thermal(logs, base, *, allowed=None, heater=None) -> SubsystemFit:
         if n == "hA_eng_W_per_K" and not kappa_known:
             note = (f"identified only as hA_eng (1 - kappa) = {out['values'][n] * (1 - mp0.kappa):.4g} W/K; "
                     f"kappa not logged, this value assumes kappa = {mp0.kappa:g} (its prior)")
+        if n in ("T_open_degC", "k_rad_W_per_K") and over:
+            note += (f"; only the coolant at or below {T_reg:.0f} degC informs it ({sum(over.values()):.0f} s above "
+                     "left out: the logged radiator did not hold the coolant there)")
         if n in ("T_open_degC", "k_rad_W_per_K") and above < MIN_ABOVE_S:
             note = (f"coolant never reached the thermostat ({above:.0f} s within 5 K of its prior opening, max "
                     f"{Tmax:.1f} degC): the value comes from the prior")

@@ -180,7 +180,10 @@ def replay(log, params, heater=None) -> Replay:
     # a stopped engine burns nothing: zero the fuel-flow reading there (sensor noise clipped at zero
     # would otherwise count as fuel)
     stopped = (la.f_on + la.f_idle == 0) & (la.mode > 0) if la.engine_source else np.zeros(la.t.size, bool)
-    W_meas = np.where(stopped, 0.0, c["fuel_rate_g_per_s"])
+    # (only where the log has a fuel channel: zeros put into a missing one would be scored as a perfect fit)
+    W_meas = c["fuel_rate_g_per_s"]
+    if np.isfinite(W_meas).any():
+        W_meas = np.where(stopped, 0.0, W_meas)
     measured = {"soc": c["soc"], "coolant_temp": c["coolant_temp_degC"], "cabin_temp": c["cabin_temp_degC"],
                 "fuel_rate": W_meas}
     simulated = {"soc": soc, "coolant_temp": T_cl, "cabin_temp": T_cab, "fuel_rate": W}

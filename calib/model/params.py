@@ -376,11 +376,22 @@ class ParameterSet:
         return list(self._p)
 
     def param(self, name) -> Parameter:
-        """The :class:`Parameter` called ``name`` (ParameterError naming the known ones if absent)."""
+        """The :class:`Parameter` called ``name`` (ParameterError suggesting the closest names if absent)."""
         try:
             return self._p[name]
         except KeyError:
-            raise ParameterError(f"unknown parameter {name!r}; known: {', '.join(self._p)}") from None
+            raise ParameterError(f"unknown parameter {name!r} ({self.closest_hint(name)})") from None
+
+    def closest_hint(self, name) -> str:
+        """"did you mean ...?" with the closest parameter names, or where the list of all names is."""
+        import difflib
+
+        g = str(name)
+        close = difflib.get_close_matches(g, self.names(), n=3, cutoff=0.6)
+        if not close:  # a name without its unit suffix (k_rad for k_rad_W_per_K): compare with as many characters
+            by_start = {n[:len(g)]: n for n in reversed(self.names())}
+            close = [by_start[k] for k in difflib.get_close_matches(g, list(by_start), n=3, cutoff=0.75)]
+        return f"did you mean {' or '.join(close)}?" if close else "`iptm params --out FILE` writes every parameter"
 
     def copy(self) -> "ParameterSet":
         """A deep copy (parameters are mutable)."""
@@ -503,11 +514,7 @@ class ParameterSet:
         new = self
         limits = physical_limits()
         if name not in new:
-            import difflib
-
-            close = difflib.get_close_matches(str(name), new.names(), n=3, cutoff=0.6)
-            hint = f"did you mean {' or '.join(close)}?" if close else "`iptm params` lists the parameters"
-            raise ParameterError(f"{origin}: unknown parameter {name!r} ({hint})")
+            raise ParameterError(f"{origin}: unknown parameter {name!r} ({new.closest_hint(name)})")
         p = new.param(name)
         if not isinstance(entry, dict):
             entry = {"value": entry}

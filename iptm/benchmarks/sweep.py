@@ -30,6 +30,20 @@ def _study(quick: bool):
                        "cycle": ["artemis_urban", "nycc"]})
 
 
+def _failures(label: str, recs) -> list[str]:
+    return [f"{label}: case {str(r.get('key') or '?')[:12]}: {r['error']}" for r in recs if r.get("error")]
+
+
+def _report_failures(out: dict, failures: list[str]) -> dict:
+    print(f"FAILED: {len(failures)} case(s) failed; no time or speed-up is reported")
+    for f in failures[:10]:
+        print(f"  {f}")
+    if len(failures) > 10:
+        print(f"  ... and {len(failures) - 10} more")
+    out["failures"] = failures
+    return out
+
+
 def run(quick: bool = False) -> dict:
     import numba
 
@@ -42,34 +56,40 @@ def run(quick: bool = False) -> dict:
           f"grids {st.grids}; {os.cpu_count()} CPU cores, load average {os.getloadavg()[0]:.1f} (other processes "
           "distort the figures)", flush=True)
 
-    run_case(warm)
+    out = {"n_cases": len(cases), "quick": quick, "grids": st.grids, "cpu_count": os.cpu_count()}
+    bad = _failures("warm-up in this process", [run_case(warm)])
+    if bad:
+        return _report_failures(out, bad)
     n_default = numba.get_num_threads()
-    seq = {}
+    seq, lines = {}, []  # figures are printed once every run has succeeded
     for label, nt in (("numba_default", n_default), ("numba_1", 1)):
         numba.set_num_threads(nt)
         t0, c0 = time.perf_counter(), time.process_time()
         recs = [run_case(c) for c in cases]
         seq[label] = time.perf_counter() - t0
         seq[label + "_cpu"] = time.process_time() - c0
-        bad = [r["error"] for r in recs if r["error"]]
+        bad = _failures(f"sequential, numba {nt} thread(s)", recs)
         if bad:
-            print(f"  sequential failures: {bad[:3]}")
-        print(f"sequential, numba {nt} thread(s): {seq[label]:.1f} s (process CPU {seq[label + '_cpu']:.1f} s)",
-              flush=True)
+            numba.set_num_threads(n_default)
+            return _report_failures(out, bad)
+        lines.append(f"sequential, numba {nt} thread(s): {seq[label]:.1f} s (process CPU {seq[label + '_cpu']:.1f} s)")
     numba.set_num_threads(n_default)
 
     t0 = time.perf_counter()
     client = local_client(2)
     t_start = time.perf_counter() - t0
     try:
-        client.run(run_case, warm)  # compile / load numba's cache on every worker
+        # compile / load numba's cache on every worker (as a user warms a cluster: the study must still run)
+        bad = _failures("warm-up on a worker", client.run(run_case, warm).values())
         with tempfile.TemporaryDirectory() as store:
             t0 = time.perf_counter()
             df = run_study(st, client=client, store_dir=store)
             t_par = time.perf_counter() - t0
             from calib.store import Store
 
-            recs_par = [Store(store).get_json("sweep", c["key"]) for c in cases]
+            recs_par = [Store(store).get_json("sweep", c["key"]) or {"key": c["key"], "error": "no result stored"}
+                        for c in cases]
+            bad += _failures("2 local workers", recs_par)
             cpu_par = sum(r.get("cpu_s", 0.0) for r in recs_par)
             wall_cases_par = sum(r.get("elapsed_s", 0.0) for r in recs_par)
     finally:
@@ -77,14 +97,18 @@ def run(quick: bool = False) -> dict:
         client.close()
         cluster.close()
     n_failed = int((df["status"] != "ok").sum())
-    out = {"n_cases": len(cases), "quick": quick, "grids": st.grids, "cpu_count": os.cpu_count(),
-           "numba_default_threads": n_default, "t_sequential_s": seq["numba_default"],
-           "t_sequential_numba1_s": seq["numba_1"], "t_parallel_s": t_par, "t_cluster_start_s": t_start,
-           "speedup": seq["numba_default"] / t_par, "speedup_vs_numba1": seq["numba_1"] / t_par,
-           "speedup_incl_cluster_start": seq["numba_default"] / (t_par + t_start), "n_failed": n_failed,
-           "load_average_1min_end": os.getloadavg()[0], "cpu_parallel_s": cpu_par,
-           "cores_obtained_parallel": cpu_par / t_par, "case_wall_sum_parallel_s": wall_cases_par}
-    print(f"2 local workers x 1 thread: {t_par:.1f} s (+ {t_start:.1f} s cluster start-up); failures {n_failed}; "
+    if n_failed and not bad:
+        bad = [f"2 local workers: {n_failed} row(s) of the study table failed"]
+    if bad:
+        return _report_failures(out, bad)
+    out.update({"numba_default_threads": n_default, "t_sequential_s": seq["numba_default"],
+                "t_sequential_numba1_s": seq["numba_1"], "t_parallel_s": t_par, "t_cluster_start_s": t_start,
+                "speedup": seq["numba_default"] / t_par, "speedup_vs_numba1": seq["numba_1"] / t_par,
+                "speedup_incl_cluster_start": seq["numba_default"] / (t_par + t_start), "n_failed": n_failed,
+                "load_average_1min_end": os.getloadavg()[0], "cpu_parallel_s": cpu_par,
+                "cores_obtained_parallel": cpu_par / t_par, "case_wall_sum_parallel_s": wall_cases_par})
+    print("\n".join(lines))
+    print(f"2 local workers x 1 thread: {t_par:.1f} s (+ {t_start:.1f} s cluster start-up), no failure; "
           f"worker CPU {cpu_par:.1f} s, i.e. {cpu_par / t_par:.2f} cores obtained on average (2 = no contention)")
     print(f"speed-up {out['speedup']:.2f}x over sequential with numba {n_default} threads "
           f"({out['speedup_incl_cluster_start']:.2f}x counting the cluster start-up), "

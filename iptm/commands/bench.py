@@ -1,7 +1,13 @@
-"""``iptm bench``: benchmarks that print speed and memory figures (never asserted in tests)."""
+"""``iptm bench``: benchmarks that print speed and memory figures (never asserted in tests).
+
+A benchmark whose cases failed has failed: the command exits with status 1 and says which suites failed
+and why. A suite reports failed cases as ``failures`` (a list of one-line texts) in its result, printed by
+the suite before any figure and without any figure computed from them; a suite that raises fails whole.
+"""
 from __future__ import annotations
 
 import importlib
+import sys
 
 SUITES = {
     "sim": "iptm.benchmarks.sim",
@@ -59,10 +65,11 @@ def run(args) -> int:
     from calib.fileio import write_json
 
     names = list(SUITES) if "all" in args.suite else args.suite
-    results = {}
     for n in names:
         if n not in SUITES:
             raise IptmError(f"unknown benchmark {n!r}; choose from {', '.join(SUITES)} or all")
+    results, failed = {}, {}
+    for n in names:
         try:
             mod = importlib.import_module(SUITES[n])
         except ModuleNotFoundError as exc:
@@ -88,10 +95,42 @@ def run(args) -> int:
             extra = {"valuation": args.valuation, "drives": args.drives, "learn_from": sets, "own_settings": own}
         if n == "dp":
             extra = {"halve": args.halve}
-        results[n] = mod.run(quick=args.quick, **extra)
+        try:
+            results[n] = mod.run(quick=args.quick, **extra)
+        except IptmError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - a crashed suite is a failed benchmark; the others still run
+            msg = (str(exc).strip().splitlines() or [""])[0]
+            print(f"FAILED: {n}: {type(exc).__name__}: {msg}", flush=True)
+            results[n] = {"failures": [f"{type(exc).__name__}: {msg}"]}
+        bad = suite_failures(results[n])
+        if bad:
+            failed[n] = bad
     if args.json:
         write_json(args.json, results)
+    if failed:
+        print("iptm bench: FAILED: " + "; ".join(f"{n}: {len(b)} failure(s), first: {b[0]}" for n, b in failed.items()),
+              file=sys.stderr)
+        return 1
     return 0
+
+
+def suite_failures(result) -> list[str]:
+    """The failures a suite's result reports: its ``failures`` lists and ``calibration_error`` texts, at any
+    depth of the result."""
+    out = []
+    if isinstance(result, dict):
+        for k, v in result.items():
+            if k == "failures" and isinstance(v, list):
+                out += [str(x) for x in v]
+            elif k == "calibration_error" and v:
+                out.append(f"calibration failed: {v}")
+            else:
+                out += suite_failures(v)
+    elif isinstance(result, list):
+        for v in result:
+            out += suite_failures(v)
+    return out
 
 
 def _chosen_settings(path: str) -> dict:

@@ -1,6 +1,8 @@
 """``iptm calibrate``: identify the model from drive logs, with uncertainty and validation."""
 from __future__ import annotations
 
+from calib.ingest import FORMATS
+
 
 def register(sub):
     p = sub.add_parser("calibrate", help="calibrate the model from drive logs (lmfit), with validation",
@@ -26,6 +28,8 @@ def register(sub):
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--strict", action="store_true",
                    help="refuse damaged logs (default: read what they still hold, say what was lost)")
+    p.add_argument("--format", dest="fmt", choices=FORMATS, default=None,
+                   help="the format of every LOG (default: detected from its content or extension)")
     p.add_argument("--dbc", help="DBC for CAN logs (default: the shipped Prius DBC)")
     p.add_argument("--bus", help="CAN logs: the bus to decode (default: the one with most frames the DBC knows)")
     p.add_argument("--heater", choices=("off", "estimate"), default=None,
@@ -39,15 +43,37 @@ def _names(s):
     return [n.strip() for n in s.split(",") if n.strip()] if s else None
 
 
-def _read(path, rate, strict=False, dbc=None, bus=None, max_gap_s=5.0):
+def is_canonical(p) -> bool:
+    """A canonical table written by ``iptm ingest --out`` (Parquet, or CSV with its .meta.json)."""
+    return p.suffix.lower() == ".parquet" or (p.suffix.lower() == ".csv" and p.with_name(p.name + ".meta.json").exists())
+
+
+def check_log_format(path, option: str | None):
+    """The format of a log the command reads, or a LogFormatError whose fix this command offers: ``option``
+    (e.g. "--format") where it has one, else a matching extension."""
+    from calib.errors import LogFormatError
+    from calib.ingest import detect_format
+
+    try:
+        return detect_format(path)
+    except LogFormatError as exc:
+        if exc.hint is None:  # no such file, a folder, an empty file: nothing to choose
+            raise
+        fix = (f"give {option} (one of {', '.join(FORMATS)})" if option else
+               "name the file with the extension of its format (.csv, .mcap, .log for candump, .asc, .blf, .trc, "
+               ".mf4)")
+        raise LogFormatError(path, exc.problem, exc.where, fix) from None
+
+
+def _read(path, rate, strict=False, dbc=None, bus=None, max_gap_s=5.0, fmt=None):
     from pathlib import Path
 
     from calib.ingest import read_canonical, read_log
 
     p = Path(path)
-    if p.suffix.lower() == ".parquet" or (p.suffix.lower() == ".csv" and p.with_name(p.name + ".meta.json").exists()):
+    if is_canonical(p):
         return read_canonical(p)
-    return read_log(p, rate_hz=rate, strict=strict, dbc=dbc, bus=bus, max_gap_s=max_gap_s)
+    return read_log(p, fmt=fmt, rate_hz=rate, strict=strict, dbc=dbc, bus=bus, max_gap_s=max_gap_s)
 
 
 def run(args) -> int:
@@ -59,19 +85,28 @@ def run(args) -> int:
     from calib.fit.driver import calibrate
     from calib.drivelog import file_sha256
     from calib.fileio import write_json
-    from calib.model.params import ParameterSet
+    from calib.errors import ParameterError
+    from calib.model.params import ParameterSet, default_parameters
     from calib.fit.validate import plot_residuals, plot_validation, replay
 
+    ref = ParameterSet.load(args.params) if args.params else None
+    known = ref or default_parameters()
+    for opt, names in (("--fit", _names(args.fit)), ("--fix", _names(args.fix))):
+        for n in names or ():
+            if n not in known:  # before the logs are read
+                raise ParameterError(f"{opt}: unknown parameter {n!r} ({known.closest_hint(n)})")
     paths = list(args.logs) + list(args.validate)
+    for path in paths:  # before the progress bar: a log of unknown format is one message
+        if getattr(args, "fmt", None) is None and not is_canonical(Path(path)):
+            check_log_format(path, "--format")
     logs, val = [], []
     for i, path in enumerate(tqdm(paths, desc="read logs", disable=args.quiet, leave=False, file=sys.stderr)):
         lg = _read(path, args.rate, getattr(args, "strict", False), getattr(args, "dbc", None),
-                   getattr(args, "bus", None), getattr(args, "max_gap", 5.0))
+                   getattr(args, "bus", None), getattr(args, "max_gap", 5.0), getattr(args, "fmt", None))
         if not lg.meta.sha256:
             lg.meta.sha256 = file_sha256(path)
         (logs if i < len(args.logs) else val).append(lg)
-    base = ParameterSet.load(args.params) if args.params else None
-    res = calibrate(logs, base=base, fit=_names(args.fit), fix=_names(args.fix), validate=val or None,
+    res = calibrate(logs, base=ref, fit=_names(args.fit), fix=_names(args.fix), validate=val or None,
                     progress=not args.quiet, heater=getattr(args, "heater", None))
     res.to_artifact(args.out)
     print(res.report())

@@ -74,12 +74,44 @@ def _scenario(args):
             grids = g if "grids" in d else None
             strategies = strat if "run" in d else None
             d = scen0.to_dict()
-    for opt, name in (("cycle", "cycle"), ("duration", "duration_s"), ("ambient", "T_amb"), ("soc0", "soc0"),
-                      ("tcl0", "T_cl0"), ("tcab0", "T_cab0"), ("heater", "Q_heat"), ("terminal", "terminal")):
-        v = getattr(args, opt)
-        if v is not None:
-            d[name] = v
+    if args.scenario:
+        try:  # the file alone first: its own mistakes name the file
+            DPScenario.from_dict(d)
+        except ScenarioError as exc:
+            raise ScenarioError(f"{args.scenario}: {exc}") from None
+    d.update(_given(args))
     return DPScenario.from_dict(d), grids, strategies
+
+
+def _given(args) -> dict:
+    """The scenario fields the command-line options set."""
+    return {name: getattr(args, opt) for opt, name in _OPTIONS if getattr(args, opt) is not None}
+
+
+#: Command-line options of the scenario and the fields they set.
+_OPTIONS = (("cycle", "cycle"), ("duration", "duration_s"), ("ambient", "T_amb"), ("soc0", "soc0"),
+            ("tcl0", "T_cl0"), ("tcab0", "T_cab0"), ("heater", "Q_heat"), ("terminal", "terminal"))
+#: Initial states the DP formulations hold on their grids: field, grid limits, option, formulations.
+_INITIAL = (("soc0", "soc_min", "soc_max", "--soc0", ("baseline", "thermal", "thermal_cabin")),
+            ("T_cl0", "T_cl_min", "T_cl_max", "--tcl0", ("thermal", "thermal_cabin")))
+
+
+def check_initial_state(scen, formulations, given=None, source=None) -> None:
+    """Each initial state a chosen DP formulation starts on lies on its grid, checked before anything is solved:
+    a ScenarioError naming the field, where it was given (an option, ``source`` or the default) and the fix.
+    ``given``: field -> the option that set it."""
+    from calib.errors import ScenarioError
+
+    given = given or {}
+    for name, lo, hi, opt, forms in _INITIAL:
+        used = [f for f in formulations if f in forms]
+        v, a, b = getattr(scen, name), getattr(scen, lo), getattr(scen, hi)
+        if not used or a <= v <= b:
+            continue
+        where = given.get(name) or (f"{source}: {name}" if source else f"{name} (the default)")
+        fix = f"give {given[name]}" if name in given else (f"set {name} in {source}" if source else f"give {opt}")
+        raise ScenarioError(f"{where} = {v:g} lies outside the grid of {', '.join(used)} [{lo} {a:g}, {hi} {b:g}]: "
+                            f"{fix} between {a:g} and {b:g}, or widen {lo}/{hi} in a scenario file")
 
 
 def run(args) -> int:
@@ -116,6 +148,8 @@ def run(args) -> int:
     from optimize.formulations.scenario import check_grid_axes
 
     check_grid_axes(scen, grids, ps, chosen)  # before any progress bar: a bad grid is one message
+    check_initial_state(scen, chosen, {name: "--" + opt for opt, name in _OPTIONS if getattr(args, opt) is not None},
+                        args.scenario)
 
     # the same store entries as `iptm run`: the identical problem is solved once
     store = None if args.no_cache else Store(Path(args.cache))

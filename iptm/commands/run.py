@@ -35,8 +35,16 @@ def run(args) -> int:
     from calib.fileio import write_json
     from iptm import pipeline
 
+    from iptm.commands.calibrate import check_log_format
+
     logs = [Path(p) for p in args.logs] or pipeline.default_logs()
+    for p in list(logs) + [Path(v) for v in args.validate]:
+        if p.is_file():  # a missing one is named by the ingest stage
+            check_log_format(p, None)  # before any stage starts: `iptm run` has no --format
     scen, grids, strategies, cycle_log = pipeline.load_scenario(args.scenario)
+    from iptm.commands.optimize import check_initial_state
+
+    check_initial_state(scen, strategies, source=args.scenario)  # before the logs are read
     cfg = pipeline.RunConfig(logs=logs, scenario=scen, grids=grids, strategies=strategies,
                              cycle_from_log=cycle_log, validate=[Path(p) for p in args.validate],
                              base_params=args.params, dbc=args.dbc, strict=args.strict,
@@ -49,15 +57,21 @@ def run(args) -> int:
     print()
     print(f"iptm run {s['run_id']} finished in {out.wall_s:.1f} s"
           + ("  [SYNTHETIC logs]" if s["synthetic_data"] else ""))
-    print(f"calibration: {s['n_estimated']} parameters estimated, {s['n_weak']} weakly informed")
+    print(f"calibration: {s.get('calibration_text') or str(s['n_estimated']) + ' parameters estimated'}")
+    for w in s.get("at_prior") or []:
+        print(f"not fitted: {w}")
+    print(f"terminal condition on coolant and cabin: {s.get('terminal')}; corrected fuel (final SOC, coolant and "
+          "cabin heat valued) first, raw fuel (as burnt) beside it")
+
+    def eco(L, m):
+        return f" ({L:.2f} L/100 km, {m:.1f} mpg)" if L is not None and m is not None else ""
+
     for k, v in s["strategies"].items():
         sav = v.get("saving_vs_rule_pct")
-        eco = (f" ({v['L_per_100km']:.2f} L/100 km, {v['mpg']:.1f} mpg)"
-               if v.get("L_per_100km") is not None and v.get("mpg") is not None else "")
-        print(f"  {k:15s} fuel {v['fuel_g']:8.2f} g{eco}  corrected {v['fuel_corrected_g']:8.2f} g  SOC_N "
-              f"{v['soc_final']:.3f}" + (f"  saving vs rule-based {sav:5.2f} % corrected "
-                                         f"({v.get('raw_saving_vs_rule_pct', float('nan')):.2f} % raw)"
-                                         if sav is not None else ""))
+        print(f"  {k:15s} corrected {v['fuel_corrected_g']:8.2f} g{eco(v.get('L_per_100km_corrected'), v.get('mpg_corrected'))}"
+              f"  raw {v['fuel_g']:8.2f} g{eco(v.get('L_per_100km'), v.get('mpg'))}  SOC_N {v['soc_final']:.3f}"
+              + (f"  saving vs rule-based {sav:5.2f} % corrected ({v.get('raw_saving_vs_rule_pct', float('nan')):.2f} % raw)"
+                 if sav is not None else ""))
     print(s.get("ordering") or f"ordering in corrected fuel: {'holds' if s['ordering_ok'] else 'does not hold'}")
     for r in s.get("convergence") or []:
         print(f"grid convergence, {r['formulation']}: every step halved changes the corrected fuel by "

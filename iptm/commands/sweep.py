@@ -67,11 +67,13 @@ def run(args) -> int:
     print(f"{len(cases)} cases in {wall:.1f} s ({n_cached} from the store, {n_failed} with a failure)")
     import pandas as pd
 
-    for m in (("saving_pct", "saving_corrected_pct") if args.metric == "both" else (args.metric,)):
+    # the corrected saving (final SOC, coolant and cabin heat valued) is the headline: printed first
+    what = {"saving_corrected_pct": "corrected-fuel saving", "saving_pct": "raw fuel saving (as burnt)"}
+    for m in (("saving_corrected_pct", "saving_pct") if args.metric == "both" else (args.metric,)):
         piv = summary_pivot(df, m)
         if not piv.empty:
             with pd.option_context("display.width", 200, "display.max_columns", 40):
-                print(f"median {m} vs {study.reference} [%], by ambient (degC):")
+                print(f"median {what[m]} ({m}) vs {study.reference} [%], by ambient (degC):")
                 print(piv.to_string(float_format=lambda v: f"{v:.2f}"))
     if n_failed:
         print(format_failures(df))
