@@ -223,6 +223,9 @@ def _epa_causes(d: dict) -> str:
             "US06 bags, raw error % | cold-test idle s | coolant / SOC at end of cold bag 1 |",
             "|---|---|---|---|---|---|---|---|"]
     for r in d["epa"]["causes"]:
+        if isinstance(r.get("infeasible"), str):  # the controller left the cold battery a demand it cannot meet
+            rows.append(f"| {r['case']} | not run: {r['infeasible']} (cold FTP) | | | | | | |")
+            continue
         rows.append(f"| {r['case']} | {r['warm_bags_raw_err_pct']} | {r['warm_err_pct']:+.1f} % | "
                     f"{r['cold_bags_raw_err_pct']} | {r['cold_err_pct']:+.1f} % | {r['us06_bags_raw_err_pct']} | "
                     f"{r['cold_idle_s']:.0f} | {r['T_cl_end_bag1']:.1f} degC / {r['soc_end_cold_bag1']:.3f} |")
