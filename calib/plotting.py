@@ -52,7 +52,7 @@ def plot_simulation(sim, path=None, title=None):
     ax[3].set_ylabel("power [kW]")
     ax[3].legend(loc="best", fontsize=8)
     ax[4].step(tt, sim.e_mode, "C4", where="post")
-    ax[4].set_yticks([1, 2, 3], ["off", "idle", "on"])
+    ax[4].set_yticks([1, 2, 3, 4], ["off", "idle", "on", "catalyst"])
     ax[4].set_ylabel("engine mode")
     ax[5].plot(sim.t, np.concatenate([[0], np.cumsum(f["W_f"]) * sim.Ts]), "C5")
     ax[5].set_ylabel("cumulative fuel [g]")

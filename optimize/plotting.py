@@ -37,7 +37,7 @@ def plot_case_study(cs, outdir) -> list:
         ("coolant", "coolant temperature [degC]", lambda s: (s.t, s.T_cl), "plot"),
         ("engine_power", "engine power [kW]", lambda s: (s.t[:-1], s.flows["P_e"] / 1e3), "plot"),
         ("battery_power", "battery power [kW]", lambda s: (s.t[:-1], s.flows["P_bat"] / 1e3), "plot"),
-        ("engine_mode", "engine mode (1 off, 2 idle, 3 on)", lambda s: (s.t[:-1], s.e_mode), "step"),
+        ("engine_mode", "engine mode (1 off, 2 idle, 3 on, 4 catalyst heating)", lambda s: (s.t[:-1], s.e_mode), "step"),
         ("cumulative_fuel", "cumulative fuel [g]",
          lambda s: (s.t, np.concatenate([[0], np.cumsum(s.flows["W_f"]) * s.Ts])), "plot"),
         ("cabin", "cabin temperature [degC]", lambda s: (s.t, s.T_cab), "plot"),
@@ -55,7 +55,7 @@ def plot_case_study(cs, outdir) -> list:
             for ax, k in zip(axs[:, 0], use):
                 t, y = get(cs.sims[k])
                 ax.step(t, y, where="post", color=colors[k], lw=0.8)
-                ax.set_yticks([1, 2, 3], ["off", "idle", "on"])
+                ax.set_yticks([1, 2, 3, 4], ["off", "idle", "on", "catalyst"])
                 ax.set_ylabel(LABELS[k].split(" on ")[0], fontsize=8)
             axs[-1, 0].set_xlabel("time [s]")
             fig.suptitle(f"engine mode - {title}", fontsize=10)

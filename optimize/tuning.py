@@ -36,11 +36,11 @@ class TunedRule:
     results: tuple = ()
 
 
-def _search(params, cycles, *, T_amb, soc0, T_cl0, T_cab0, Q_heat, soc_tol, grid, T_bat) -> TunedRule:
+def _search(params, cycles, *, T_amb, soc0, T_cl0, T_cab0, Q_heat, soc_tol, grid, T_bat, base=None) -> TunedRule:
     """Exhaustive search over ``grid``: the least total fuel over ``cycles`` s.t. ``SOC_N >= SOC_0 - soc_tol``
     on every one (ties: the higher total final SOC); if none is, the highest least final SOC, flagged by
-    ``n_feasible == 0``."""
-    base = RuleParams(Q_heat_W=Q_heat, soc_low=max(0.4, soc0 - 0.1))
+    ``n_feasible == 0``. ``base``: the rules whose thresholds are searched (default :class:`RuleParams`)."""
+    base = replace(base or RuleParams(), Q_heat_W=Q_heat, soc_low=max(0.4, soc0 - 0.1))
     best, best_key, fallback, fb_key, n_ok, n = None, None, None, None, 0, 0
     for P_on, ratio, P_min, k_soc, off in itertools.product(*grid.values()):
         rp = replace(base, P_on_W=P_on, P_off_W=ratio * P_on, P_e_min_W=P_min, k_soc_W=k_soc,
@@ -63,14 +63,15 @@ def _search(params, cycles, *, T_amb, soc0, T_cl0, T_cab0, Q_heat, soc_tol, grid
 
 
 def tune_rule_based(params, cycle, *, T_amb, soc0, T_cl0, T_cab0, Q_heat, soc_tol=0.0, grid=None,
-                    T_bat=None) -> TunedRule:
-    """Exhaustive search over :data:`SEARCH_GRID`; min fuel s.t. ``SOC_N >= SOC_0 - soc_tol``.
+                    T_bat=None, base=None) -> TunedRule:
+    """Exhaustive search over :data:`SEARCH_GRID`; min fuel s.t. ``SOC_N >= SOC_0 - soc_tol``. ``base``: the
+    rules whose thresholds are searched (default :class:`RuleParams`).
 
     If no combination is charge sustaining, the one with the highest final SOC is returned and flagged
     by ``n_feasible == 0``.
     """
     return _search(params, [cycle], T_amb=T_amb, soc0=soc0, T_cl0=T_cl0, T_cab0=T_cab0, Q_heat=Q_heat,
-                   soc_tol=soc_tol, grid=grid or SEARCH_GRID, T_bat=T_bat)
+                   soc_tol=soc_tol, grid=grid or SEARCH_GRID, T_bat=T_bat, base=base)
 
 
 def tune_rule_on_drives(params, cycles, *, T_amb, soc0, T_cl0, T_cab0, Q_heat, soc_tol=0.0, grid=None,

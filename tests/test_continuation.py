@@ -233,11 +233,12 @@ def test_corrected_fuel_of_a_drive_ending_where_its_last_sample_lies_values_that
 
 def test_continuation_run_reports_each_runs_fuel_and_last_sample(ps):
     """The end states are the last samples of the rule-based run from each state, computed here by
-    calling the simulator directly."""
+    calling the simulator directly (the trip goes on: no catalyst heating from the 40-degC state)."""
     soc, tcl, tcab = np.array([0.55, 0.65]), np.array([40.0, 80.0]), np.array([12.0, 21.0])
     out = continuation_run(ps, soc, tcl, tcab, cycle="nycc", **KW)
     for i in range(2):
-        r = simulate(ps, "nycc", T_amb=-10.0, soc0=soc[i], T_cl0=tcl[i], T_cab0=tcab[i], Q_heat=1500.0)
+        r = simulate(ps, "nycc", T_amb=-10.0, soc0=soc[i], T_cl0=tcl[i], T_cab0=tcab[i], Q_heat=1500.0,
+                     engine_start=False)
         assert out["fuel_g"][i] == r.fuel_g
         assert (out["soc_end"][i], out["T_cl_end"][i], out["T_cab_end"][i]) == (r.soc[-1], r.T_cl[-1], r.T_cab[-1])
         # the last sample, not the one before it: the states still move over the last step

@@ -11,6 +11,14 @@ from optimize.dp.engine import backward_pass, forward_pass
 from optimize.formulations.solve import _power_controls, build_problem
 
 
+@pytest.fixture(scope="module")
+def params(params):
+    """The default car without catalyst heating: these tests check the DP's kernels and transitions on drives
+    of a few seconds from a cold start, which the 50-s catalyst-heating prelude would cover whole (the DP
+    with the prelude: tests/test_catalyst.py)."""
+    return params.with_values(t_cat_s=0.0)
+
+
 def _enumerate(mp, v, soc0, controls, Ts=1.0):
     """Least fuel (g) over all control sequences ending with SOC >= soc0 (warm engine, f_cl = 1)."""
     soc, fuel = np.array([soc0]), np.array([0.0])

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from calib.model import ftp
-from calib.model.equations import IDLE, OFF
+from calib.model.equations import CAT, IDLE, OFF, ON
 from calib.model.params import default_parameters
 from calib.model.rulebased import RuleBasedController, RuleParams
 
@@ -33,6 +33,8 @@ def test_weighting_rejects_wrong_bag_count():
 
 
 def _ctrl(Q_heat, **kw):
+    # the thermal engine-on rules alone: no warm-up charge (tested separately below)
+    kw = {"soc_warmup": RuleParams().soc_target, **kw}
     return RuleBasedController(default_parameters().model_params(), RuleParams(Q_heat_W=Q_heat, **kw))
 
 
@@ -104,3 +106,56 @@ def test_ftp_comparison_table_has_both_tests():
     df = ftp_comparison(default_parameters())
     assert list(df["test"]) == [ftp.WARM_FTP.name, ftp.COLD_FTP.name]
     assert list(df["epa_mpg"]) == [78.0, 56.3]
+
+
+def test_catalyst_heating_burns_its_rate_and_gives_no_power():
+    from calib.model.equations import evaluate
+
+    ps = default_parameters()
+    r = evaluate(ps, 0.6, -5.0, -5.0, CAT, 0.0, 0.0, 5.0, 6.0, T_amb=-5.0)
+    assert r["W_f"] == pytest.approx(ps["W_cat_g_per_s"]) and r["P_e"] == 0.0
+    assert r["omega_e"] == pytest.approx(ps["n_cat_rpm"] * 2 * np.pi / 60)
+    assert r["P_em"] == pytest.approx(r["P_trac"])  # the motor drives the car
+
+
+def test_warm_up_charges_the_battery_at_a_standstill():
+    rp = RuleParams()
+    c = RuleBasedController(default_parameters().model_params(), rp)
+    e, pb, _ = c(0, rp.soc_warmup - 0.05, 30.0, 10.0, 0.0)
+    assert e == ON and pb < 0.0  # charging
+    c.reset()
+    assert c(0, rp.soc_warmup + 0.01, 30.0, 10.0, 0.0)[0] == IDLE  # charged: only the thermal hold remains
+    c.reset()
+    assert c(0, rp.soc_warmup - 0.05, rp.T_warm_degC + 1.0, 10.0, 0.0)[0] == OFF  # warm: no warm-up charge
+
+
+def test_surplus_charge_raises_the_start_threshold():
+    rp = RuleParams()
+    P = rp.P_on_W + 0.5 * rp.k_on_W * 0.1
+    c = RuleBasedController(default_parameters().model_params(), rp)
+    assert c(0, rp.soc_target, 90.0, 20.0, P)[0] == ON
+    c.reset()
+    assert c(0, rp.soc_target + 0.1, 90.0, 20.0, P)[0] == OFF
+
+
+def test_us06_bag_split_reproduces_epa_result():
+    # EPA's two US06 bags, weighted by the city (0-130 s and 495 s to the end) and highway (130-495 s)
+    # distances of the bundled cycle, give EPA's 48.6 mpg: the split is the one EPA used
+    from calib.model.cycles import load_cycle
+    from calib.model.epa import EPA_BAGS_MPG, EPA_MPG, US06_BAGS_S
+
+    v = load_cycle("us06").v
+    miles = [sum(float(np.sum(0.5 * (v[a + 1:(b or len(v) - 1) + 1] + v[a:(b or len(v) - 1)])))
+                 for a, b in parts) / ftp.M_PER_MILE for parts in US06_BAGS_S]
+    gal = sum(m / e for m, e in zip(miles, EPA_BAGS_MPG["us06"]))
+    assert sum(miles) / gal == pytest.approx(EPA_MPG["us06"], abs=0.1)
+
+
+def test_every_bag_within_15_percent_and_composites_within_5():
+    from calib.model.epa import bag_table
+
+    ps = default_parameters()
+    df = bag_table(ps)
+    assert len(df) == 10 and (df["error_raw_pct"].abs() <= 15.0).all(), df.to_string()
+    for c in (ftp.WARM_FTP, ftp.COLD_FTP):
+        assert abs(ftp.run_ftp(ps, c).error_pct) <= 5.0

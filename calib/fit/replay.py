@@ -2,12 +2,13 @@
 fuel, full) that drive the model's equations with logged inputs. See :mod:`calib.fit.validate`."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
 
-from calib.model.equations import (IDLE, OFF, ON, battery, coolant_flows, cabin_rate, fuel_rate, power_split,
+from calib.model.equations import (CAT, IDLE, OFF, ON, battery, coolant_flows, cabin_rate, fuel_rate, power_split,
                                    traction_power)
 from calib.units import RPM
 
@@ -122,11 +123,36 @@ def input_segments(known, T_out, dt=1.0, min_s=MIN_SEGMENT_S, min_obs=3):
     return [(a, b) for a, b in known_runs(known, max(int(round(min_s / dt)), 2)) if ok[a:b].sum() >= min_obs]
 
 
-def engine_mode(n_rpm, tau_Nm, n_idle_rpm=1000.0):
-    """Engine mode per sample from logged speed and torque: 1 off, 2 idle, 3 on, 0 unknown/mixed.
+#: A bin at the catalyst-heating speed counts as catalyst heating within this multiple of ``t_cat_s`` after
+#: the engine first turns in the log (the engine control heats the catalyst once, after a cold start).
+CAT_WINDOW = 2.0
+
+
+def catalyst_heating(n_rpm, no_output, mp, dt=1.0, T_cl0=None):
+    """True where a log shows catalyst heating (:mod:`calib.model.catalyst`): the engine turns within 10 % of
+    the catalyst-heating speed with no output (``no_output``), in the first ``CAT_WINDOW t_cat_s`` after it
+    first turns in the log. All False for a car without catalyst heating (``t_cat_s`` 0) and for a log whose
+    coolant at the start, ``T_cl0`` (None: not logged), is at or above ``T_cat_degC``."""
+    n = np.asarray(n_rpm, float)
+    out = np.zeros(n.shape, bool)
+    n_cat = mp.w_cat / RPM
+    turning = np.flatnonzero(np.nan_to_num(n) >= N_STOPPED_RPM)
+    if mp.t_cat <= 0.0 or not turning.size or (T_cl0 is not None and np.isfinite(T_cl0) and T_cl0 >= mp.T_cat):
+        return out
+    k0 = turning[0]
+    k1 = min(n.size, k0 + int(math.ceil(CAT_WINDOW * mp.t_cat / dt)) + 1)
+    with np.errstate(invalid="ignore"):
+        out[k0:k1] = (np.abs(n[k0:k1] - n_cat) < 0.1 * n_cat) & np.asarray(no_output, bool)[k0:k1]
+    return out
+
+
+def engine_mode(n_rpm, tau_Nm, n_idle_rpm=1000.0, cat=None):
+    """Engine mode per sample from logged speed and torque: 1 off, 2 idle, 3 on, 4 catalyst heating,
+    0 unknown/mixed.
 
     Off: speed below 150 rpm. Idle: speed within 15 % of the idle speed and torque below 2 N m. On: torque
-    above 2 N m and speed above 500 rpm. Anything else (a 1 s bin that straddles a start or stop) is 0.
+    above 2 N m and speed above 500 rpm. Catalyst heating where ``cat`` says so (:func:`catalyst_heating`).
+    Anything else (a 1 s bin that straddles a start or stop) is 0.
     """
     n = np.asarray(n_rpm, float)
     tq = np.asarray(tau_Nm, float)
@@ -134,6 +160,8 @@ def engine_mode(n_rpm, tau_Nm, n_idle_rpm=1000.0):
     mode[n < 150.0] = OFF
     mode[(np.abs(n - n_idle_rpm) < 0.15 * n_idle_rpm) & (np.abs(tq) < 2.0)] = IDLE
     mode[(tq >= 2.0) & (n > 500.0)] = ON
+    if cat is not None:
+        mode[np.asarray(cat, bool)] = CAT
     mode[~(np.isfinite(n) & np.isfinite(tq))] = 0
     return mode
 
@@ -264,7 +292,8 @@ class LogArrays:
     heater_source: str = ""
     f_on: np.ndarray = None  # fraction of each bin with the engine on, at power P_on
     P_on: np.ndarray = None
-    f_idle: np.ndarray = None  # fraction of each bin idling
+    f_idle: np.ndarray = None  # fraction of each bin with the engine turning without output (idle or catalyst heating)
+    f_cat: np.ndarray = None  # the part of f_idle heating the catalyst (fuel W_cat instead of the idle fuel)
 
     engine_source: str = ""  # how the engine operating point was obtained ("" when it could not be)
     battery_source: str = ""  # how the battery terminal power was obtained
@@ -435,12 +464,16 @@ def log_arrays(log, mp, cabin_balance=True, heater=None) -> LogArrays:
         la.P_bat = np.full(t.size, np.nan)
     # engine operating point
     if la.has("engine_speed_rpm", "engine_torque_Nm"):
-        la.mode = engine_mode(ch["engine_speed_rpm"], ch["engine_torque_Nm"], n_idle)
+        with np.errstate(invalid="ignore"):
+            cat = catalyst_heating(ch["engine_speed_rpm"], np.abs(ch["engine_torque_Nm"]) < 2.0, mp, dt,
+                                   first_valid_mean(ch["coolant_temp_degC"], 5, np.nan))
+        la.mode = engine_mode(ch["engine_speed_rpm"], ch["engine_torque_Nm"], n_idle, cat)
         la.stable = stable_mode(la.mode)
         la.P_e = np.where(la.mode == ON, ch["engine_speed_rpm"] * RPM * ch["engine_torque_Nm"], 0.0)
         la.P_e[~np.isfinite(la.P_e)] = np.nan
         la.f_on, la.P_on, la.f_idle = operating_point(ch["engine_speed_rpm"], ch["engine_torque_Nm"], la.mode,
                                                       la.stable, mp)
+        la.f_cat = np.where(la.mode == CAT, la.f_idle, 0.0)
         la.engine_source = "engine_speed_rpm x engine_torque_Nm"
         la.known = np.isfinite(ch["engine_speed_rpm"]) & np.isfinite(ch["engine_torque_Nm"])
     else:
@@ -488,6 +521,14 @@ def log_arrays(log, mp, cabin_balance=True, heater=None) -> LogArrays:
                     f"{FUEL_RUNNING_G_PER_S:g} g/s, engine power > {P_ON_MIN_W:g} W; each held from its nearest "
                     f"sample across short gaps); on above {P_ON_MIN_W:g} W of engine power, else idle")
             la.mode = np.where(on, ON, np.where(idle, IDLE, np.where(off, OFF, 0))).astype(np.int64)
+            if la.has("engine_speed_rpm"):
+                # running without output at the catalyst-heating speed after the start: catalyst heating
+                cat = catalyst_heating(fill_short(ch["engine_speed_rpm"], dt), idle, mp, dt,
+                                       first_valid_mean(ch["coolant_temp_degC"], 5, np.nan))
+                if cat.any():
+                    la.mode[cat] = CAT
+                    la.inferred["catalyst heating"] = (f"{int(cat.sum()) * dt:.0f} s running without output at "
+                                                       f"{mp.w_cat / RPM:.0f} rpm after the start")
             la.P_e = np.where(on, P, np.where(off | idle, 0.0, np.nan))
             la.known = la.mode > 0
             unknown = int((~la.known).sum())
@@ -497,7 +538,8 @@ def log_arrays(log, mp, cabin_balance=True, heater=None) -> LogArrays:
         la.stable = stable_mode(la.mode)
         la.f_on = (la.mode == ON).astype(float)
         la.P_on = np.where(la.mode == ON, np.nan_to_num(la.P_e), 0.0)
-        la.f_idle = (la.mode == IDLE).astype(float)
+        la.f_idle = np.isin(la.mode, (IDLE, CAT)).astype(float)
+        la.f_cat = (la.mode == CAT).astype(float)
     T_amb = ch["ambient_temp_degC"]
     T_cab = fill_short(ch["cabin_temp_degC"], dt)
     # the heater inlet air: recirculated cabin air and fresh air; without a cabin reading, the ambient
@@ -633,9 +675,15 @@ def fuel_replay(p, mode, P_e, T_cl):
     return W
 
 
+def full_replay(p, dt, soc0, T_cl0, T_cab0, f_on, P_on, f_idle, P_bat, T_bat, T_amb, Q_heat, f_cat=None):
+    """SOC, coolant, cabin and fuel rate from logged inputs (the validation simulation). ``f_cat``: the part of
+    ``f_idle`` heating the catalyst (:attr:`LogArrays.f_cat`; None: none)."""
+    f_cat = np.zeros(np.shape(f_on)) if f_cat is None else np.asarray(f_cat, float)
+    return _full_replay(p, dt, soc0, T_cl0, T_cab0, f_on, P_on, f_idle, P_bat, T_bat, T_amb, Q_heat, f_cat)
+
+
 @njit(cache=True)
-def full_replay(p, dt, soc0, T_cl0, T_cab0, f_on, P_on, f_idle, P_bat, T_bat, T_amb, Q_heat):
-    """SOC, coolant, cabin and fuel rate from logged inputs (the validation simulation)."""
+def _full_replay(p, dt, soc0, T_cl0, T_cab0, f_on, P_on, f_idle, P_bat, T_bat, T_amb, Q_heat, f_cat):
     n = f_on.shape[0]
     soc = np.empty(n)
     T_cl = np.empty(n)
@@ -643,7 +691,8 @@ def full_replay(p, dt, soc0, T_cl0, T_cab0, f_on, P_on, f_idle, P_bat, T_bat, T_
     W = np.empty(n)
     soc[0], T_cl[0], T_cab[0] = soc0, T_cl0, T_cab0
     for k in range(n):
-        W[k] = f_on[k] * fuel_rate(p, ON, P_on[k], T_cl[k]) + f_idle[k] * fuel_rate(p, IDLE, 0.0, T_cl[k])
+        W[k] = (f_on[k] * fuel_rate(p, ON, P_on[k], T_cl[k]) + (f_idle[k] - f_cat[k]) * fuel_rate(p, IDLE, 0.0, T_cl[k])
+                + f_cat[k] * fuel_rate(p, CAT, 0.0, T_cl[k]))
         P_e = f_on[k] * P_on[k]
         if k == n - 1:
             break

@@ -6,7 +6,7 @@ output-error loops, the DP kernels in :mod:`optimize`) call these same functions
 :func:`evaluate` broadcasts them over numpy arrays of any shape (whole DP grids, whole logs).
 
 Conventions (SI; temperatures in degC): states ``soc`` (fraction), ``T_cl`` (coolant), ``T_cab`` (cabin);
-controls ``e_mode`` (1 off, 2 idle, 3 on), ``P_bat_mg`` (W, + = discharge; only used when on),
+controls ``e_mode`` (1 off, 2 idle, 3 on, 4 catalyst heating), ``P_bat_mg`` (W, + = discharge; only used when on),
 ``Q_heat_cmd`` (W, heat requested from the heater core); exogenous ``v, v_next`` (m/s at steps k, k+1),
 ``grade`` (rad), ``T_amb``, ``T_bat`` (degC), ``W_bl`` (kg/s blower flow).
 
@@ -28,6 +28,9 @@ from numba import njit
 
 G = 9.81
 OFF, IDLE, ON = 1, 2, 3
+# Catalyst heating after a cold start: the engine turns at a set speed with its ignition retarded, gives no
+# power to the drive and burns a fixed fuel rate; the motor drives the car (docs/cold_start.md).
+CAT = 4
 
 # Feasibility codes returned by :func:`step` (0 = feasible).
 FEASIBLE, ENGINE_POWER, BATTERY_LIMIT, BATTERY_ROOT = 0, 1, 2, 3
@@ -122,11 +125,13 @@ def f_cold(p, T_cl):
 
 @njit(cache=True)
 def engine_speed(p, e_mode, P_e):
-    """Engine speed (rad/s): 0 off, idle speed, or the optimal operating line at P_e."""
+    """Engine speed (rad/s): 0 off, idle speed, catalyst-heating speed, or the optimal operating line at P_e."""
     if e_mode == OFF:
         return 0.0
     if e_mode == IDLE:
         return p.w_idle
+    if e_mode == CAT:
+        return p.w_cat
     return np.interp(P_e, p.P_ool, p.w_ool)
 
 
@@ -140,11 +145,13 @@ def fuel_map(p, P_e):
 
 @njit(cache=True)
 def fuel_rate(p, e_mode, P_e, T_cl):
-    """Eqs. 4-5: fuel mass flow (g/s) with the cold correction."""
+    """Eqs. 4-5: fuel mass flow (g/s) with the cold correction; catalyst heating burns its set rate."""
     if e_mode == OFF:
         return 0.0
     if e_mode == IDLE:
         return p.W_idle * f_cold(p, T_cl)
+    if e_mode == CAT:
+        return p.W_cat
     return fuel_map(p, P_e) * f_cold(p, T_cl)
 
 

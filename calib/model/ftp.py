@@ -68,6 +68,9 @@ class FtpConditions:
     source: str = ""
 
 
+#: EPA's raw bag economy of the same cars (mpg; the Test Car List's 2016 Prius, 16-ZV1H and 16-ZV2H).
+EPA_BAGS_MPG = {"FTP, 75 degF": (50.71, 126.29, 62.72, 114.35), "cold FTP, 20 degF": (33.77, 70.84, 49.01)}
+
 WARM_FTP = FtpConditions("FTP, 75 degF", 23.9, False, 4, 78.0,
                          "EPA Test Car List 2022, Toyota Prius FWD: FTP 78.0 mpg (bags 50.71/126.29/62.72/114.35)")
 COLD_FTP = FtpConditions("cold FTP, 20 degF", -6.7, True, 3, 56.3,
@@ -115,6 +118,11 @@ class FtpResult:
         return [self._mpg(g, m) for g, m in zip(self.fuel_corrected_g, self.distance_m)]
 
     @property
+    def bag_mpg_raw(self) -> list:
+        """Fuel economy of each bag (mpg, on fuel as burnt: how EPA reports a hybrid's bags)."""
+        return [self._mpg(g, m) for g, m in zip(self.fuel_g, self.distance_m)]
+
+    @property
     def composite_mpg(self) -> float:
         """EPA-weighted composite fuel economy (mpg, on corrected fuel)."""
         gal = [g / 1e3 / GASOLINE_KG_PER_L / 3.785411784 for g in self.fuel_corrected_g]
@@ -138,6 +146,8 @@ class FtpResult:
              "model_mpg_raw": round(self.composite_mpg_raw, 1)}
         for i, e in enumerate(self.bag_mpg):
             r[f"bag{i + 1}_mpg"] = round(e, 1)
+        for i, e in enumerate(self.bag_mpg_raw):
+            r[f"bag{i + 1}_mpg_raw"] = round(e, 1)
         r["T_cl_end_bag1_degC"] = round(self.T_cl_bounds[1], 1)
         return r
 

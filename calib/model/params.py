@@ -215,10 +215,26 @@ def default_parameters() -> "ParameterSet":
            x=P_ool, x_name="P_e", x_unit="W"),
         _p("n_ool_rpm", n_ool, "rpm", 600, 6000, "iptm choice through 142 N m @ 3600 rpm and 72 kW @ 5200 rpm",
            "engine speed on the optimal operating line", x=P_ool, x_name="P_e", x_unit="W", vary=False),
-        _p("fuel_scale", 1.07, "dimensionless", 0.5, 2.0,
+        _p("fuel_scale", 1.065, "dimensionless", 0.5, 2.0,
            "tuned to EPA warm UDDS/HWFET/US06 with the rule-based controller (calib.model.epa.tune_fuel_scale)",
            "warm fuel-map scale"),
         _p("W_idle_g_per_s", 0.10, "g/s", 0.02, 0.5, "docs/model.md s.4", "idle fuel rate, warm"),
+        # catalyst heating after a cold start (docs/cold_start.md): a fixed fuel rate at a set engine speed
+        _p("W_cat_g_per_s", round(0.60 * 3.785411784 * 0.74 / 3.6, 3), "g/s", 0.05, 2.0,
+           "owner's ScanGauge readings of a 2003 and a 2010 Prius: 0.60 gal/h held regardless of pedal and speed "
+           "until the catalyst is warm (fuelzilla.com/prius, 'motor assist obscure warm-up EV mode', 2011)",
+           "fuel rate while heating the catalyst", vary=False),
+        _p("n_cat_rpm", 1350.0, "rpm", 900, 2000,
+           "owners' observation of the third-generation Prius: 1300-1400 rpm while heating the catalyst "
+           "(priuschat.com/posts/2320984)", "engine speed while heating the catalyst", vary=False),
+        _p("t_cat_s", 50.0, "s", 0, 120,
+           "owners' scan-tool warm-up stages of the third-generation Prius: about 50 s "
+           "(priuschat.com/goto/post?id=1067278; '45-55 seconds', priuschat.com/posts/2320984)",
+           "duration of catalyst heating after a cold start (0: none)", vary=False),
+        _p("T_cat_degC", 60.0, "degC", -40, 100,
+           "the same warm-up stages: catalyst heating after a start below about 60 degC coolant "
+           "(priuschat.com/goto/post?id=1067278)", "coolant at the start below which the catalyst is heated",
+           vary=False),
         # above the warm reference (80 degC) the factor may fall below 1: oil and coolant hotter than the
         # thermostat's lower friction and wall-heat loss by a few % (docs/model.md s.4); prior 1 there
         _p("f_cl", [1.5, 1.2, 1.05, 1.0, 1.0, 1.0, 1.0], "dimensionless", 0.5, 6.0,
@@ -329,7 +345,7 @@ ModelParams = namedtuple(
         "P_bat_min", "P_bat_max", "soc_bp", "U_oc", "soc_bp_R", "R_int", "R_tc", "T_bat_ref", "C_bat_As",
         "P_ool", "eta_ool", "w_ool", "fuel_scale", "W_idle", "T_fcl", "f_cl", "LHV", "C_eng", "gamma_exh",
         "hA_eng", "kappa", "T_open", "k_rad", "Q_rad_max", "eps_hc", "W_bl", "recirc", "cp_air",
-        "C_cab", "UA_cab", "Q_sun", "U_hyst",
+        "C_cab", "UA_cab", "Q_sun", "U_hyst", "W_cat", "w_cat", "t_cat", "T_cat",
     ],
 )
 
@@ -434,7 +450,8 @@ class ParameterSet:
             hA_eng=g("hA_eng_W_per_K"), kappa=g("kappa"), T_open=g("T_open_degC"), k_rad=g("k_rad_W_per_K"),
             Q_rad_max=g("Q_rad_max_W"), eps_hc=g("eps_hc"), W_bl=g("W_bl_kg_per_s"), recirc=g("recirc_frac"),
             cp_air=g("cp_air_J_per_kgK"), C_cab=g("C_cab_J_per_K"), UA_cab=g("UA_cab_W_per_K"), Q_sun=g("Q_sun_W"),
-            U_hyst=g("U_hyst_V"),
+            U_hyst=g("U_hyst_V"), W_cat=g("W_cat_g_per_s"), w_cat=g("n_cat_rpm") * RPM, t_cat=g("t_cat_s"),
+            T_cat=g("T_cat_degC"),
         )
 
     # --- I/O --------------------------------------------------------------------------------------

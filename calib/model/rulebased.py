@@ -8,6 +8,13 @@ than stopping (Tashiro 2016), and while heat is requested it keeps running until
 ``T_heat_on_degC`` (the production Prius keeps its engine on while the coolant is cold and the heater or
 defroster is on; docs/cold_start.md). The heater requests a fixed demand.
 
+Cold start as the production car runs it (docs/cold_start.md): catalyst heating after a cold start belongs
+to the plant (:mod:`calib.model.catalyst`; the simulator runs it before this controller's commands apply);
+during the warm-up (a drive started with the coolant below ``T_warm_degC``, until it first reaches it) the SOC
+target is ``soc_warmup`` and an engine held on by the thermal rules charges towards it rather than idling; a
+warm engine cooled later by the heater is not warming up (it runs for heat by the thermal rules, not to
+charge); above the SOC target the start threshold rises by ``k_on_W`` per unit SOC, so the charge is spent.
+
 It lives in ``calib`` because it is also the plant's own controller when logs are synthesised; the
 per-scenario threshold tuning lives in :mod:`optimize.tuning`.
 """
@@ -32,6 +39,9 @@ class RuleParams:
     T_idle_degC: float = 40.0  # thermal rule: idle instead of off below this coolant temperature
     T_heat_on_degC: float = 55.0  # heat requested: the engine keeps running below this coolant temperature
     Q_heat_W: float = 1500.0  # heater demand
+    k_on_W: float = 100e3  # start threshold rises by this many W per unit SOC above target (spend a surplus)
+    soc_warmup: float = 0.72  # SOC target while the coolant is below T_warm_degC (charge during warm-up)
+    T_warm_degC: float = 70.0  # coolant temperature that ends the warm-up
 
     def to_dict(self) -> dict:
         """The thresholds as a JSON-able dict."""
@@ -60,6 +70,8 @@ class RuleBasedController:
         # heat the climate control asks for this step; a wrapper that sets its own request (a cabin
         # thermostat) assigns it before calling, so the engine-on rule sees the real request
         self.heat_request_W = self.rp.Q_heat_W
+        # warm-up phase: decided at the drive's first step, over once the coolant reaches T_warm_degC
+        self.warming_up = None
 
     def describe(self) -> str:
         """The controller's name and thresholds, one line."""
@@ -69,15 +81,23 @@ class RuleBasedController:
         p, r = self.mp, self.rp
         bat_only = (P_trac / p.eta_em if P_trac > 0 else 0.0) + p.P_aux
         must = bat_only > 0.95 * p.P_bat_max or soc < r.soc_low
+        held = self.keep_running(T_cl)
+        if self.warming_up is None or T_cl >= r.T_warm_degC:
+            self.warming_up = bool(self.warming_up is None and T_cl < r.T_warm_degC)
+        target = max(r.soc_target, r.soc_warmup) if self.warming_up else r.soc_target
+        # while the engine must run anyway to warm up, it charges the battery towards the warm-up target
+        charge = held and self.warming_up and soc < target
         if self.on:
-            stop = P_trac <= 0.0 or (P_trac < r.P_off_W and self.on_time >= r.t_min_on_s)
+            # a charging engine keeps running at a standstill, not while braking (regeneration charges then)
+            stop = P_trac < 0.0 or (not charge and (P_trac == 0.0 or (P_trac < r.P_off_W
+                                                                       and self.on_time >= r.t_min_on_s)))
             if stop and not must:
                 self.on = False
-        elif must or P_trac > r.P_on_W:
+        elif must or P_trac > r.P_on_W + r.k_on_W * max(soc - target, 0.0) or (charge and P_trac >= 0.0):
             self.on, self.on_time = True, 0.0
         if self.on:
             self.on_time += Ts
-            P_chg = r.k_soc_W * (r.soc_target - soc)
+            P_chg = r.k_soc_W * (target - soc)
             P_e = (max(P_trac, 0.0) + P_chg) / p.eta_mech
             P_e = min(max(P_e, r.P_e_min_W), p.P_e_max)
             P_em = P_trac - p.eta_mech * P_e
@@ -89,7 +109,7 @@ class RuleBasedController:
                 return ON, P_bat_mg, r.Q_heat_W
             # hard braking while forced on: nothing left for the engine to do, so it idles
             return IDLE, 0.0, r.Q_heat_W
-        return (IDLE if self.keep_running(T_cl) else OFF), 0.0, r.Q_heat_W
+        return (IDLE if held else OFF), 0.0, r.Q_heat_W
 
     def keep_running(self, T_cl) -> bool:
         """Whether the thermal rules forbid stopping the engine at coolant temperature ``T_cl``."""

@@ -194,7 +194,7 @@ class SimResult:
 
 
 def simulate(params, cycle, controller=None, *, T_amb=-10.0, soc0=0.6, T_cl0=70.0, T_cab0=20.0,
-             Q_heat=1500.0, T_bat=None, W_bl=None, rule_params=None) -> SimResult:
+             Q_heat=1500.0, T_bat=None, W_bl=None, rule_params=None, engine_start=True) -> SimResult:
     """Run the model over a cycle.
 
     Parameters
@@ -208,7 +208,13 @@ def simulate(params, cycle, controller=None, *, T_amb=-10.0, soc0=0.6, T_cl0=70.
         Ambient temperature and initial states.
     T_bat : float or array, optional
         Battery temperature (default: the resistance table's reference temperature).
+    engine_start : bool
+        The drive starts the car (default): below the catalyst threshold the plant first heats the catalyst
+        (:mod:`calib.model.catalyst`) whatever the controller commands; the controller is still called in
+        those steps and only its heater command is applied. False: the drive continues a trip whose engine
+        already started (no catalyst heating).
     """
+    from calib.model.catalyst import prelude_steps, run_prelude
     from calib.model.rulebased import RuleBasedController, RuleParams
 
     cyc: Cycle = load_cycle(cycle)
@@ -228,7 +234,14 @@ def simulate(params, cycle, controller=None, *, T_amb=-10.0, soc0=0.6, T_cl0=70.
     x[0] = soc0, T_cl0, T_cab0
     u = np.empty((N, 3))
     out = np.empty((N, len(OUTPUTS)))
-    for k in range(N):
+    n_pre = prelude_steps(mp, T_cl0, N, Ts) if engine_start else 0
+    if n_pre:
+        def heat(k, soc, T_cl, T_cab, P_trac):
+            return controller(k, soc, T_cl, T_cab, P_trac, Ts)[2]
+
+        pre = run_prelude(mp, v, grade, T_amb_a, T_bat_a, W_bl, x[0], Ts, n_pre, heat, t=cyc.t)
+        x[: n_pre + 1], u[:n_pre], out[:n_pre] = pre.x, pre.u, pre.out
+    for k in range(n_pre, N):
         P_trac = traction_power(mp, v[k], v[k + 1], grade[k], Ts)
         e, pb, qh = controller(k, x[k, 0], x[k, 1], x[k, 2], P_trac, Ts)
         r = step(mp, x[k, 0], x[k, 1], x[k, 2], int(e), float(pb), float(qh), v[k], v[k + 1], grade[k],
@@ -266,10 +279,14 @@ def sim_from_arrays(d: dict) -> SimResult:
     """Inverse of :func:`sim_to_arrays`."""
     import json
 
-    from calib.model.params import ModelParams
+    from calib.model.params import ModelParams, default_parameters
 
     # files written before the hysteresis term existed: that model had none, so 0 V is exact there
     d = {"mp__U_hyst": np.asarray(0.0), **d}
+    # files written before catalyst heating was modelled never used that mode: any value reads them exactly
+    dmp = default_parameters().model_params()
+    d = {"mp__W_cat": np.asarray(dmp.W_cat), "mp__w_cat": np.asarray(dmp.w_cat), "mp__t_cat": np.asarray(dmp.t_cat),
+         "mp__T_cat": np.asarray(dmp.T_cat), **d}
     mp = ModelParams(**{f: (d[f"mp__{f}"] if d[f"mp__{f}"].ndim else float(d[f"mp__{f}"]))
                         for f in ModelParams._fields})
     flows = {k[6:]: d[k] for k in d if k.startswith("flow__")}

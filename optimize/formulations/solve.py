@@ -126,6 +126,20 @@ def _mp(params):
     return params.model_params() if hasattr(params, "model_params") else params
 
 
+def scenario_prelude(params, cycle: Cycle, scen: DPScenario):
+    """The catalyst heating a drive of the scenario starts with (:mod:`calib.model.catalyst`; 0 steps when the
+    coolant is warm enough), under the scenario's constant heater demand: the same prelude the simulator runs
+    for the rule-based and causal strategies."""
+    from calib.model.catalyst import prelude_steps, run_prelude
+
+    mp = _mp(params)
+    N, Ts = cycle.n_steps, cycle.Ts
+    grade = cycle.grade if cycle.grade is not None else np.zeros(N + 1)
+    n = prelude_steps(mp, scen.T_cl0, N, Ts)
+    return run_prelude(mp, cycle.v, grade, np.full(N + 1, float(scen.T_amb)), np.full(N + 1, float(mp.T_bat_ref)),
+                       mp.W_bl, (scen.soc0, scen.T_cl0, scen.T_cab0), Ts, n, float(scen.Q_heat), t=cycle.t)
+
+
 def reference_run(params, cycle: Cycle, scen: DPScenario):
     """The (untuned) rule-based controller under a constant ``Q_heat`` demand: its cabin trajectory is
     the cabin reference, its final states the default targets of the ``match`` terminal condition."""
@@ -290,9 +304,15 @@ def dp_objective(params, sim, scen: DPScenario, nx: int, T_cab_terminal_min: flo
 class _Built:
     prob: DPProblem
     x0: np.ndarray
-    cyc: Cycle
+    cyc: Cycle  # the whole drive, catalyst heating included; the DP's steps are those after the prelude
     extra: dict
     mp: object = None
+    pre: object = None  # the catalyst-heating prelude (calib.model.catalyst.Prelude; 0 steps when warm)
+
+    def controls(self, e_mode, P_bat_mg, Q_cmd) -> list:
+        """The DP's engine mode, battery power and heater sequences with the prelude's commands in front (one
+        value per step of the drive)."""
+        return [np.concatenate([self.pre.u[:, i], np.asarray(a, float)]) for i, a in enumerate((e_mode, P_bat_mg, Q_cmd))]
 
 
 #: Budgets of one DP problem, checked before anything is allocated (environment variables override them):
@@ -353,7 +373,16 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
     mp = _mp(params)
     if warm:
         mp = mp._replace(f_cl=np.ones_like(mp.f_cl))
-    cyc = scen.load_cycle(cycle)
+    full = scen.load_cycle(cycle)
+    # catalyst heating after a cold start belongs to the plant: the DP starts from the state at its end
+    pre = scenario_prelude(mp, full, scen)
+    n0 = pre.n_steps
+    if n0 >= full.n_steps:
+        raise ScenarioError(f"the drive ({full.n_steps * full.Ts:g} s) ends within the catalyst heating of a cold start "
+                            f"({n0 * full.Ts:g} s, coolant {scen.T_cl0:g} degC below T_cat_degC): nothing is left to "
+                            "optimise; drive longer or start warmer")
+    cyc = Cycle(full.name, full.t[n0:], full.v[n0:], None if full.grade is None else full.grade[n0:])
+    soc_start, T_cl_start, T_cab_start = pre.end
     N, Ts = cyc.n_steps, cyc.Ts
     if not (scen.soc_min <= scen.soc0 <= scen.soc_max):
         raise ScenarioError(f"soc0 {scen.soc0} outside the SOC grid [{scen.soc_min}, {scen.soc_max}]")
@@ -386,16 +415,19 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
     if scen.terminal == "continued" and nx >= 2:
         band = scen.cont_soc_band
         bounds = [(None, None) if band is None else (s_end - band, s_end + band)]
-    x0 = [scen.soc0 - soff[0]]
+    x0 = [soc_start - soff[0]]
     if nx >= 2:
         if not (scen.T_cl_min <= scen.T_cl0 <= scen.T_cl_max):
             raise ScenarioError(f"T_cl0 {scen.T_cl0} outside the coolant grid")
+        if not (scen.T_cl_min <= T_cl_start <= scen.T_cl_max):
+            raise ScenarioError(f"the coolant at the end of catalyst heating, {T_cl_start:.2f} degC, is outside the "
+                                f"coolant grid [{scen.T_cl_min:g}, {scen.T_cl_max:g}]: widen T_cl_min / T_cl_max")
         grid_list.append(tclg)
         bounds.append((None, None))
-        x0.append(scen.T_cl0)
+        x0.append(T_cl_start)
     if nx >= 2:
-        rref = reference_run(params, cyc, scen)
-        ref = rref.T_cab.copy()
+        rref = reference_run(params, full, scen)
+        ref = rref.T_cab[n0:].copy()
         w[:, 1] = ref[:-1]
         extra["T_cab_ref_final"] = float(ref[-1])
         extra["T_cab_ref_mean"] = float(np.mean(ref))
@@ -407,9 +439,9 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
     cab_soft = None
     if nx == 3:
         lb = ref - scen.cab_lb_offset
-        lb[0] = min(lb[0], scen.T_cab0)
+        lb[0] = min(lb[0], T_cab_start)
         w[:, 2] = lb[1:]
-        hi = max(scen.T_cab_ub, float(ref[-1]), scen.T_cab0)
+        hi = max(scen.T_cab_ub, float(ref[-1]), T_cab_start)
         rel = cabin == "bound"
         if rel:
             # the state is the height above the step's comfort bound: the bound is the node 0 at every step
@@ -427,12 +459,12 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
         grid_list.append(tcabg)
         bounds.append((t_cab - off[-1], None) if scen.terminal == "match" else (None, None))
         cab_soft = (float(ref[-1]), float(scen.cab_terminal_g_per_K))
-        x0.append(scen.T_cab0 - off[0])
+        x0.append(T_cab_start - off[0])
         Q = _grid(scen.Q_heat_min, scen.Q_heat_max, grids.qheat, "heater grid (Q_heat_min:qheat:Q_heat_max)")
         extra.update(T_cab_lb_min=float(np.min(lb)), T_cab_ub=float(tcabg[-1] + np.min(off)),
                      T_cab_terminal_min=float(ref[-1]), T_cab_grid_lo=float(tcabg[0]),
                      T_cab_grid_step=float(grids.tcab), Q_heat_step=float(grids.qheat), cabin_state=cabin,
-                     T_cab_grid_offset=off[1:].copy(), heater_hold=hold)
+                     T_cab_grid_offset=np.concatenate([np.full(n0, np.nan), off[1:]]), heater_hold=hold)
         q_range = (float(Q[0]), float(Q[-1]))  # the hold heat stays within the grid's ends
         if hold:
             Q = np.append(Q, HOLD)
@@ -443,6 +475,8 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
     if scen.terminal == "continued" and terminal is not None:
         extra["continuation_nodes"] = [a.tolist() for a in terminal.nodes]
     extra["terminal"] = scen.terminal
+    extra["prelude"] = {"steps": n0, "fuel_g": pre.fuel_g, "soc_end": soc_start, "T_cl_end_degC": T_cl_start,
+                        "T_cab_end_degC": T_cab_start}
     nq = Q.size
     controls = np.column_stack([np.repeat(pc, nq, axis=0), np.tile(Q, pc.shape[0])])
     cfg = np.zeros(16)
@@ -469,7 +503,7 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
                      terminal_bounds=bounds, terminal_cost=terminal, boundary="levelset", clip=True,
                      level_tol=LEVEL_TOL, precompute=hev_precompute,
                      table_shape=(pc.shape[0], _T_SOC0 + socg.size), interp=interp, forward_kernel=forward_hev)
-    return _Built(prob, np.array(x0), cyc, extra, mp)
+    return _Built(prob, np.array(x0), full, extra, mp, pre)
 
 
 #: Backward kernels of the formulations (:func:`optimize.formulations.fused.backward_pass_fused`; Baseline-DP's
@@ -500,8 +534,8 @@ def _check_drivable(name, b, res) -> None:
     dead = ~np.isfinite(V.reshape(V.shape[0], -1)).any(axis=1)[:-1]
     if not dead.any():
         return
-    k = int(np.flatnonzero(dead)[-1])
     cyc = b.cyc
+    k = int(np.flatnonzero(dead)[-1]) + (b.pre.n_steps if b.pre is not None else 0)  # the DP starts after the prelude
     raise ScenarioError(f"{name}: the cycle {cyc.name} cannot be driven within the car's limits at t = {cyc.t[k]:g} s "
                         f"({cyc.v[k] * 3.6:.0f} km/h to {cyc.v[k + 1] * 3.6:.0f} km/h in {cyc.Ts:g} s): no power split "
                         "is feasible there from any state of charge; check the cycle's speeds and time base, or the "
@@ -512,13 +546,18 @@ def _outcome(name, params, b, res, scen, grids, sim, t0, on_thermal=None):
     if not res.feasible:
         raise ScenarioError(f"{name}: no feasible charge-sustaining solution on these grids (steps completed "
                             f"{res.steps_completed}/{b.prob.N}, terminal level {res.terminal_level:.3g})")
-    return DPOutcome(formulation=name, sim=sim, dp=res, dp_cost=float(res.cost),
-                     predicted_cost=float(res.predicted_cost[0]), t_backward=res.t_backward,
+    # the DP's costs start after catalyst heating: its fuel, the same for every strategy, is added
+    pre_g = b.pre.fuel_g
+    lb = None
+    if len(b.prob.grids) == 3:
+        lb = np.concatenate([np.full(b.pre.n_steps, np.nan), b.prob.w[:, 2]])
+    return DPOutcome(formulation=name, sim=sim, dp=res, dp_cost=float(res.cost) + pre_g,
+                     predicted_cost=float(res.predicted_cost[0]) + pre_g, t_backward=res.t_backward,
                      t_forward=res.t_forward, t_total=time.perf_counter() - t0,
                      n_evaluations=int(res.n_evaluations), n_states=b.prob.n_states,
                      n_controls=b.prob.n_controls, peak_rss_mb=peak_rss_mb(), grids=grids.to_dict(),
                      scenario=scen.to_dict(), on_thermal=on_thermal, extra=b.extra,
-                     T_cab_lb=b.prob.w[:, 2].copy() if len(b.prob.grids) == 3 else None)
+                     T_cab_lb=lb)
 
 
 @contextmanager
@@ -554,8 +593,7 @@ def solve_baseline(params, scenario: DPScenario | None = None, grids=None, *,
         res = _solve(b, engine, progress)
     _check_drivable("baseline", b, res)
     mp_warm = b.mp
-    e, pbm = res.u[:, 0], res.u[:, 1]
-    q = np.full(b.prob.N, scen.Q_heat)
+    e, pbm, q = b.controls(res.u[:, 0], res.u[:, 1], np.full(b.prob.N, scen.Q_heat))
     sim = resimulate(mp_warm, b.cyc, e, pbm, q, scen, "Baseline-DP (f_cl = 1)")
     sim.info["params"] = params.meta.get("name", "") if hasattr(params, "meta") else ""
     on = resimulate(params, b.cyc, e, pbm, q, scen, "Baseline-DP policy on the thermal model")
@@ -581,8 +619,8 @@ def solve_thermal(params, scenario: DPScenario | None = None, grids=None, *,
         res = _solve(b, engine, progress)
     _check_drivable("thermal", b, res)
     mp_used = b.mp
-    q = res.u[:, 2]
-    sim = resimulate(mp_used if warm else params, b.cyc, res.u[:, 0], res.u[:, 1], q, scen, "Thermal-DP")
+    e, pbm, q = b.controls(res.u[:, 0], res.u[:, 1], res.u[:, 2])
+    sim = resimulate(mp_used if warm else params, b.cyc, e, pbm, q, scen, "Thermal-DP")
     out = _outcome("thermal", params, b, res, scen, grids, sim, t0)
     out.extra["engine"] = engine
     out.extra["kernel"] = res.kernel
@@ -613,7 +651,7 @@ def solve_thermal_cabin(params, scenario: DPScenario | None = None, grids=None, 
         held = np.isnan(res.u[:, 2])
         q = delivered_heat(b.prob.params, res.x, np.ascontiguousarray(res.u), b.prob.w)
         res.u[held, 2] = q[held]
-    sim = resimulate(params, b.cyc, res.u[:, 0], res.u[:, 1], res.u[:, 2], scen, "Thermal-Cabin-DP")
+    sim = resimulate(params, b.cyc, *b.controls(res.u[:, 0], res.u[:, 1], res.u[:, 2]), scen, "Thermal-Cabin-DP")
     out = _outcome("thermal_cabin", params, b, res, scen, grids, sim, t0)
     out.extra["engine"] = engine
     out.extra["kernel"] = res.kernel
