@@ -148,7 +148,7 @@ def replay(log, params, heater=None) -> Replay:
     T_cl0 = first_valid_mean(c["coolant_temp_degC"], 5, float(T_amb[0]))
     T_cab0 = first_valid_mean(c["cabin_temp_degC"], 5, float(T_amb[0]))
     soc, T_cl, T_cab, W = full_replay(mp, la.dt, soc0, T_cl0, T_cab0, la.f_on, la.P_on, la.f_idle, P_bat, T_bat,
-                                      T_amb, Q_heat)
+                                      T_amb, Q_heat, f_cat=la.f_cat)
     # the initial SOC: the mean of the first samples is biased when the SOC moves at once (a cold start
     # charging hard) and a quantised reading is off by up to half a step; the offset that makes the
     # simulated SOC match the logged one over the first SOC0_WINDOW_S is the better initial state
@@ -156,7 +156,7 @@ def replay(log, params, heater=None) -> Replay:
     if np.isfinite(e0).sum() >= 5:
         soc0 += float(np.nanmean(e0))
         soc, T_cl, T_cab, W = full_replay(mp, la.dt, soc0, T_cl0, T_cab0, la.f_on, la.P_on, la.f_idle, P_bat, T_bat,
-                                          T_amb, Q_heat)
+                                          T_amb, Q_heat, f_cat=la.f_cat)
     # bins whose inputs are unknown (a long gap of a sparse channel): simulated through, never compared
     unknown = ~la.known if la.engine_source else np.zeros(la.t.size, bool)
     for arr, needed in ((la.P_bat, bool(la.battery_source)), (la.Q_heat, bool(la.heater_source)),
