@@ -157,3 +157,15 @@ def test_unknown_scenario_field_suggests_the_closest():
         DPScenario.from_dict({"T_ambb": -5.0})
     msg = str(err.value)
     assert "did you mean 'T_amb'?" in msg and "known:" not in msg
+
+
+@pytest.mark.parametrize("field,value", [("T_cl0", 18446744073709551616.0), ("Q_heat", -1.09465e70), ("T_amb", 90.0),
+                                         ("soc0", 1.5), ("duration_s", 1e12)])
+def test_scenario_numbers_outside_their_physical_range_are_refused(field, value):
+    """A finite but absurd number (a fuzzed scenario with these values built a 1-GB problem) is refused by name."""
+    from calib.errors import ScenarioError
+    from optimize.formulations.scenario import DPScenario
+
+    with pytest.raises(ScenarioError) as err:
+        DPScenario.from_dict({field: value})
+    assert field in str(err.value) and "physical range" in str(err.value)

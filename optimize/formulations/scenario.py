@@ -16,6 +16,21 @@ FORMULATIONS = ("baseline", "thermal", "thermal_cabin")
 TERMINALS = ("free", "match", "valued", "continued")
 
 
+#: Physical ranges of the scenario's numbers (a car on a road on Earth, a cabin heater of a passenger car): a
+#: value outside is a typo or hostile input, refused before any table is built.
+_TEMPERATURE = (-60.0, 200.0, "degC")
+SCENARIO_RANGES = {
+    "T_amb": (-60.0, 60.0, "degC"), "T_cl0": _TEMPERATURE, "T_cab0": (-60.0, 80.0, "degC"),
+    "T_cl_min": _TEMPERATURE, "T_cl_max": _TEMPERATURE, "T_cab_ub": (-60.0, 80.0, "degC"),
+    "T_cl_final_min": _TEMPERATURE, "T_cab_final_min": (-60.0, 80.0, "degC"),
+    "Q_heat": (0.0, 20e3, "W"), "Q_heat_min": (0.0, 20e3, "W"), "Q_heat_max": (0.0, 20e3, "W"),
+    "soc0": (0.0, 1.0, ""), "soc_min": (0.0, 1.0, ""), "soc_max": (0.0, 1.0, ""), "soc_tol": (0.0, 1.0, ""),
+    "cab_lb_offset": (-50.0, 50.0, "K"), "duration_s": (0.0, 7 * 86400.0, "s"),
+    "cab_terminal_g_per_K": (0.0, 1e4, "g/K"), "cont_soc_band": (0.0, 1.0, ""),
+    "cont_soc_every": (1, 1000, ""), "cont_tcl_step": (0.0, 100.0, "K"), "cont_tcab_step": (0.0, 100.0, "K"),
+}
+
+
 # ---------------------------------------------------------------------------------------------------
 # scenario and grids
 # ---------------------------------------------------------------------------------------------------
@@ -90,6 +105,10 @@ class DPScenario:
             if not ok:
                 shown = repr(v) if isinstance(v, float) else (str(v)[:40] + ("..." if len(str(v)) > 40 else ""))
                 raise ScenarioError(f"scenario field {f.name} = {shown}: give a finite number")
+        for name, (lo, hi, unit) in SCENARIO_RANGES.items():
+            v = getattr(self, name)
+            if v is not None and not lo <= v <= hi:
+                raise ScenarioError(f"scenario field {name} = {v:g}: outside the physical range [{lo:g}, {hi:g}] {unit}")
         if self.duration_s is not None and not self.duration_s > 0:
             raise ScenarioError(f"scenario field duration_s = {self.duration_s!r}: give a positive number of seconds")
         for lo, hi in (("soc_min", "soc_max"), ("T_cl_min", "T_cl_max"), ("Q_heat_min", "Q_heat_max")):
