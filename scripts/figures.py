@@ -263,7 +263,8 @@ def _case_study(name: str):
 
 #: Every file with generated blocks, and the renderer of each of its blocks.
 FILES = {
-    "README.md": {"headline": _headline},
+    "README.md": {"headline": _headline, "epa-bags": _epa_bags},
+    "docs/main_job.md": {"headline": _headline},
     "docs/cold_start.md": {"epa": _epa, "sim-speed": _sim_speed, "epa-bags": _epa_bags, "epa-causes": _epa_causes,
                            "case-study-paper": _case_study("paper"), "case-study-cold-soak": _case_study("cold_soak")},
     "docs/calibration_robustness.md": {"calib-selections": _calib_selections},

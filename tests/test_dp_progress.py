@@ -45,7 +45,7 @@ def test_baseline_solver_runs_its_kernel_and_gives_the_generic_engines_result(pa
 def test_cached_forward_kernel_is_the_engines_forward_pass(params, nx, grids):
     from optimize.formulations.fused import backward_pass_fused, forward_hev
 
-    b = build_problem(params, DPScenario(duration_s=40.0, T_cl0=28.0), grids, nx, warm=nx == 1)
+    b = build_problem(params, DPScenario(duration_s=40.0, T_cl0=62.0), grids, nx, warm=nx == 1)
     assert b.prob.forward_kernel is forward_hev
     vf = backward_pass_fused(b.prob)
     r1 = forward_pass(b.prob, vf, b.x0)
@@ -92,7 +92,7 @@ def test_engine_solve_reports_progress_and_returns_the_same_result():
     (solve_thermal_cabin, COARSE3, {"engine": "fused-exact"}),
 ])
 def test_formulations_report_progress_per_step_part_and_return_the_same_values(params, solver, grids, kw):
-    scen = DPScenario(duration_s=60.0, T_cl0=28.0)
+    scen = DPScenario(duration_s=60.0, T_cl0=62.0)
     calls, rec = _recorder()
     a = solver(params, scen, grids, **kw)
     b = solver(params, scen, grids, progress=rec, **kw)
