@@ -212,7 +212,7 @@ def simulate(params, cycle, controller=None, *, T_amb=-10.0, soc0=0.6, T_cl0=70.
         The drive starts the car (default): below the catalyst threshold the plant first heats the catalyst
         (:mod:`calib.model.catalyst`) whatever the controller commands; the controller is still called in
         those steps and only its heater command is applied. False: the drive continues a trip whose engine
-        already started (no catalyst heating).
+        already started (no catalyst heating, and the rule-based controller's warm-up charge does not begin).
     """
     from calib.model.catalyst import prelude_steps, run_prelude
     from calib.model.rulebased import RuleBasedController, RuleParams
@@ -224,6 +224,8 @@ def simulate(params, cycle, controller=None, *, T_amb=-10.0, soc0=0.6, T_cl0=70.
         controller = RuleBasedController(mp, rp)
     if hasattr(controller, "reset"):
         controller.reset()
+    if not engine_start and hasattr(controller, "warming_up"):
+        controller.warming_up = False  # a continued trip is past its start: no warm-up charge begins mid-trip
     N, Ts = cyc.n_steps, cyc.Ts
     v = cyc.v
     grade = cyc.grade if cyc.grade is not None else np.zeros(N + 1)
