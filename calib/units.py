@@ -225,13 +225,24 @@ def parse_unit(unit: str) -> pint.Unit:
     norm = normalize_unit(unit)
     check_unit_grammar(norm)
     try:
-        return ureg.Unit(norm)
+        u = ureg.Unit(norm)
     except (pint.errors.UndefinedUnitError, pint.errors.DefinitionSyntaxError, AttributeError,
             TypeError, ValueError, AssertionError, KeyError) as exc:
         # pint raises a zoo of types for garbage input; all mean "not a unit".
         raise UnitError(f"unknown unit {unit!r}") from exc
     except Exception as exc:  # noqa: BLE001 - pint's tokenizer can raise anything on odd strings
         raise UnitError(f"unknown unit {unit!r} ({type(exc).__name__})") from exc
+    # what pint parsed, checked again: an exponent the text hid (1e308) and units pint parses but cannot
+    # convert (a logarithmic unit such as dB inside a product) are refused here, not where data is converted
+    big = [e for e in dict(u._units).values() if not abs(e) <= MAX_UNIT_EXPONENT]
+    if big:
+        raise UnitError(f"unit {unit!r}: exponent {big[0]:g} is larger than {MAX_UNIT_EXPONENT}")
+    try:
+        ureg.Quantity(1.0, u).to_root_units()
+    except Exception as exc:  # noqa: BLE001 - pint raises assertion, key and undefined-unit errors here
+        raise UnitError(f"unit {unit!r} cannot be converted to anything (a logarithmic or offset unit inside "
+                        "a product?)") from exc
+    return u
 
 
 def is_known_unit(unit: str) -> bool:

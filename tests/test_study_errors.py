@@ -33,3 +33,25 @@ def test_unreadable_cycle_csv_is_one_line_naming_the_file(tmp_path):
         load_cycle(str(bad))
     msg = str(err.value)
     assert str(bad) in msg and "\n" not in msg and "time_s" in msg
+
+
+@pytest.mark.parametrize("unit", ["degC*dB %", "dB ** 1e308", "degC*dB"])
+def test_units_pint_parses_but_cannot_convert_are_one_unit_error(unit):
+    """Fuzzed units that pint parses (a logarithmic unit inside a product, an exponent written 1e308) but then
+    fails on with its own errors when converting: refused where the unit is parsed."""
+    from calib.units import UnitError, parse_unit
+
+    with pytest.raises(UnitError) as err:
+        parse_unit(unit)
+    assert repr(unit) in str(err.value)
+
+
+def test_a_csv_header_with_such_a_unit_is_a_clean_error(tmp_path):
+    from calib.errors import IptmError
+    from calib.ingest import read_log
+
+    p = tmp_path / "units.csv"
+    p.write_text("time (degC*dB %),speed (km/h),coolant_temp (degC)\n" + "".join(f"{i},{10 + i},20\n" for i in range(8)))
+    with pytest.raises(IptmError) as err:
+        read_log(p)
+    assert str(p) in str(err.value) and "\n" not in str(err.value)
