@@ -95,7 +95,7 @@ def test_optimize_reuses_the_run_cache(run, capsys):
     assert rc == 0
     cap = capsys.readouterr()
     assert "baseline:" in cap.out and cap.out.count("(from the cache)") == 2
-    assert "fuel economy: baseline" in cap.out and "L/100 km" in cap.out and "mpg" in cap.out
+    assert "fuel economy, corrected (raw): baseline" in cap.out and "L/100 km" in cap.out and "mpg" in cap.out
     assert "Baseline-DP on thermal model" in cap.err and "from the cache" in cap.err
 
 

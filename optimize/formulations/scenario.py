@@ -105,10 +105,6 @@ class DPScenario:
             if not ok:
                 shown = repr(v) if isinstance(v, float) else (str(v)[:40] + ("..." if len(str(v)) > 40 else ""))
                 raise ScenarioError(f"scenario field {f.name} = {shown}: give a finite number")
-        for name, (lo, hi, unit) in SCENARIO_RANGES.items():
-            v = getattr(self, name)
-            if v is not None and not lo <= v <= hi:
-                raise ScenarioError(f"scenario field {name} = {v:g}: outside the physical range [{lo:g}, {hi:g}] {unit}")
         if self.duration_s is not None and not self.duration_s > 0:
             raise ScenarioError(f"scenario field duration_s = {self.duration_s!r}: give a positive number of seconds")
         for lo, hi in (("soc_min", "soc_max"), ("T_cl_min", "T_cl_max"), ("Q_heat_min", "Q_heat_max")):
@@ -117,6 +113,12 @@ class DPScenario:
                                     f"{lo} must be below {hi}")
         if not (0.0 <= self.soc_min and self.soc_max <= 1.0):
             raise ScenarioError(f"scenario SOC window [{self.soc_min:g}, {self.soc_max:g}] must lie inside [0, 1]")
+        # the specific checks above first (their messages say more); then every number's physical range
+        for name, (lo, hi, unit) in SCENARIO_RANGES.items():
+            v = getattr(self, name)
+            if v is not None and not lo <= v <= hi:
+                raise ScenarioError(f"scenario field {name} = {v:g}: outside the physical range [{lo:g}, {hi:g}]"
+                                    + (f" {unit}" if unit else ""))
         if self.terminal not in TERMINALS:
             raise ScenarioError(f"terminal {self.terminal!r}: choose one of {', '.join(TERMINALS)}")
         if self.cont_soc_band is not None and not self.cont_soc_band >= 0:
