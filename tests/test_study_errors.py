@@ -55,3 +55,24 @@ def test_a_csv_header_with_such_a_unit_is_a_clean_error(tmp_path):
     with pytest.raises(IptmError) as err:
         read_log(p)
     assert str(p) in str(err.value) and "\n" not in str(err.value)
+
+
+def test_a_dbc_with_a_megabyte_line_is_refused_before_cantools_parses_it(tmp_path):
+    """cantools needs ~200 bytes per byte of a line: a fuzzed 4-MB unit string cost 800 MB before."""
+    import resource
+
+    from calib.errors import LogFormatError
+    from calib.ingest.dbc import PRIUS_DBC, load_dbc
+
+    text = PRIUS_DBC.read_text().splitlines()
+    i = next(k for k, ln in enumerate(text) if ln.strip().startswith("SG_"))
+    head, _, rest = text[i].partition('"')
+    text[i] = head + '"' + "kilo" * 1_000_000 + '"' + rest.split('"', 1)[1]
+    bad = tmp_path / "bomb.dbc"
+    bad.write_text("\n".join(text) + "\n")
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    with pytest.raises(LogFormatError) as err:
+        load_dbc(bad)
+    assert "characters long" in str(err.value) and str(bad) in str(err.value)
+    assert (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024 < 100
+    assert load_dbc(PRIUS_DBC).messages  # the shipped DBC passes the check

@@ -14,6 +14,24 @@ from calib.errors import LogFormatError
 PRIUS_DBC = Path(str(resources.files("calib") / "data" / "can" / "prius_iptm.dbc"))
 
 
+#: Largest DBC file read, bytes, and longest line: a vehicle's whole DBC is a few MB with lines of a few kB;
+#: cantools' parser needs about 200 bytes of memory per byte of a line, so a hostile 4-MB line cost 800 MB.
+MAX_DBC_BYTES = 64 << 20
+MAX_DBC_LINE = 1 << 16
+
+
+def _check_dbc_size(dbc: Path) -> None:
+    size = dbc.stat().st_size
+    if size > MAX_DBC_BYTES:
+        raise LogFormatError(dbc, f"DBC file of {size:,} bytes (at most {MAX_DBC_BYTES:,} are read)",
+                             hint="is this a DBC? split it or keep the messages you need")
+    with open(dbc, "rb") as fh:
+        for no, line in enumerate(fh, 1):
+            if len(line) > MAX_DBC_LINE:
+                raise LogFormatError(dbc, f"line {no:,} is {len(line):,} characters long (at most {MAX_DBC_LINE:,} "
+                                          "in a DBC)", f"line {no}", hint="correct the DBC")
+
+
 def load_dbc(dbc, path_for_errors=None):
     """Load a DBC with cantools; errors name the DBC file."""
     import cantools
@@ -21,6 +39,8 @@ def load_dbc(dbc, path_for_errors=None):
     dbc = Path(dbc) if dbc is not None else PRIUS_DBC
     if not dbc.exists():
         raise LogFormatError(dbc, "DBC file not found")
+    if dbc.is_file():
+        _check_dbc_size(dbc)
     try:
         db = cantools.database.load_file(str(dbc), database_format="dbc", strict=False)
     except Exception as exc:  # noqa: BLE001 - cantools raises many parser types; all mean "bad DBC"
