@@ -76,3 +76,14 @@ def test_a_dbc_with_a_megabyte_line_is_refused_before_cantools_parses_it(tmp_pat
     assert "characters long" in str(err.value) and str(bad) in str(err.value)
     assert (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024 < 100
     assert load_dbc(PRIUS_DBC).messages  # the shipped DBC passes the check
+
+
+def test_a_cause_the_epa_bench_could_not_compute_fails_the_bench():
+    from iptm.benchmarks.epa import cause_failures
+    from iptm.commands.bench import suite_failures
+
+    rows = [{"case": "default", "warm_err_pct": -4.5, "infeasible": float("nan")},
+            {"case": "steeper f_cl", "infeasible": "step 407 (t=407 s): the controller's choice is infeasible"}]
+    fails = cause_failures(rows)
+    assert fails == ["cause 'steeper f_cl' not run: step 407 (t=407 s): the controller's choice is infeasible"]
+    assert suite_failures({"causes": rows, "failures": fails}) == fails

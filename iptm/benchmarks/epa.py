@@ -49,6 +49,9 @@ def run(quick: bool = False) -> dict:
            "ftp": ftp.to_dict(orient="records"), "cold_warm_ratio": ratio}
     if not quick:
         out["causes"] = _causes(ps).to_dict(orient="records")
+        fails = cause_failures(out["causes"])
+        if fails:  # a cause that could not be computed fails the bench (its JSON is still written)
+            out["failures"] = fails
         out["case_study"] = case_study(ps)
     return out
 
@@ -118,6 +121,11 @@ def case_study(ps) -> dict:
         out[name] = {"description": desc, "rows": rows,
                      "rule_thresholds": {"before": tr.rule.to_dict(), "after": cs["after"].rule["thresholds"]}}
     return out
+
+
+def cause_failures(rows) -> list[str]:
+    """The causes table's rows that could not be computed, one line each."""
+    return [f"cause {r['case']!r} not run: {r['infeasible']}" for r in rows if isinstance(r.get("infeasible"), str)]
 
 
 def _causes(ps):
