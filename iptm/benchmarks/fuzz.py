@@ -1724,11 +1724,13 @@ def generate(n: int = 10_000, seed: int = 0, generators=tuple(GENERATORS), folde
     base.warm()
     results = {}
     for g, (gname, targets) in enumerate(GENERATORS.items()):
-        if gname not in generators:
+        if gname not in generators and not any(x.startswith(gname + "/") for x in generators):
             continue
         results[gname] = {}
         for t, (tname, make) in enumerate(targets.items()):
             if tname == "mf4" and "mf4" not in base.files:
+                continue
+            if gname not in generators and f"{gname}/{tname}" not in generators:
                 continue
             case_dir = folder / "cases" / gname / tname
             case_dir.mkdir(parents=True, exist_ok=True)
@@ -2054,7 +2056,8 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--readers", default=",".join(READERS), help="readers of the mutations and truncations "
                                                                   "('' for none)")
-    ap.add_argument("--generators", default=",".join(GENERATORS), help="structure-aware generators ('' for none)")
+    ap.add_argument("--generators", default=",".join(GENERATORS), help="structure-aware generators, or "
+                    "single file kinds as GENERATOR/KIND (e.g. numbers/blf); '' for none")
     ap.add_argument("--no-mutations", action="store_true")
     ap.add_argument("--no-truncation", action="store_true")
     ap.add_argument("--timeout", type=float, default=CASE_TIMEOUT_S, help="seconds per input before it is a hang")
@@ -2068,7 +2071,8 @@ def main(argv=None):
         return 0
     pick = lambda s, known: tuple(x for x in s.split(",") if x) if s else ()  # noqa: E731
     gens = pick(a.generators, GENERATORS)
-    bad = [g for g in gens if g not in GENERATORS] + [r for r in pick(a.readers, READERS) if r not in READERS]
+    bad = [g for g in gens if g.partition("/")[0] not in GENERATORS
+           or (g.partition("/")[2] and g.partition("/")[2] not in GENERATORS[g.partition("/")[0]])] + [r for r in pick(a.readers, READERS) if r not in READERS]
     if bad:
         ap.error(f"unknown generator or reader {bad[0]!r}: generators {', '.join(GENERATORS)}; readers "
                  f"{', '.join(READERS)}")
