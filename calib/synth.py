@@ -59,6 +59,15 @@ class HvacController:
     def reset(self):
         self.rule.reset()
 
+    @property
+    def T_bat(self) -> float:
+        """Battery temperature, passed to the rule-based controller (the simulator sets it each step)."""
+        return self.rule.T_bat
+
+    @T_bat.setter
+    def T_bat(self, value: float) -> None:
+        self.rule.T_bat = value
+
     def describe(self):
         return f"{self.rule.describe()}; cabin thermostat T_set={self.T_set:g} degC"
 

@@ -22,7 +22,11 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-from calib.model.equations import IDLE, OFF, ON
+from calib.model.equations import IDLE, OFF, ON, battery_ocv_r
+
+#: share of the battery's matched-load power U^2/(4 R) the controller asks of a cold pack: at that point
+#: the terminal voltage is half the open-circuit voltage, and the simulator refuses anything beyond it
+DELIVERABLE_SHARE = 0.9
 
 
 @dataclass
@@ -56,11 +60,16 @@ class RuleBasedController:
     mp : ModelParams
         Compiled parameters (for efficiencies and limits).
     rp : RuleParams
+    T_bat : float, optional
+        Battery temperature (degC; default the resistance table's reference). The simulator sets
+        :attr:`T_bat` every step from the drive's battery temperature: a cold pack's internal resistance
+        limits what it can deliver below ``P_bat_max`` (:meth:`discharge_limit_W`).
     """
 
-    def __init__(self, mp, rp: RuleParams | None = None):
+    def __init__(self, mp, rp: RuleParams | None = None, T_bat: float | None = None):
         self.mp = mp
         self.rp = rp or RuleParams()
+        self.T_bat = float(mp.T_bat_ref if T_bat is None else T_bat)
         self.reset()
 
     def reset(self) -> None:
@@ -77,10 +86,19 @@ class RuleBasedController:
         """The controller's name and thresholds, one line."""
         return "rule-based " + ", ".join(f"{k}={v:g}" for k, v in self.rp.to_dict().items())
 
+    def discharge_limit_W(self, soc) -> float:
+        """Terminal power the battery can give at ``soc`` and :attr:`T_bat`: ``P_bat_max``, or for a cold
+        pack :data:`DELIVERABLE_SHARE` of its matched-load power ``(U_oc - U_hyst)^2 / (4 R_int)``."""
+        p = self.mp
+        U, R = battery_ocv_r(p, soc, self.T_bat)
+        U = max(U - p.U_hyst, 0.0)
+        return min(p.P_bat_max, DELIVERABLE_SHARE * U * U / (4.0 * R))
+
     def __call__(self, k, soc, T_cl, T_cab, P_trac, Ts=1.0):
         p, r = self.mp, self.rp
         bat_only = (P_trac / p.eta_em if P_trac > 0 else 0.0) + p.P_aux
-        must = bat_only > 0.95 * p.P_bat_max or soc < r.soc_low
+        P_bat_hi = self.discharge_limit_W(soc)
+        must = bat_only > 0.95 * P_bat_hi or soc < r.soc_low
         held = self.keep_running(T_cl)
         if self.warming_up is None or T_cl >= r.T_warm_degC:
             self.warming_up = bool(self.warming_up is None and T_cl < r.T_warm_degC)
@@ -102,7 +120,7 @@ class RuleBasedController:
             P_e = min(max(P_e, r.P_e_min_W), p.P_e_max)
             P_em = P_trac - p.eta_mech * P_e
             P_bat_mg = P_em / p.eta_em if P_em >= 0.0 else P_em * p.eta_em
-            lo, hi = p.P_bat_min - p.P_aux, p.P_bat_max - p.P_aux
+            lo, hi = p.P_bat_min - p.P_aux, P_bat_hi - p.P_aux
             P_bat_mg = min(max(P_bat_mg, lo), hi)
             P_em = P_bat_mg * p.eta_em if P_bat_mg >= 0.0 else P_bat_mg / p.eta_em
             if P_trac - P_em > 0.0:

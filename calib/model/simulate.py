@@ -243,8 +243,11 @@ def simulate(params, cycle, controller=None, *, T_amb=-10.0, soc0=0.6, T_cl0=70.
 
         pre = run_prelude(mp, v, grade, T_amb_a, T_bat_a, W_bl, x[0], Ts, n_pre, heat, t=cyc.t)
         x[: n_pre + 1], u[:n_pre], out[:n_pre] = pre.x, pre.u, pre.out
+    tell_T_bat = hasattr(controller, "T_bat")  # a controller that limits a cold battery learns its temperature
     for k in range(n_pre, N):
         P_trac = traction_power(mp, v[k], v[k + 1], grade[k], Ts)
+        if tell_T_bat:
+            controller.T_bat = float(T_bat_a[k])
         e, pb, qh = controller(k, x[k, 0], x[k, 1], x[k, 2], P_trac, Ts)
         r = step(mp, x[k, 0], x[k, 1], x[k, 2], int(e), float(pb), float(qh), v[k], v[k + 1], grade[k],
                  T_amb_a[k], T_bat_a[k], W_bl, Ts)

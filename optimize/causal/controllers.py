@@ -31,7 +31,7 @@ class _Causal:
         self.T_bat = float(mp.T_bat_ref if T_bat is None else T_bat)
         self.W_bl = float(mp.W_bl if W_bl is None else W_bl)
         self.work = np.empty((self.controls.shape[0], 5))
-        self._fallback = RuleBasedController(mp, RuleParams(Q_heat_W=Q_heat))
+        self._fallback = RuleBasedController(mp, RuleParams(Q_heat_W=Q_heat), T_bat=self.T_bat)
         self.n_fallback = 0
         self.v = 0.0  # speed estimate (m/s), from standstill
 
@@ -43,6 +43,7 @@ class _Causal:
     def _emit(self, u, k, soc, T_cl, T_cab, P_trac, Ts):
         if u < 0:  # nothing feasible on the grid (demand beyond the limits): the rule-based choice
             self.n_fallback += 1
+            self._fallback.T_bat = self.T_bat
             return self._fallback(k, soc, T_cl, T_cab, P_trac, Ts)
         return int(self.controls[u, 0]), float(self.controls[u, 1]), self.Q_heat
 
