@@ -56,17 +56,25 @@ def pack_params(cfg, ms, arrays) -> np.ndarray:
 
     A flat array (rather than a tuple holding the ModelParams namedtuple) because numba's parallel
     backward kernel rejects a struct with arrays as a prange argument, and because a tuple of arrays
-    costs reference-count traffic on every transition call."""
-    n = _HEADER + sum(a.size for a in arrays)
-    P = np.zeros(n)
+    costs reference-count traffic on every transition call. An entry given as a shape tuple reserves
+    zeros of that shape, to be filled in place (:func:`packed_array`)."""
+    sizes = [int(np.prod(a)) if isinstance(a, tuple) else a.size for a in arrays]
+    P = np.zeros(_HEADER + sum(sizes))
     P[: cfg.size] = cfg
     P[_MS0: _MS0 + ms.size] = ms
     o = _HEADER
-    for j, a in enumerate(arrays):
+    for j, (a, n) in enumerate(zip(arrays, sizes)):
         P[16 + 2 * j] = o
-        P[17 + 2 * j] = a.size
-        P[o: o + a.size] = a.ravel()
-        o += a.size
+        P[17 + 2 * j] = n
+        if not isinstance(a, tuple):
+            P[o: o + n] = a.ravel()
+        o += n
     return P
+
+
+def packed_array(P, j: int, shape) -> np.ndarray:
+    """The ``j``-th array of a packed vector as a writable view of ``shape``."""
+    o, n = int(P[16 + 2 * j]), int(P[17 + 2 * j])
+    return P[o: o + n].reshape(shape)
 
 

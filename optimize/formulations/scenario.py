@@ -296,17 +296,42 @@ def _grid(lo, hi, step, name: str = "grid"):
     return lo + step * np.arange(n)
 
 
+#: Budget of a DP problem's transition tables (steps x battery-power controls x SOC nodes, 8 bytes each: the
+#: largest array of a problem), MB; IPTM_DP_MAX_TABLE_MB overrides it. Baseline-DP's convergence check on the
+#: paper's drive (its converged grid halved) needs 948 MB on the default car
+#: (:func:`optimize.formulations.solve.estimate_problem`).
+DP_MAX_TABLE_MB = 2048.0
+
+
+def check_table_size(n_steps: int, table_mb: float) -> None:
+    """Refuse transition tables of ``table_mb`` MB above the budget (:data:`DP_MAX_TABLE_MB`), with the figures."""
+    import os
+
+    budget = float(os.environ.get("IPTM_DP_MAX_TABLE_MB", DP_MAX_TABLE_MB))
+    if table_mb > budget:
+        raise ScenarioError(
+            f"the DP problem is too large: its transition tables ({n_steps} steps x battery-power controls x SOC "
+            f"nodes) take {table_mb:,.0f} MB (budget {budget:g} MB): use a larger battery-power or SOC grid step, "
+            "a shorter drive, or raise IPTM_DP_MAX_TABLE_MB")
+
+
 def check_grid_axes(scen: "DPScenario", grids, params, formulations) -> None:
     """Every axis a formulation will build, checked before anything is solved or drawn (each refusal names the
-    grid, its ends and step; :data:`MAX_AXIS_POINTS`). The cabin axis's span depends on the drive's comfort
-    bounds; it is checked over the widest span a winter cabin grid takes (60 K)."""
+    grid, its ends and step; :data:`MAX_AXIS_POINTS`), and the transition tables at least their fixed SOC grid
+    needs (:func:`check_table_size`; the moving grid adds nodes, checked again where the problem is built).
+    The cabin axis's span depends on the drive's comfort bounds; it is checked over the widest span a winter
+    cabin grid takes (60 K)."""
+    n_steps = None
     for f in formulations:
         if f not in FORMULATIONS:
             continue
         g = FormulationGrids.coerce(grids).of(f)
-        _grid(scen.soc_min, scen.soc_max, g.soc, "SOC grid (soc_min:soc:soc_max)")
-        _grid(float(params["P_bat_min_W"]), float(params["P_bat_max_W"]), g.pbat,
-              "battery-power grid (P_bat_min_W:pbat:P_bat_max_W)")
+        socg = _grid(scen.soc_min, scen.soc_max, g.soc, "SOC grid (soc_min:soc:soc_max)")
+        pg = _grid(float(params["P_bat_min_W"]), float(params["P_bat_max_W"]), g.pbat,
+                   "battery-power grid (P_bat_min_W:pbat:P_bat_max_W)")
+        if n_steps is None:
+            n_steps = scen.load_cycle().n_steps
+        check_table_size(n_steps, 8.0 * n_steps * (pg.size + 2) * (4 + socg.size) / 1e6)
         if f != "baseline":
             _grid(scen.T_cl_min, scen.T_cl_max, g.tcl, "coolant grid (T_cl_min:tcl:T_cl_max)")
         if f == "thermal_cabin":

@@ -21,9 +21,10 @@ from optimize.formulations.artefacts import trajectory_checks
 from optimize.formulations.layout import (HOLD, LEVEL_TOL, PENALTY_G_PER_STEP, _C_CH, _C_CHI, _C_CREL, _C_HOLD, _C_NQ,
                                           _C_NX, _C_PEN, _C_QHI, _C_QLO, _C_SH, _C_SHI,
                      _C_SLO, _C_TAMB, _C_TBAT, _C_TH, _C_THI, _C_TLO, _C_TS, _C_WBL, _MS, _T_SOC0,
-                     pack_params)
-from optimize.formulations.scenario import FORMULATIONS, DPGrids, DPScenario, FormulationGrids, _grid
-from optimize.formulations.transition import build_tables, delivered_heat, drift_offsets, hev_precompute, hev_transition
+                     pack_params, packed_array)
+from optimize.formulations.scenario import (FORMULATIONS, DPGrids, DPScenario, FormulationGrids, _grid,
+                                            check_table_size)
+from optimize.formulations.transition import delivered_heat, drift_offsets, fill_tables, hev_precompute, hev_transition
 
 
 
@@ -316,22 +317,25 @@ class _Built:
 
 
 #: Budgets of one DP problem, checked before anything is allocated (environment variables override them):
-#: states (IPTM_DP_MAX_STATES) and state-control pairs per step (IPTM_DP_MAX_PAIRS). The paper's grids
-#: and their halving (the convergence check) stay well inside; the dashboard's finest sliders do not.
+#: states (IPTM_DP_MAX_STATES), state-control pairs per step (IPTM_DP_MAX_PAIRS) and the memory of the
+#: transition tables (:func:`~optimize.formulations.scenario.check_table_size`). The paper's grids and their
+#: halving stay inside; the dashboard's finest sliders, or a battery-power step of a few watts, do not.
 DP_MAX_STATES = 4_000_000
 DP_MAX_PAIRS = 2e10
 
 
-def check_problem_size(axis_sizes, n_controls: int, n_steps: int) -> dict:
-    """Refuse a problem whose states or state-control pairs per step exceed the budgets, with the figures.
+def check_problem_size(axis_sizes, n_controls: int, n_steps: int, table_cells: int = 0) -> dict:
+    """Refuse a problem whose states, state-control pairs per step or transition tables exceed the budgets,
+    with the figures.
 
-    Returns the estimate ``{"states", "controls", "pairs_per_step", "value_MB"}``."""
+    Returns the estimate ``{"states", "controls", "pairs_per_step", "value_MB", "table_MB"}``."""
     import os
 
     states = int(np.prod([int(n) for n in axis_sizes]))
     pairs = float(states) * float(n_controls)
+    table_mb = 8.0 * float(table_cells) / 1e6
     est = {"states": states, "controls": int(n_controls), "pairs_per_step": pairs,
-           "value_MB": 2 * states * 8 / 1e6}
+           "value_MB": 2 * states * 8 / 1e6, "table_MB": table_mb}
     max_states = float(os.environ.get("IPTM_DP_MAX_STATES", DP_MAX_STATES))
     max_pairs = float(os.environ.get("IPTM_DP_MAX_PAIRS", DP_MAX_PAIRS))
     if states > max_states or pairs > max_pairs:
@@ -340,6 +344,7 @@ def check_problem_size(axis_sizes, n_controls: int, n_steps: int) -> dict:
             f"{n_controls:,} controls = {pairs:.3g} evaluations per step over {n_steps} steps (budgets: "
             f"{max_states:.3g} states, {max_pairs:.3g} per step): use larger grid steps, or raise "
             "IPTM_DP_MAX_STATES / IPTM_DP_MAX_PAIRS")
+    check_table_size(n_steps, table_mb)
     return est
 
 
@@ -489,11 +494,13 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
     cfg[_C_NX], cfg[_C_NQ], cfg[_C_TAMB], cfg[_C_TS] = nx, nq, scen.T_amb, Ts
     cfg[_C_TBAT], cfg[_C_WBL] = mp.T_bat_ref, mp.W_bl
     ms = np.array([float(getattr(mp, n)) for n in _MS])
-    check_problem_size([g.size for g in grid_list], controls.shape[0], N)  # before the tables are allocated
-    big = build_tables(mp, pc, socg, P_trac, float(Ts), float(mp.T_bat_ref), soff)
+    tab_shape = (N, pc.shape[0], _T_SOC0 + socg.size)
+    # before the tables are allocated
+    check_problem_size([g.size for g in grid_list], controls.shape[0], N, table_cells=int(np.prod(tab_shape)))
     c = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
     p = pack_params(cfg, ms, [socg, fclg, lossg, c(mp.soc_bp), c(mp.U_oc), c(mp.soc_bp_R), c(mp.R_int),
-                              c(mp.T_fcl), c(mp.f_cl), big])
+                              c(mp.T_fcl), c(mp.f_cl), tab_shape])
+    fill_tables(packed_array(p, 9, tab_shape), mp, pc, socg, P_trac, float(Ts), float(mp.T_bat_ref), soff)
     if nx == 3:
         # clipped to the grid's ends, a hold heat beyond them is what a grid control already delivers
         p[_C_QLO], p[_C_QHI], p[_C_HOLD] = q_range[0], q_range[1], 1.0 if hold else 0.0
@@ -671,7 +678,8 @@ def estimate_problem(name: str, params, scenario=None, grids=None) -> dict:
         raise ScenarioError(f"unknown formulation {name!r}; choose from baseline, thermal, thermal_cabin")
     scen = scenario or DPScenario()
     b = build_problem(params, scen, FormulationGrids.coerce(grids).of(name), nx, warm=nx == 1)
-    est = check_problem_size([g.size for g in b.prob.grids], b.prob.controls.shape[0], b.prob.N)
+    est = check_problem_size([g.size for g in b.prob.grids], b.prob.controls.shape[0], b.prob.N,
+                             table_cells=int(b.prob.params[17 + 2 * 9]))
     est.update(steps=int(b.prob.N), evaluations=est["pairs_per_step"] * b.prob.N)
     return est
 

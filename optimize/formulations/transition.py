@@ -20,9 +20,17 @@ def build_tables(mp, pc, socg, P_trac, Ts, T_bat, off):  # pragma: no cover - co
     """(N, n_p, 4 + n_soc): per step and power control: feasible, P_e, warm fuel (g/s), P_bat and the
     next SOC at every SOC node (NaN: infeasible); the node i of step k is the charge ``socg[i] + off[k]``
     (:func:`drift_offsets`; zeros: a fixed grid). Uses the model functions of :mod:`calib.model`."""
+    out = np.empty((P_trac.shape[0], pc.shape[0], _T_SOC0 + socg.shape[0]))
+    fill_tables(out, mp, pc, socg, P_trac, Ts, T_bat, off)
+    return out
+
+
+@njit(cache=True)
+def fill_tables(out, mp, pc, socg, P_trac, Ts, T_bat, off):  # pragma: no cover - compiled
+    """:func:`build_tables` into ``out`` (a view of the packed parameter vector: the tables, the largest
+    array of a problem, are then held once)."""
     N = P_trac.shape[0]
     nsoc = socg.shape[0]
-    out = np.empty((N, pc.shape[0], _T_SOC0 + nsoc))
     Us = np.empty(nsoc)
     Rs = np.empty(nsoc)
     for k in range(N):
@@ -52,7 +60,6 @@ def build_tables(mp, pc, socg, P_trac, Ts, T_bat, off):  # pragma: no cover - co
                     if I == I:
                         sn = (socg[i] + off[k]) - I * Ts / mp.C_bat_As
                 out[k, ip, _T_SOC0 + i] = sn
-    return out
 
 
 @njit(cache=True)
