@@ -14,7 +14,7 @@ import warnings
 from calib.errors import IptmError
 
 # Order = order in `iptm --help`.
-COMMANDS = ["run", "simulate", "synth", "ingest", "calibrate", "optimize", "sweep", "params", "bench"]
+COMMANDS = ["run", "simulate", "synth", "ingest", "calibrate", "optimize", "sweep", "params", "plan", "bench"]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -8,12 +8,16 @@
 - :mod:`optimize.causal.compare`: corrected fuel on held-out drives against the DP and tuned rule-based.
 - :mod:`optimize.causal.hindsight`: the ECMS with its settings tuned on the very drive (structure against
   knowledge of the drive).
+- :mod:`optimize.causal.route`: the ECMS told the route at departure (length, road classes), co-states
+  scheduled by distance to go.
 """
 from optimize.causal.controllers import CONTROLLERS, ECMSController, SDPController, make_controller
 from optimize.causal.ecms import ECMSParams
 from optimize.causal.hindsight import tune_ecms_on_drive
 from optimize.causal.markov import DemandMarkov
+from optimize.causal.route import Route, RouteECMSController, RouteECMSParams, load_route, make_route_controller
 from optimize.causal.sdp import SDPConfig, SDPPolicy, build_policy
 
 __all__ = ["DemandMarkov", "SDPConfig", "SDPPolicy", "build_policy", "ECMSParams", "ECMSController",
-           "SDPController", "make_controller", "CONTROLLERS", "tune_ecms_on_drive"]
+           "SDPController", "make_controller", "CONTROLLERS", "tune_ecms_on_drive", "Route", "RouteECMSController",
+           "RouteECMSParams", "load_route", "make_route_controller"]
