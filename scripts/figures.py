@@ -45,7 +45,7 @@ def causal_json(drives: str, valuation: str) -> Path:
 
 
 def hindsight_json(valuation: str) -> Path:
-    """``python scripts/ecms_hindsight.py --valuation V --out reports/ecms-hindsight-V.json`` (not re-run)."""
+    """``python studies/ecms_hindsight/ecms_hindsight.py --valuation V --out reports/ecms-hindsight-V.json`` (not re-run)."""
     return ROOT / "reports" / f"ecms-hindsight-{valuation}.json"
 
 
@@ -152,7 +152,7 @@ def _causal_per_drive(d: dict, drives: str = "fourth") -> str:
 
 
 def _ecms_hindsight(d: dict) -> str:
-    """Per valuation, the causal ECMS against the ECMS tuned on each drive (scripts/ecms_hindsight.py)."""
+    """Per valuation, the causal ECMS against the ECMS tuned on each drive (studies/ecms_hindsight/ecms_hindsight.py)."""
     from optimize.causal.hindsight import summarize
 
     rows = ["| valuation | runs | within 3 % of Thermal-DP: causal ECMS | ECMS tuned on the drive | constant co-states "
@@ -316,7 +316,7 @@ SOURCE_OF = {"sim": "reports/figures/bench-sim.json (`make figures`)",
              "calib_selections": "reports/figures/calib-selections.json "
                                  "(`python -m iptm.benchmarks.calib --selections --json FILE`)",
              "causal": "reports/causal-SET-VALUATION.json (`iptm bench causal`)",
-             "ecms_hindsight": "reports/ecms-hindsight-VALUATION.json (scripts/ecms_hindsight.py)"}
+             "ecms_hindsight": "reports/ecms-hindsight-VALUATION.json (studies/ecms_hindsight/ecms_hindsight.py)"}
 
 
 class MissingData(Exception):

@@ -242,7 +242,7 @@ def fastsim_section() -> dict:
           "below 1 above 80 degC, with a prior sd of 1.5 % per 10 K, and is flat beyond 120 degC); its battery "
           "loses a fixed fraction of the power at each C-rate, independent of temperature below 23 degC (ours: "
           "U_hyst |I| + R I^2, R falling with temperature; the hysteresis takes the proportional loss). "
-          "Evidence: scripts/fastsim_structure.py, docs/test_cars.md.")
+          "Evidence: studies/fastsim_structure/fastsim_structure.py, docs/test_cars.md.")
     return fig
 
 

@@ -52,7 +52,7 @@ def register(sub):
                    help="causal: also run the SDP on a demand chain that learnt these drive sets too (rows sdp_own), "
                         "e.g. --drives reserve --learn-from fresh: each car's earlier trip")
     p.add_argument("--own-settings", metavar="FILE",
-                   help="causal: the settings of sdp_own, the 'chosen' row of a scripts/causal_select.py report "
+                   help="causal: the settings of sdp_own, the 'chosen' row of a studies/causal_select/causal_select.py report "
                         "(default: the SDP's own)")
     p.add_argument("--halve", action="store_true",
                    help="dp: also solve the converged Thermal-Cabin-DP grid with every step halved (about 32 times "
@@ -134,7 +134,7 @@ def suite_failures(result) -> list[str]:
 
 
 def _chosen_settings(path: str) -> dict:
-    """The ``chosen`` row of a ``scripts/causal_select.py`` report, or a clear error."""
+    """The ``chosen`` row of a ``studies/causal_select/causal_select.py`` report, or a clear error."""
     import json
 
     from calib.errors import IptmError
@@ -144,9 +144,9 @@ def _chosen_settings(path: str) -> dict:
         row = json.loads(open(path, encoding="utf-8").read()).get("chosen")
     except (OSError, ValueError) as exc:
         raise IptmError(f"--own-settings {path}: cannot read it as JSON ({exc}); give a report of "
-                        "scripts/causal_select.py") from None
+                        "studies/causal_select/causal_select.py") from None
     missing = [k for k in SELECTED if not isinstance(row, dict) or k not in row]
     if missing:
         raise IptmError(f"--own-settings {path}: no chosen setting with {', '.join(missing)}; the selection chose "
-                        "none, or this is not a report of scripts/causal_select.py")
+                        "none, or this is not a report of studies/causal_select/causal_select.py")
     return {k: row[k] for k in SELECTED}

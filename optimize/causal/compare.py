@@ -38,7 +38,7 @@ HELD_OUT = ("artemis_urban", "nycc", "manhattan", "wltc_city_3b", "tsdc_trip_426
 #: A second held-out set, first simulated after the SDP's settings were last chosen (the settings were
 #: revised after results on :data:`HELD_OUT` had been seen, so those are no longer a clean test of them):
 #: eight real GPS-logged trips of eight other vehicles of the CMAP survey, picked by a rule fixed in
-#: advance (scripts/extract_cmap_trips.py; calib/data/cycles/README.md).
+#: advance (studies/extract_cmap_trips/extract_cmap_trips.py; calib/data/cycles/README.md).
 FRESH_TEST = ("cmap_4107032_1_20070522", "cmap_4108468_1_20070624", "cmap_4108468_2_20070621",
               "cmap_4109114_1_20070517", "cmap_4111928_1_20070519", "cmap_4112082_1_20070703",
               "cmap_4115957_1_20070409", "cmap_4116813_2_20070405")
@@ -72,7 +72,7 @@ def drives_of(sets, what: str = "drive set") -> tuple:
     return tuple(c for x in names for c in DRIVE_SETS[x])
 
 
-#: The settings ``scripts/causal_select.py`` chooses (the chain's ``alpha``, the rest :class:`SDPConfig` fields).
+#: The settings ``studies/causal_select/causal_select.py`` chooses (the chain's ``alpha``, the rest :class:`SDPConfig` fields).
 SELECTED = ("alpha", "w_soc_g_per_s", "soc_bias", "regen_fraction", "regen_slope_per_mps")
 #: The causal strategies of a comparison (``sdp_own``: the SDP on a chain that also learnt ``learn_from``;
 #: ``rule_train``: the rule-based controller tuned on the training cycles).
@@ -192,7 +192,7 @@ def compare_causal(params, *, train=TRAIN_CYCLES, train_logs=(), held_out=HELD_O
 
     ``learn_from``: more drives (e.g. the same cars' earlier trips) for a second demand chain, whose
     policy drives every held-out drive as ``sdp_own`` beside the ``sdp`` of ``train`` alone. ``own_settings``:
-    the settings ``sdp_own`` uses (a row of ``scripts/causal_select.py``'s report: ``alpha``,
+    the settings ``sdp_own`` uses (a row of ``studies/causal_select/causal_select.py``'s report: ``alpha``,
     ``w_soc_g_per_s``, ``soc_bias``, ``regen_fraction``, ``regen_slope_per_mps``); None: the same as ``sdp``.
 
     ``valuation``: ``"corrected"`` (fuel minus the fuel equivalents of the stored-energy changes; Thermal-DP

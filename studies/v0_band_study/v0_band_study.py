@@ -1,7 +1,7 @@
 """Thermal-DP's predicted cost V_0(x0) against its forward-simulated objective, by terminal condition and
 grid: where the gap of the ``continued`` terminal (held to a SOC band or not) comes from.
 
-    .venv/bin/python scripts/v0_band_study.py [--cycle nycc] [--ambient 0]
+    .venv/bin/python studies/v0_band_study/v0_band_study.py [--cycle nycc] [--ambient 0]
 
 Prints one JSON line per case: the terminal (``valued``; ``continued`` with SOC_N free; with the causal
 comparison's band of 0.01) on the paper's grids, then the banded case with the SOC step, the coolant step,

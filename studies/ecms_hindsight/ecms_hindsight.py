@@ -8,7 +8,7 @@ changed and the comparison must be run again), then with its settings tuned on t
 searches, each kept to runs ending within 0.01 of SOC_0). The gap of each to the report's Thermal-DP is
 printed per run, with the counts within 3 %. Thermal-DP is not solved again: its figures are the report's.
 
-Usage: ``python scripts/ecms_hindsight.py [--valuation corrected|continuation] [--drives SET[,SET]]
+Usage: ``python studies/ecms_hindsight/ecms_hindsight.py [--valuation corrected|continuation] [--drives SET[,SET]]
 [--workers 2] [--out reports/ecms-hindsight-VALUATION.json]``.
 """
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Fuel of Baseline-DP or Thermal-DP against the SOC grid step (the figures of the README's paragraph on
 SOC grid convergence).
 
-    .venv/bin/python scripts/soc_convergence.py [--formulation baseline|thermal] [--soc drift|absolute]
+    .venv/bin/python studies/soc_convergence/soc_convergence.py [--formulation baseline|thermal] [--soc drift|absolute]
         [--interp reach_first|multilinear] [--steps 0.01,0.005,0.0025,0.00125] [--duration S] [--halved]
 
 Default car and scenario (ARTEMIS Urban, -10 degC, valued terminal); prints one JSON line per step:
@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", ".."))
 
 from calib.model.params import default_parameters  # noqa: E402
 from optimize.formulations import solve as S  # noqa: E402

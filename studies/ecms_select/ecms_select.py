@@ -9,11 +9,11 @@ to Thermal-DP of the same drive, the largest |SOC - SOC_0| at the drives' ends, 
 which stop its drive ends, and its decisions up to a stop do not depend on what follows, so the SOC at
 each stop is the final SOC of the drive that ends there.
 
-Two rules are applied, each the SDP's (``scripts/causal_select.py``): among the settings within 0.0075 of
+Two rules are applied, each the SDP's (``studies/causal_select/causal_select.py``): among the settings within 0.0075 of
 SOC_0 (the 0.01 band less a quarter of it), the least mean gap; ``ends`` judges the drives' ends only,
 ``stops`` every stop. Held-out drives are never simulated here.
 
-Usage: ``python scripts/ecms_select.py [--out reports/ecms-select.json] [--plot FILE.png]`` (about 5
+Usage: ``python studies/ecms_select/ecms_select.py [--out reports/ecms-select.json] [--plot FILE.png]`` (about 5
 minutes on 2 cores: six Thermal-DP solutions, then 960 ECMS drives); ``--replot REPORT --plot FILE.png``
 draws an earlier report again.
 """

@@ -1,14 +1,14 @@
 """The default car's cold start on the cold FTP's bag 1 (20 degF, heater and defroster on), as the sources
 describe it (docs/cold_start.md): engine speed and mode, coolant and cabin, SOC, heater.
 
-    python scripts/cold_start_figure.py [OUT.png]     # default reports/figures/cold_start_bag1.png
+    python studies/cold_start_figure/cold_start_figure.py [OUT.png]     # default reports/figures/cold_start_bag1.png
 """
 from __future__ import annotations
 
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 OUT = ROOT / "reports" / "figures" / "cold_start_bag1.png"
 
 

@@ -12,7 +12,7 @@ Runs the scenarios of ``iptm bench calib`` (same seeds), calibrates on the two c
    its vehicle resource), our battery fitted on each drive alone (the resistance that drive asks for at
    its own battery temperature), and the held-out SOC RMSE with the calibrated parameters.
 
-Needs the ``fastsim`` extra. Every log is SYNTHETIC. ``.venv/bin/python scripts/fastsim_structure.py``
+Needs the ``fastsim`` extra. Every log is SYNTHETIC. ``.venv/bin/python studies/fastsim_structure/fastsim_structure.py``
 """
 from __future__ import annotations
 

@@ -3,7 +3,7 @@ controls, evaluations, time and the trajectory's grid artefacts (heater chatter,
 :func:`optimize.convergence.trajectory_checks`), one JSON line per grid (the grid-convergence figures of the README's
 speed section).
 
-    .venv/bin/python scripts/cabin_grid_study.py '{}' '{"tcl": 2, "qheat": 100}' \
+    .venv/bin/python studies/cabin_grid_study/cabin_grid_study.py '{}' '{"tcl": 2, "qheat": 100}' \
         '{"tcl": 2, "qheat": 100, "soc": 0.005}' '{"tcl": 2, "qheat": 100, "tcab": 0.5}' \
         '{"tcl": 2, "qheat": 100, "pbat": 250}'
 

@@ -9,7 +9,7 @@ third or fourth, for the vehicles that have one: the reserve and third sets and 
 Each is resampled to 1 Hz (linear across the 2-s gaps), speed converted from mph to km/h, time counted
 from the trip's start.
 
-Usage: ``python scripts/extract_cmap_trips.py FASTSIM_GIT_DIR [--nth 1|2|3|4] [--out calib/data/cycles]``;
+Usage: ``python studies/extract_cmap_trips/extract_cmap_trips.py FASTSIM_GIT_DIR [--nth 1|2|3|4] [--out calib/data/cycles]``;
 FASTSIM_GIT_DIR is a clone (or bare repository) of https://github.com/NREL/fastsim. Prints the trips it wrote.
 """
 from __future__ import annotations

@@ -11,7 +11,7 @@ seeds); for each held-out drive the cumulative fuel error of the validation repl
 the calibrated engine-thermal model) and of the fuel model replayed on the logged coolant (the fuel fit's
 share), with the calibrated radiator gain.
 
-Needs the ``fastsim`` extra. Every log is SYNTHETIC. ``.venv/bin/python scripts/fastsim_fuel_seeds.py 7 17 27 37``
+Needs the ``fastsim`` extra. Every log is SYNTHETIC. ``.venv/bin/python studies/fastsim_fuel_seeds/fastsim_fuel_seeds.py 7 17 27 37``
 """
 from __future__ import annotations
 

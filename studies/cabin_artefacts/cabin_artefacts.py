@@ -1,7 +1,7 @@
 """Thermal-Cabin-DP's grid artefacts, corrected fuel and mean cabin for one parameter set, grid and cabin
 discretisation (the figures of the README's paragraph on grid artefacts).
 
-    .venv/bin/python scripts/cabin_artefacts.py [--params FILE] [--grid SPEC] [--cabin bound|absolute]
+    .venv/bin/python studies/cabin_artefacts/cabin_artefacts.py [--params FILE] [--grid SPEC] [--cabin bound|absolute]
                                                 [--interp reach_first|multilinear|cubic_last]
                                                 [--soc drift|absolute] [--no-hold]
 
@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", ".."))
 
 from iptm.commands.simulate import load_params  # noqa: E402
 from optimize.dp.engine import FORWARD_INTERP  # noqa: E402

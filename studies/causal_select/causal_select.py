@@ -13,7 +13,7 @@ gap to Thermal-DP of the same drive. Held-out drives are never simulated here.
 chain's sources, to the stops the regeneration line is fitted to and to the drives the rule judges on:
 the settings for a chain that has learnt a car's own trips (``iptm bench causal --own-settings``).
 
-Usage: ``python scripts/causal_select.py [--learn-from SET] [--out reports/causal-select.json]`` (about
+Usage: ``python studies/causal_select/causal_select.py [--learn-from SET] [--out reports/causal-select.json]`` (about
 20 minutes on 2 cores). Prints one line per setting and the chosen one.
 """
 from __future__ import annotations

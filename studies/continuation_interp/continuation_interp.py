@@ -1,7 +1,7 @@
 """Interpolation error of the DP's ``continued`` terminal cost: phi(X) (C tabulated on the sub-grid and
 interpolated) against C(X) - C(x_0) evaluated directly, at off-grid final states.
 
-Usage: python scripts/continuation_interp.py [T_AMB] (default -10 degC; default scenario and grids).
+Usage: python studies/continuation_interp/continuation_interp.py [T_AMB] (default -10 degC; default scenario and grids).
 """
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """Thermal-DP with the `continued` terminal held to a SOC band: reach-boundary interpolation against the
 plain chord, each run valued by the direct continuation of its final state.
 
-    .venv/bin/python scripts/band_interp.py nycc 0 [wltc_city_3b -10 ...] [--soc-step 0.01]
+    .venv/bin/python studies/band_interp/band_interp.py nycc 0 [wltc_city_3b -10 ...] [--soc-step 0.01]
 """
 import argparse
 

@@ -2,7 +2,7 @@
 working tree's, alternated, so that both see the same machine (on a shared machine, timings of separate
 processes minutes apart differ by up to 2 times).
 
-    .venv/bin/python scripts/kernel_ab.py REV [--states 2|3] [--duration S] [--reps N]
+    .venv/bin/python studies/kernel_ab/kernel_ab.py REV [--states 2|3] [--duration S] [--reps N]
 
 REV's ``optimize/formulations/fused.py`` is loaded from git as a second module (compiled without numba's
 cache, beside the working tree's); both run the backward pass of the default car on the paper's grids
@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def load_rev(rev: str):

@@ -1,7 +1,7 @@
 """Thermal-DP's fused backward pass on the default drive, computing every SOC node against skipping those
 outside [soc_min, soc_max] (`backward_pass_fused(prob, skip=...)`), alternated in one process.
 
-    .venv/bin/python scripts/skip_timing.py [REPEATS]
+    .venv/bin/python studies/skip_timing/skip_timing.py [REPEATS]
 """
 import os
 import sys
