@@ -36,7 +36,7 @@ SUITES = ("sim", "epa")
 MUTATION_JSON = ROOT / "reports" / "mutation.json"
 #: ``iptm bench causal --drives SET --valuation V --json reports/causal-SET-V.json`` (each run takes minutes:
 #: ``run`` does not re-run them)
-CAUSAL_SETS = ("held-out", "fresh", "reserve", "third", "fourth")
+CAUSAL_SETS = ("test-cycles", "cmap-trip1", "cmap-trip2", "cmap-trip3", "wltc-high-cmap-trip4")
 CAUSAL_VALUATIONS = ("corrected", "continuation")
 
 
@@ -126,7 +126,7 @@ def _causal_rule_train(d: dict) -> str:
     return "\n".join(out[1:])
 
 
-def _causal_per_drive(d: dict, drives: str = "fourth") -> str:
+def _causal_per_drive(d: dict, drives: str = "wltc-high-cmap-trip4") -> str:
     """Per drive of one set, both valuations: Thermal-DP, the rule tuned on the drive, the SDP and the ECMS
     (docs/studies/causal_controllers.md, per drive)."""
     out = []
@@ -271,7 +271,7 @@ FILES = {
     "docs/testing.md": {"mutation": _mutation},
     "docs/studies/causal.md": {"causal": _causal, "ecms-hindsight": _ecms_hindsight},
     "docs/studies/causal_controllers.md": {"causal-rule-train": _causal_rule_train, "ecms-hindsight": _ecms_hindsight,
-                                           "causal-fourth": _causal_per_drive},
+                                           "causal-wltc-high-cmap-trip4": _causal_per_drive},
 }
 RENDER = FILES["README.md"]
 

@@ -73,7 +73,7 @@ def main(argv=None) -> int:
                     help='the settings to try instead of GRID, e.g. \'{"alpha": [1, 3], "w_soc_g_per_s": [200, 400], '
                          '"soc_bias": [0.01, 0.02], "regen": ["constant", "fit"]}\'')
     ap.add_argument("--learn-from", default="", metavar="SET[,SET]",
-                    help="drive sets (held-out, fresh, reserve) the chain learns and the rule judges on, besides "
+                    help="drive sets (e.g. cmap-trip1,cmap-trip2) the chain learns and the rule judges on, besides "
                          "the training drives")
     a = ap.parse_args(argv)
     if a.rechoose is not None:

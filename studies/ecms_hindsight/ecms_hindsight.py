@@ -57,7 +57,7 @@ def one_run(job: dict) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--valuation", default="corrected", choices=("corrected", "continuation"))
-    ap.add_argument("--drives", default="held-out,fresh,reserve,third,fourth")
+    ap.add_argument("--drives", default="test-cycles,cmap-trip1,cmap-trip2,cmap-trip3,wltc-high-cmap-trip4")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", type=Path)
     a = ap.parse_args(argv)

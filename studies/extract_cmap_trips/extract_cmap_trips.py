@@ -1,11 +1,12 @@
-"""Cut the causal controllers' fresh test drives out of FASTSim's CMAP subset (run once; its output is bundled).
+"""Cut the causal controllers' CMAP test trips out of FASTSim's CMAP subset (run once; its output is bundled).
 
 The CMAP Travel Tracker subset in NREL FASTSim's resources (``python/fastsim/resources/cycles/cmap_subset``,
 Apache-2.0) holds GPS speed logs per vehicle and day and a ``trips.csv`` per vehicle with each trip's start
 and end. The rule, fixed before any of these trips was simulated: trips of 5 to 30 minutes whose samples
 are never more than 2 s apart, of vehicles other than the one whose commute is already bundled
 (``cmap_chicago_commute``), the first such trip of each vehicle (``--nth 2`` / ``3`` / ``4``: the second,
-third or fourth, for the vehicles that have one: the reserve and third sets and a trip of the fourth set).
+third or fourth, for the vehicles that have one: the drive sets cmap-trip2 and cmap-trip3 and the CMAP trip of
+wltc-high-cmap-trip4).
 Each is resampled to 1 Hz (linear across the 2-s gaps), speed converted from mph to km/h, time counted
 from the trip's start.
 
