@@ -13,10 +13,9 @@ UDDS at -7 degC: ... g of fuel
 
 Sub-packages: :mod:`calib.model` (equations, parameters, cycles, simulation, stock controller, fuel maps),
 :mod:`calib.ingest` (readers, writers, resampling, channel report), :mod:`calib.fit` (identification
-toolkit, subsystem fitters, driver, validation), :mod:`calib.synth` (SYNTHETIC logs with a known truth),
-:mod:`calib.synth_perturbed` (a plant whose structure the fitter does not share), :mod:`calib.synth_fastsim`
-(NREL FASTSim 3's thermal Sonata hybrid, optional).
-``calib`` never imports ``optimize`` or ``iptm``.
+toolkit, subsystem fitters, driver, validation), :mod:`calib.synth` (SYNTHETIC logs with a known truth).
+Test cars that are not this model live beside it, in the package ``testcars``.
+``calib`` never imports ``optimize``, ``iptm`` or ``testcars``.
 """
 # first, before any kernel is decorated: numba's compiled code is keyed by the source version
 from calib._numba_cache import CACHE_DIR as _NUMBA_CACHE_DIR  # noqa: F401

@@ -110,7 +110,7 @@ cycle = ["nycc"]
 
 
 def _small_streams(duration_s=8.0, rate=5.0):
-    from calib.ingest.fabricate import fabricate_streams
+    from testcars.fabricate import fabricate_streams
 
     rates = {c: rate for c in ("speed_mps", "bat_current_A", "bat_voltage_V", "engine_speed_rpm",
                                "engine_torque_Nm", "fuel_rate_g_per_s")}

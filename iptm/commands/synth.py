@@ -84,11 +84,11 @@ def _run_other(args) -> int:
     if args.truth or args.scenario:
         raise IptmError("--truth and --scenario apply to --simulator model only")
     if args.perturbed:
-        from calib.synth_perturbed import write_perturbed_logs
+        from testcars.synth_perturbed import write_perturbed_logs
 
         info = write_perturbed_logs(args.out, seed=args.seed)
     else:
-        from calib.synth_fastsim import write_fastsim_logs
+        from testcars.synth_fastsim import write_fastsim_logs
 
         info = write_fastsim_logs(args.out, seed=args.seed)
     if args.json:

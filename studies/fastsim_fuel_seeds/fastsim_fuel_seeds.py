@@ -22,7 +22,7 @@ def main(seeds) -> None:
     from calib.fit.driver import calibrate
     from calib.fit.validate import replay
     from calib.ingest import to_drivelog
-    from calib.synth_fastsim import SONATA, synthesise_fastsim
+    from testcars.synth_fastsim import SONATA, synthesise_fastsim
 
     for s0 in seeds:
         logs = []
@@ -66,7 +66,7 @@ def selections() -> None:
     from calib.fit.driver import calibrate
     from calib.fit.validate import replay
     from calib.ingest import to_drivelog
-    from calib.synth_fastsim import synthesise_fastsim
+    from testcars.synth_fastsim import synthesise_fastsim
     from iptm.benchmarks.calib import SELECTION_SEED, selection_pool
 
     pool = selection_pool()

@@ -28,7 +28,7 @@ def main() -> None:
     from calib.fit.validate import replay
     from calib.ingest import to_drivelog
     from calib.model.params import default_parameters
-    from calib.synth_fastsim import LHV_J_PER_G, SONATA, pack_energy_J, synthesise_fastsim
+    from testcars.synth_fastsim import LHV_J_PER_G, SONATA, pack_energy_J, synthesise_fastsim
 
     logs, trues = {}, {}
     for i, sc in enumerate(SONATA):  # the seeds of iptm bench calib

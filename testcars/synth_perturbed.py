@@ -360,9 +360,9 @@ def synthesise_perturbed(drive: Drive, plant: dict, seed: int = 0, drop_channels
                              nonneg=("speed_mps", "engine_speed_rpm", "engine_torque_Nm", "fuel_rate_g_per_s",
                                      "blower_flow_kg_per_s"))
     meta = LogMeta(source=f"SYNTHETIC_{drive.name}", format="synthetic", vehicle_id="SYNTHETIC-PERTURBED-HEV",
-                   synthetic=True, channel_sources={c: "calib.synth_perturbed" for c in streams},
+                   synthetic=True, channel_sources={c: "testcars.synth_perturbed" for c in streams},
                    original_units={c: CHANNELS[c][0] for c in streams},
-                   notes=[f"SYNTHETIC log from the perturbed-structure plant (calib.synth_perturbed): "
+                   notes=[f"SYNTHETIC log from the perturbed-structure plant (testcars.synth_perturbed): "
                           f"{drive.description or drive.name}; seed {seed}",
                           f"true fuel {tr['fuel_g']:.1f} g (the fuel meter reads {100 * plant['fuel_meter_bias']:+.1f} %)"])
     return tr, streams, meta
@@ -403,7 +403,7 @@ def synthesise_perturbed_obd(drive: Drive, plant: dict, seed: int = 0):
     bias = 1.0 + plant["fuel_meter_bias"]
     meta = LogMeta(source=f"SYNTHETIC_{drive.name}_obd", format="synthetic", vehicle_id="SYNTHETIC-PERTURBED-HEV",
                    synthetic=True,
-                   notes=[f"SYNTHETIC log from the perturbed-structure plant (calib.synth_perturbed) as an OBD-II tool "
+                   notes=[f"SYNTHETIC log from the perturbed-structure plant (testcars.synth_perturbed) as an OBD-II tool "
                           f"logs it (PIDs polled in turn, battery from CAN): {drive.description or drive.name}; "
                           f"seed {seed}", f"true fuel {tr['fuel_g']:.1f} g"])
 
