@@ -57,8 +57,8 @@ def _mark(ok) -> str:
 
 def _replay(log, params):
     """The validation replay, or the message of its refusal."""
-    from calib.errors import IptmError
-    from calib.fit.validate import replay
+    from calib import IptmError
+    from calib.fit import replay
 
     try:
         return replay(log, params), None
@@ -99,7 +99,7 @@ def timed_calibrate(case: str, cal, **kw):
     """``calibrate(cal, progress=False, **kw)``, timed: prints the wall time per hour of logs (flagged
     above the target) and the time of each step (subsystem fits, validation, diagnostics), and records the
     case in :data:`CASES`. Returns the result; an exception propagates."""
-    from calib.fit.driver import calibrate
+    from calib.fit import calibrate
 
     hours = sum(lg.duration_s for lg in cal) / 3600.0
     t0 = time.perf_counter()
@@ -123,8 +123,8 @@ def _load() -> float:
 def warm_up() -> float:
     """Compile (or load) the numba kernels once, on 5 minutes of a perturbed drive, so that no case's time
     includes the one-off compilation (its cache is keyed by the sources: any edit compiles afresh)."""
-    from calib.drivelog import DriveLog
-    from calib.fit.driver import calibrate
+    from calib import DriveLog
+    from calib.fit import calibrate
     from testcars.synth_perturbed import CALIBRATION, perturbed_logs
 
     logs, _ = perturbed_logs(1, drives=CALIBRATION[:1])
@@ -249,10 +249,9 @@ def fastsim_section() -> dict:
 def model_udds_ratio(params) -> dict:
     """Fuel per km of ``params`` on a cold-soaked -7 degC UDDS over a 22 degC one (rule-based controller,
     climate control at 22 degC without base heat)."""
-    from calib.errors import IptmError
-    from calib.model.rulebased import RuleParams
-    from calib.model.simulate import simulate
-    from calib.synth import HvacController
+    from calib import IptmError
+    from calib.model import RuleParams, simulate
+    from calib import HvacController
 
     out = {}
     try:
@@ -413,8 +412,8 @@ def obd_section(seed: int = 1) -> dict:
 
 # ---------------------------------------------------------------------------------------- timing
 def timing_section(repeats: int) -> dict:
-    from calib.drivelog import DriveLog
-    from calib.fit.driver import calibrate
+    from calib import DriveLog
+    from calib.fit import calibrate
     from testcars.synth_perturbed import CALIBRATION, perturbed_logs
 
     logs, _ = perturbed_logs(1, drives=CALIBRATION)
@@ -581,7 +580,7 @@ def render_doc(doc_path, data: dict) -> None:
     import re
     from pathlib import Path
 
-    from calib.errors import IptmError
+    from calib import IptmError
 
     p = Path(doc_path)
     text = p.read_text(encoding="utf-8")
@@ -615,8 +614,7 @@ def main(argv=None) -> int:
     import argparse
     import json
 
-    from calib.errors import IptmError
-    from calib.fileio import write_json
+    from calib import IptmError, write_json
 
     ap = argparse.ArgumentParser(prog="python -m iptm.benchmarks.calib",
                                  description="the FASTSim drive selections of docs/calibration_robustness.md")

@@ -14,10 +14,8 @@ def run(quick: bool = False, valuation: str = "corrected", drives: str = "test-c
     import numpy as np
     import pandas as pd
 
-    from calib.model.params import default_parameters
-    from optimize.causal.compare import AMBIENTS, DRIVE_SETS, TRAIN_CYCLES, compare_causal, drives_of, step_timing
-    from optimize.causal.controllers import ECMSController, SDPController
-    from optimize.causal.ecms import ECMSParams
+    from calib.model import default_parameters
+    from optimize.causal import AMBIENTS, DRIVE_SETS, TRAIN_CYCLES, ECMSController, ECMSParams, SDPController, compare_causal, drives_of, step_timing
 
     ps = default_parameters()
     test_drives = DRIVE_SETS[drives]

@@ -65,8 +65,7 @@ def register(sub):
 
 
 def run(args) -> int:
-    from calib.errors import IptmError
-    from calib.fileio import write_json
+    from calib import IptmError, write_json
 
     names = list(SUITES) if "all" in args.suite else args.suite
     for n in names:
@@ -84,7 +83,7 @@ def run(args) -> int:
         print(f"== {n}")
         extra = {"n": args.n, "seed": args.seed} if n == "fuzz" else {}
         if n == "causal":
-            from optimize.causal.compare import drives_of
+            from optimize.causal import drives_of
 
             sets = [x for x in (args.learn_from or "").split(",") if x]
             drives_of(sets, "bench causal: --learn-from")
@@ -141,8 +140,8 @@ def _chosen_settings(path: str) -> dict:
     """The ``chosen`` row of a ``studies/causal_select/causal_select.py`` report, or a clear error."""
     import json
 
-    from calib.errors import IptmError
-    from optimize.causal.compare import SELECTED
+    from calib import IptmError
+    from optimize.causal import SELECTED
 
     try:
         row = json.loads(open(path, encoding="utf-8").read()).get("chosen")

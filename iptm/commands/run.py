@@ -32,7 +32,7 @@ def run(args) -> int:
     import sys
     from pathlib import Path
 
-    from calib.fileio import write_json
+    from calib import write_json
     from iptm import pipeline
 
     from iptm.commands.calibrate import check_log_format

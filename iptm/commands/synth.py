@@ -31,11 +31,10 @@ def register(sub):
 def run(args) -> int:
     from pathlib import Path
 
-    from calib.errors import IptmError
-    from calib.fileio import write_json
-    from calib.model.params import ParameterSet
-    from calib.synth import BUNDLED, draw_truth, synthesise
-    from calib.ingest.writers import write_streams
+    from calib import IptmError, write_json
+    from calib.model import ParameterSet
+    from calib import BUNDLED, draw_truth, synthesise
+    from calib.ingest import write_streams
 
     if args.simulator == "fastsim" or args.perturbed:
         return _run_other(args)
@@ -73,8 +72,7 @@ def run(args) -> int:
 
 def _run_other(args) -> int:
     """The test cars that are not our model: FASTSim 3 or the perturbed-structure plant (CSV logs)."""
-    from calib.errors import IptmError
-    from calib.fileio import write_json
+    from calib import IptmError, write_json
 
     if args.formats and [f.strip() for f in args.formats.split(",") if f.strip()] != ["csv"]:
         raise IptmError("--simulator fastsim and --perturbed write CSV logs only (engine and battery power "

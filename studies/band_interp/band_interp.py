@@ -6,8 +6,8 @@ plain chord, each run valued by the direct continuation of its final state.
 import argparse
 
 from calib.model import continuation_corrected, default_parameters
-from optimize.formulations import solve as S
-from optimize.formulations.scenario import DPGrids, DPScenario
+from optimize.dp import forward_pass
+from optimize.formulations import DPGrids, DPScenario, backward_pass_fused, build_problem, resimulate
 
 
 def main():
@@ -22,9 +22,9 @@ def main():
     for cyc, T in zip(a.pairs[::2], a.pairs[1::2]):
         scen = DPScenario(cycle=cyc, T_amb=float(T), terminal="continued", cont_soc_band=a.band)
         for interp in ("reach_first", "multilinear"):
-            b = S.build_problem(ps, scen, DPGrids(soc=a.soc_step), 2, interp=interp)
-            res = S._solve(b, "fused")
-            sim = S.resimulate(ps, b.cyc, res.u[:, 0], res.u[:, 1], res.u[:, 2], scen, interp)
+            b = build_problem(ps, scen, DPGrids(soc=a.soc_step), 2, interp=interp)
+            res = forward_pass(b.prob, backward_pass_fused(b.prob), b.x0)  # the fused kernels, as the solvers use them
+            sim = resimulate(ps, b.cyc, res.u[:, 0], res.u[:, 1], res.u[:, 2], scen, interp)
             c = continuation_corrected(sim, Q_heat=scen.Q_heat, T_amb=scen.T_amb, cycle=scen.cont_cycle)
             print(f"{cyc} {float(T):g} degC, soc step {a.soc_step:g}, {interp:12s}: continuation-corrected "
                   f"{c['fuel_continuation_g']:.3f} g, fuel {sim.fuel_g:.3f} g, SOC_N {sim.soc[-1]:.4f}", flush=True)

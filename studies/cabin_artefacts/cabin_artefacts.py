@@ -19,10 +19,9 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", ".."))
 
 from iptm.commands.simulate import load_params  # noqa: E402
-from optimize.dp.engine import FORWARD_INTERP  # noqa: E402
-from optimize.formulations.scenario import DPScenario, parse_grid_spec  # noqa: E402
-from optimize.formulations.solve import (CABIN_INTERP, CABIN_STATE, CABIN_STATES, SOC_STATE, SOC_STATES,  # noqa: E402
-                                         solve_thermal_cabin)
+from optimize.dp import FORWARD_INTERP  # noqa: E402
+from optimize.formulations import DPScenario, parse_grid_spec  # noqa: E402
+from optimize.formulations import CABIN_INTERP, CABIN_STATE, CABIN_STATES, SOC_STATE, SOC_STATES, solve_thermal_cabin
 
 
 def main(argv=None) -> int:

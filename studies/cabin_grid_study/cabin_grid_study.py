@@ -14,9 +14,8 @@ import os
 import sys
 import time
 
-from calib.model.params import default_parameters
-from optimize.formulations.scenario import DPGrids, DPScenario
-from optimize.formulations.solve import solve_formulation
+from calib.model import default_parameters
+from optimize.formulations import DPGrids, DPScenario, solve_formulation
 
 
 def main(argv):

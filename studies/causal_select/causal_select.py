@@ -50,7 +50,7 @@ def _union(grids: list) -> dict:
 
 
 def _report(rows: list, out: Path, drives=None, grid=None) -> None:
-    from calib.fileio import write_json
+    from calib import write_json
 
     best = choose(rows)
     if best is None:
@@ -82,16 +82,12 @@ def main(argv=None) -> int:
         return 0
 
     from calib.ingest import read_log
-    from calib.model.params import default_parameters
-    from calib.model.simulate import simulate
+    from calib.model import default_parameters, simulate
     from iptm.benchmarks.causal import TRAIN_LOG
     from optimize.causal import DemandMarkov, SDPConfig, build_policy
-    from calib.errors import IptmError
-    from optimize.causal.compare import AMBIENTS, TRAIN_CYCLES, drives_of
-    from optimize.causal.controllers import SDPController
-    from optimize.causal.onestep import fit_stop_regen
-    from optimize.formulations.scenario import DPScenario
-    from optimize.formulations.solve import solve_thermal
+    from calib import IptmError
+    from optimize.causal import AMBIENTS, TRAIN_CYCLES, SDPController, drives_of, fit_stop_regen
+    from optimize.formulations import DPScenario, solve_thermal
 
     ps = default_parameters()
     mp = ps.model_params()

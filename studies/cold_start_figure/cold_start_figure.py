@@ -18,11 +18,8 @@ def main(argv=None) -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from calib.model import ftp
-    from calib.model.equations import CAT, IDLE, ON
-    from calib.model.params import default_parameters
-    from calib.model.rulebased import RuleParams
-    from calib.units import RPM
+    from calib.model import CAT, IDLE, ON, RuleParams, default_parameters, ftp
+    from calib import RPM
 
     out = Path((argv or sys.argv[1:] or [str(OUT)])[0])
     r = ftp.run_ftp(default_parameters(), ftp.COLD_FTP)

@@ -10,8 +10,7 @@ import sys
 import numpy as np
 
 from calib.model import continuation_value, default_parameters
-from optimize.formulations.scenario import DPGrids, DPScenario
-from optimize.formulations.solve import build_problem
+from optimize.formulations import DPGrids, DPScenario, build_problem
 
 
 def main(T_amb: float = -10.0) -> None:

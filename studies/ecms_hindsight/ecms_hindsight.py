@@ -25,17 +25,15 @@ SOC_TOL = 0.01
 
 
 def _scenario(cycle, T_amb, valuation):
-    from optimize.causal.compare import valuation_scenario
-    from optimize.formulations.scenario import DPScenario
+    from optimize.causal import valuation_scenario
+    from optimize.formulations import DPScenario
 
     return valuation_scenario(replace(DPScenario(), cycle=cycle, T_amb=T_amb), valuation, SOC_TOL)
 
 
 def one_run(job: dict) -> dict:
-    from calib.model.params import default_parameters
-    from optimize.causal.compare import valued_fuel
-    from optimize.causal.ecms import ECMSParams
-    from optimize.causal.hindsight import drive_ecms, tune_ecms_on_drive
+    from calib.model import default_parameters
+    from optimize.causal import ECMSParams, drive_ecms, tune_ecms_on_drive, valued_fuel
 
     ps = default_parameters()
     mp = ps.model_params()
@@ -61,7 +59,7 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", type=Path)
     a = ap.parse_args(argv)
-    from optimize.causal.ecms import ECMSParams
+    from optimize.causal import ECMSParams
 
     jobs = []
     for d in a.drives.split(","):
@@ -101,12 +99,12 @@ def main(argv=None) -> int:
                       f"({b['s']:.2f}, {b['mu']:.2f})" if b else f"{'':12s}"]
         print(f"{r['set']:9s} {r['cycle']:31s} {r['T_amb']:4g} {100 * (r['ecms_g'] / r['dp_g'] - 1):+7.2f} "
               f"{cells[0]} {cells[1]:>12s} {cells[2]} {cells[3]:>12s} {100 * (r['rule_g'] / r['dp_g'] - 1):+7.2f}")
-    from optimize.causal.hindsight import summarize
+    from optimize.causal import summarize
 
     summary = summarize(res, GOAL) | {"seconds": time.perf_counter() - t0}
     print(json.dumps(summary, indent=1))
     if a.out:
-        from calib.fileio import write_json
+        from calib import write_json
 
         write_json(a.out, {"valuation": a.valuation, "drives": a.drives, "summary": summary, "runs": res})
     return 0

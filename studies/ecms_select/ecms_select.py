@@ -61,7 +61,7 @@ def plot(rows: list, committed: dict | None, out: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from calib.fileio import save_figure
+    from calib import save_figure
 
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     ax.scatter([r["max_abs_dsoc_stop"] for r in rows], [r["mean_gap_pct"] for r in rows], s=12, color="0.6",
@@ -98,13 +98,10 @@ def main(argv=None) -> int:
         plot(d["rows"], d["committed"], a.plot)
         return 0
 
-    from calib.fileio import write_json
-    from calib.model.params import default_parameters
-    from optimize.causal.compare import AMBIENTS, TRAIN_CYCLES
-    from optimize.causal.ecms import ECMSParams
-    from optimize.causal.hindsight import drive_ecms
-    from optimize.formulations.scenario import DPScenario
-    from optimize.formulations.solve import solve_thermal
+    from calib import write_json
+    from calib.model import default_parameters
+    from optimize.causal import AMBIENTS, TRAIN_CYCLES, ECMSParams, drive_ecms
+    from optimize.formulations import DPScenario, solve_thermal
 
     ps = default_parameters()
     mp = ps.model_params()

@@ -19,8 +19,7 @@ import sys
 
 
 def main(seeds) -> None:
-    from calib.fit.driver import calibrate
-    from calib.fit.validate import replay
+    from calib.fit import calibrate, replay
     from calib.ingest import to_drivelog
     from testcars.synth_fastsim import SONATA, synthesise_fastsim
 
@@ -41,13 +40,25 @@ def main(seeds) -> None:
               f"f_cl {hot}", flush=True)
 
 
+def _fill(a, default):
+    """Linear interpolation over NaN (held flat at the ends); ``default`` when all NaN (as the replay fills
+    a logged channel)."""
+    import numpy as np
+
+    a = np.asarray(a, dtype=float)
+    ok = np.isfinite(a)
+    if not ok.any():
+        return np.full(a.shape, default)
+    idx = np.arange(a.size)
+    return np.interp(idx, idx[ok], a[ok])
+
+
 def fuel_on_logged_coolant(log, params) -> float:
     """Cumulative fuel error (%) of the fuel model alone: engine on/off, power and coolant as logged."""
     import numpy as np
 
-    from calib.fit.replay import _fill, fuel_replay, log_arrays
-    from calib.fit.validate import replay
-    from calib.model.equations import IDLE, ON
+    from calib.fit import fuel_replay, log_arrays, replay
+    from calib.model import IDLE, ON
 
     mp = params.model_params()
     la = log_arrays(log, mp)
@@ -63,8 +74,7 @@ def fuel_on_logged_coolant(log, params) -> float:
 def selections() -> None:
     from itertools import combinations
 
-    from calib.fit.driver import calibrate
-    from calib.fit.validate import replay
+    from calib.fit import calibrate, replay
     from calib.ingest import to_drivelog
     from testcars.synth_fastsim import synthesise_fastsim
     from iptm.benchmarks.calib import SELECTION_SEED, selection_pool

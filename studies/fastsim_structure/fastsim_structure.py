@@ -21,13 +21,24 @@ import numpy as np
 BANDS = [(-50, 40), (40, 80), (80, 95), (95, 200)]
 
 
+def _fill(a, default):
+    """Linear interpolation over NaN (held flat at the ends); ``default`` when all NaN (as the replay fills
+    a logged channel)."""
+    import numpy as np
+
+    a = np.asarray(a, dtype=float)
+    ok = np.isfinite(a)
+    if not ok.any():
+        return np.full(a.shape, default)
+    idx = np.arange(a.size)
+    return np.interp(idx, idx[ok], a[ok])
+
+
 def main() -> None:
-    from calib.fit.battery import fit_battery
-    from calib.fit.driver import calibrate
-    from calib.fit.replay import _fill, fuel_replay, log_arrays
-    from calib.fit.validate import replay
+    from calib.fit import calibrate, fit_battery
+    from calib.fit import fuel_replay, log_arrays, replay
     from calib.ingest import to_drivelog
-    from calib.model.params import default_parameters
+    from calib.model import default_parameters
     from testcars.synth_fastsim import LHV_J_PER_G, SONATA, pack_energy_J, synthesise_fastsim
 
     logs, trues = {}, {}
@@ -142,7 +153,7 @@ def main() -> None:
               f"SOC balance RMSE {f.metrics['soc_balance_rmse']:.4f}")
     print(f"  calibrated (two cold drives): {ps['C_bat_Ah'] * U_mid / 1e3:.2f} kWh, R(-7 degC) = {r_at(ps, -7):.3f}, "
           f"R(0 degC) = {r_at(ps, 0):.3f}, R(22 degC) = {r_at(ps, 22):.3f} ohm, hysteresis {ps['U_hyst_V']:.2f} V")
-    from calib.fit.battery import current_from_power_table
+    from calib.fit import current_from_power_table
 
     for T in (-5.0, 22.0):  # the calibrated pack's chemical / electrical energy, as FASTSim's table above
         P = np.array([2e3, 5e3, 10e3, 20e3])

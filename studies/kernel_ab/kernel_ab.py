@@ -43,10 +43,8 @@ def main(argv=None):
     ap.add_argument("--reps", type=int, default=7)
     a = ap.parse_args(argv)
     sys.path.insert(0, str(ROOT))
-    from calib.model.params import default_parameters
-    from optimize.formulations import fused as after
-    from optimize.formulations.scenario import DPGrids, DPScenario
-    from optimize.formulations.solve import build_problem
+    from calib.model import default_parameters
+    from optimize.formulations import DPGrids, DPScenario, backward_pass_fused, build_problem
 
     before = load_rev(a.rev)
     prob = build_problem(default_parameters(), DPScenario(duration_s=a.duration), DPGrids(), a.states).prob
@@ -55,8 +53,8 @@ def main(argv=None):
           f"load before {os.getloadavg()[0]:.2f}", flush=True)
     ts, vf = {"before": [], "after": []}, {}
     for r in range(a.reps + 1):  # the first round compiles
-        for name, mod in (("before", before), ("after", after)):
-            v = mod.backward_pass_fused(prob)
+        for name, kernel in (("before", before.backward_pass_fused), ("after", backward_pass_fused)):
+            v = kernel(prob)
             if r:
                 ts[name].append(v.t_backward)
             vf[name] = v

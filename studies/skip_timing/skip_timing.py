@@ -9,10 +9,8 @@ import time
 
 import numpy as np
 
-from calib.model.params import default_parameters
-from optimize.formulations.fused import backward_pass_fused
-from optimize.formulations.scenario import DPGrids, DPScenario
-from optimize.formulations.solve import build_problem
+from calib.model import default_parameters
+from optimize.formulations import DPGrids, DPScenario, backward_pass_fused, build_problem
 
 
 def main(reps=5):

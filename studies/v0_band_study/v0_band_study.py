@@ -15,9 +15,8 @@ import json
 import os
 import time
 
-from calib.model.params import default_parameters
-from optimize.formulations.scenario import DPGrids, DPScenario
-from optimize.formulations.solve import dp_objective, solve_thermal
+from calib.model import default_parameters
+from optimize.formulations import DPGrids, DPScenario, dp_objective, solve_thermal
 
 CASES = [("valued", {}, {}), ("continued, SOC_N free", {"terminal": "continued"}, {}),
          ("continued, band 0.01", {"terminal": "continued", "cont_soc_band": 0.01}, {}),
