@@ -60,8 +60,7 @@ def _estimate(key, _params, _scenario, _grids, strategy):
         return None, dash.error_message(exc)
 
 
-from calib.model import available_cycles  # noqa: E402
-from calib.model import ParameterSet, default_parameters  # noqa: E402
+from calib.model import ParameterSet, available_cycles, default_parameters  # noqa: E402
 from optimize.formulations import FORMULATIONS, TERMINALS, DPGrids, DPScenario  # noqa: E402
 from iptm import present  # noqa: E402
 
