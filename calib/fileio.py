@@ -76,6 +76,7 @@ def _default(o):
 
 
 def write_text(path, text: str) -> None:
+    """Write ``text`` to ``path`` atomically (a reader never sees a half-written file)."""
     with atomic_path(path) as tmp:
         tmp.write_text(text)
 

@@ -76,12 +76,15 @@ class Store:
         self.root = Path(root)
 
     def path(self, kind: str, key: str, ext: str) -> Path:
+        """Where the entry ``kind``/``key`` with extension ``ext`` is (or would be) stored."""
         return self.root / kind / f"{key}.{ext}"
 
     def has(self, kind: str, key: str, ext: str = "json") -> bool:
+        """Whether the entry is stored."""
         return self.path(kind, key, ext).is_file()
 
     def get_json(self, kind: str, key: str):
+        """The stored JSON entry, or None when it is missing or damaged."""
         p = self.path(kind, key, "json")
         if not p.is_file():
             return None
@@ -91,11 +94,13 @@ class Store:
             return None  # a damaged entry is recomputed, never trusted
 
     def put_json(self, kind: str, key: str, obj) -> Path:
+        """Store ``obj`` as JSON (atomically); returns its path."""
         p = self.path(kind, key, "json")
         write_json(p, obj)
         return p
 
     def get_npz(self, kind: str, key: str):
+        """The stored arrays as a dict, or None when the entry is missing or damaged."""
         p = self.path(kind, key, "npz")
         if not p.is_file():
             return None
@@ -106,6 +111,7 @@ class Store:
             return None
 
     def put_npz(self, kind: str, key: str, arrays: dict) -> Path:
+        """Store a dict of arrays as ``.npz`` (atomically); returns its path."""
         p = self.path(kind, key, "npz")
         with atomic_path(p) as tmp:
             with open(tmp, "wb") as fh:

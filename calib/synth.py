@@ -57,6 +57,7 @@ class HvacController:
         self.heater_off = tuple(heater_off)  # [(t0, t1)]: driver switches the heater off (identification)
 
     def reset(self):
+        """Reset the rule-based controller's state before a new drive."""
         self.rule.reset()
 
     @property
@@ -69,6 +70,7 @@ class HvacController:
         self.rule.T_bat = value
 
     def describe(self):
+        """One line: the rule-based settings and the thermostat's set point."""
         return f"{self.rule.describe()}; cabin thermostat T_set={self.T_set:g} degC"
 
     def __call__(self, k, soc, T_cl, T_cab, P_trac, Ts=1.0):

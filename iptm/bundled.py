@@ -5,7 +5,7 @@ from __future__ import annotations
 from importlib import resources
 from pathlib import Path
 
-from calib.errors import IptmError
+from calib import IptmError
 
 
 def bundled_logs_dir() -> Path:

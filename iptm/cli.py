@@ -11,7 +11,7 @@ import importlib
 import sys
 import warnings
 
-from calib.errors import IptmError
+from calib import IptmError
 
 # Order = order in `iptm --help`.
 COMMANDS = ["run", "simulate", "synth", "ingest", "calibrate", "optimize", "sweep", "params", "plan", "bench"]
@@ -46,7 +46,7 @@ _PYTHON_SHOWWARNING = warnings.showwarning
 
 def _show_warning(message, category, filename, lineno, file=None, line=None):
     """The project's own warnings as one plain line; anything else as Python shows it."""
-    from calib.errors import IptmWarning
+    from calib import IptmWarning
 
     if issubclass(category, IptmWarning):
         print(f"iptm: warning: {message}", file=file or sys.stderr)

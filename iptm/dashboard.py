@@ -28,7 +28,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from calib.errors import IptmError
+from calib import IptmError
 
 LOGS = "iptm_logs"
 TMP = "iptm_tmpdir"
@@ -320,7 +320,7 @@ def save_upload(state, name: str, data: bytes, *, subdir: str = "uploads", max_b
 
     The size is checked before anything is written; the file appears whole or not at all.
     """
-    from calib.fileio import atomic_path
+    from calib import atomic_path
 
     fname = safe_name(name)
     check_size(fname, len(data), max_bytes)
@@ -334,7 +334,7 @@ def save_upload(state, name: str, data: bytes, *, subdir: str = "uploads", max_b
 
 def read_log_cached(path, *, dbc=None, store_root=None):
     """Read a log through the pipeline's content-keyed ingest cache; returns (DriveLog, channel report)."""
-    from calib.store import Store
+    from calib import Store
     from iptm.pipeline import ingest_all
 
     store = Store(store_root or cache_dir())
@@ -407,20 +407,20 @@ def load_bundled(state, include_other_formats: bool = False, store_root=None) ->
 # calibration helpers
 # ---------------------------------------------------------------------------------------------------
 def calibratable_parameters() -> list[str]:
-    from calib.fit.driver import SUBSYSTEM_PARAMS
+    from calib.fit import SUBSYSTEM_PARAMS
 
     return [n for names in SUBSYSTEM_PARAMS.values() for n in names]
 
 
 def subsystem_of(name: str) -> str:
-    from calib.fit.driver import SUBSYSTEM_PARAMS
+    from calib.fit import SUBSYSTEM_PARAMS
 
     return next((s for s, names in SUBSYSTEM_PARAMS.items() if name in names), "")
 
 
 def truncate(log, seconds: float | None):
     """The first ``seconds`` of a log (``None``/0: the whole log). Same meta (provenance, SHA-256)."""
-    from calib.drivelog import DriveLog
+    from calib import DriveLog
 
     if not seconds or seconds <= 0:
         return log
@@ -469,7 +469,7 @@ def parameter_table(params, names=None) -> pd.DataFrame:
 # ---------------------------------------------------------------------------------------------------
 def cycle_csv_from_log(state, entry: LoadedLog) -> Path:
     """Write a session log's speed trace as a cycle CSV (``time_s,speed_kph``) in the session folder."""
-    from calib.model.cycles import load_cycle
+    from calib.model import load_cycle
 
     cyc = load_cycle(entry.log)
     out = session_dir(state) / "cycles" / f"{Path(entry.name).stem}_cycle.csv"
@@ -480,7 +480,7 @@ def cycle_csv_from_log(state, entry: LoadedLog) -> Path:
 
 def scenario_key(scenario) -> dict:
     """The scenario as a dict whose ``cycle`` names the content (SHA-256) of a cycle file, not its path."""
-    from calib.drivelog import file_sha256
+    from calib import file_sha256
 
     d = scenario.to_dict()
     p = Path(str(d.get("cycle", "")))
@@ -491,7 +491,7 @@ def scenario_key(scenario) -> dict:
 
 def merge_case_studies(parts):
     """One :class:`optimize.casestudy.CaseStudy` from case studies of single strategies (same scenario)."""
-    from optimize.casestudy import CaseStudy
+    from optimize import CaseStudy
 
     sims, outs, timings, rule = {}, {}, {}, None
     for cs in parts:
@@ -568,7 +568,7 @@ def upload_history(state) -> pd.DataFrame:
 # ---------------------------------------------------------------------------------------------------
 def drive_groups(state, names) -> list[list[str]]:
     """The session's logs ``names`` grouped by drive (copies of one drive in several formats together)."""
-    from calib.ingest.drives import group_drives
+    from calib.ingest import group_drives
 
     names = list(names)
     entries = logs(state)
@@ -577,7 +577,7 @@ def drive_groups(state, names) -> list[list[str]]:
 
 def same_drive_as(state, name: str, others) -> str | None:
     """The first of ``others`` that records the same drive as ``name`` (None if none)."""
-    from calib.ingest.drives import same_drive
+    from calib.ingest import same_drive
 
     entries = logs(state)
     return next((o for o in others if o != name and same_drive(entries[o].log, entries[name].log)), None)

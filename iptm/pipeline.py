@@ -24,8 +24,7 @@ import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from calib.errors import ChannelLossWarning, IptmError, ScenarioError
-from calib.store import Store, code_version, content_key
+from calib import ChannelLossWarning, IptmError, ScenarioError, Store, code_version, content_key
 
 DEFAULT_LOG_GLOB = "*.blf"
 STRATEGIES = ("rule", "baseline", "thermal", "thermal_cabin")
@@ -66,12 +65,12 @@ def load_scenario(path=None):
     -------
     (DPScenario, FormulationGrids, strategies, cycle_log or None)
     """
-    from optimize.formulations.scenario import DEFAULT_GRIDS, DPScenario, parse_grid_steps
+    from optimize.formulations import DEFAULT_GRIDS, DPScenario, parse_grid_steps
 
     if path is None:
         return DPScenario(), DEFAULT_GRIDS, STRATEGIES, None
     path = Path(path)
-    from calib.fileio import read_config
+    from calib import read_config
 
     d = read_config(path, ScenarioError, "scenario file")
     unknown = set(d) - {"scenario", "grids", "run"}
@@ -186,8 +185,7 @@ def ingest_all(paths, store: Store | None, dbc=None, progress=True, strict=False
     """
     from tqdm import tqdm
 
-    from calib.ingest import channel_report, input_digest, loss_text, read_canonical, read_log, write_canonical
-    from calib.ingest.damage import warn_damage
+    from calib.ingest import channel_report, input_digest, loss_text, read_canonical, read_log, warn_damage, write_canonical
 
     logs = []
     paths = list(paths)
@@ -225,9 +223,9 @@ def calibrate_cached(fit_logs, val_logs, base, store: Store | None, progress=Tru
 
     Returns (ParameterSet, calibration dict, text report, validation-plot PNG paths in the cache).
     """
-    from calib.fit.driver import calibrate
-    from calib.model.params import ParameterSet
-    from calib.fit.validate import plot_residual_comparison, plot_validation, replay
+    from calib.fit import calibrate
+    from calib.model import ParameterSet
+    from calib.fit import plot_residual_comparison, plot_validation, replay
 
     # "figures-2": measured-vs-simulated on every log (fitted and held out) and the residuals figure
     key = content_key([lg.content_digest() for lg in fit_logs], [lg.content_digest() for lg in val_logs],
@@ -247,7 +245,7 @@ def calibrate_cached(fit_logs, val_logs, base, store: Store | None, progress=Tru
     tmp = Path(str(folder) + tag) if folder else Path(".iptm-calib" + tag)
     tmp.mkdir(parents=True)
     res.to_artifact(tmp / "calibration.toml")
-    from calib.fileio import write_json, write_text
+    from calib import write_json, write_text
 
     write_json(tmp / "calibration.json", res.to_dict())
     write_text(tmp / "report.txt", res.report())
@@ -351,15 +349,15 @@ def optimize_cached(params, scen, grids, strategies, store: Store | None, progre
 
     from tqdm import tqdm
 
-    from calib.drivelog import file_sha256
-    from calib.model.simulate import sim_from_arrays, sim_to_arrays
-    from optimize.casestudy import LABELS, CaseStudy, run_case_study
-    from optimize.formulations.scenario import FORMULATIONS, FormulationGrids
+    from calib import file_sha256
+    from calib.model import sim_from_arrays, sim_to_arrays
+    from optimize import LABELS, CaseStudy, run_case_study
+    from optimize.formulations import FORMULATIONS, FormulationGrids
 
     grids = FormulationGrids.coerce(grids)
     if cycle_log is not None:
-        from calib.model.cycles import load_cycle
-        from calib.fileio import write_text
+        from calib.model import load_cycle
+        from calib import write_text
 
         cyc = load_cycle(cycle_log)
         folder = (store.root if store else Path(".")) / "cycles"
@@ -418,7 +416,7 @@ def optimize_cached(params, scen, grids, strategies, store: Store | None, progre
 
 def _truth_for(paths):
     """The truth parameter file written by ``iptm synth`` next to SYNTHETIC logs, when there is one."""
-    from calib.model.params import ParameterSet
+    from calib.model import ParameterSet
 
     for folder in dict.fromkeys(Path(p).parent for p in paths):
         f = folder / "truth_params.toml"
@@ -452,7 +450,7 @@ def _run_stages(cfg, stage, t0, scen, grids, store, paths, val_paths, fit_paths,
                           on_log=lambda i, n, p: stage.update(i / n, f"read {p.name} ({i} of {n})"))
     stage.close()
     by_path = {p: lg for p, lg, _ in ingested}
-    from calib.ingest.drives import split_fit_validation
+    from calib.ingest import split_fit_validation
 
     # copies of one drive (e.g. the same drive as BLF and CSV) are fitted once, and never used to validate
     fit_logs, val_logs, drive_warnings = split_fit_validation([by_path[p] for p in fit_paths],
@@ -481,7 +479,7 @@ def _run_stages(cfg, stage, t0, scen, grids, store, paths, val_paths, fit_paths,
         stage.start("grid convergence", f"{', '.join(halve)} with every grid step halved")
         cs_half = optimize_cached(params, scen, grids.halved(), halve, store, cfg.progress, cycle_log=cyc_log,
                                   stage=stage)
-        from optimize.convergence import case_study_halving
+        from optimize import case_study_halving
 
         cs.convergence = case_study_halving(cs, cs_half)
         stage.close()
@@ -504,8 +502,8 @@ def _run_stages(cfg, stage, t0, scen, grids, store, paths, val_paths, fit_paths,
 
 def run(cfg: RunConfig) -> RunOutcome:
     """The whole chain; returns where the report is and the headline figures."""
-    from calib.model.params import ParameterSet, default_parameters
-    from optimize.formulations.scenario import DPScenario, FormulationGrids
+    from calib.model import ParameterSet, default_parameters
+    from optimize.formulations import DPScenario, FormulationGrids
 
     t0 = time.perf_counter()
     scen = cfg.scenario or DPScenario()
@@ -518,7 +516,7 @@ def run(cfg: RunConfig) -> RunOutcome:
     fit_paths = [p for p in paths if p not in val_paths]
     base = ParameterSet.load(cfg.base_params) if cfg.base_params else default_parameters()
 
-    from optimize.convergence import ROUTINE_HALVING
+    from optimize import ROUTINE_HALVING
 
     halve = [s for s in cfg.strategies if s in ROUTINE_HALVING] if cfg.convergence else []
     # one line per stage, numbered over the stages this run has

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 
-from optimize.labels import PAPER_CONDITION  # noqa: F401 - the paper's figures' label, for the pages
+from optimize import PAPER_CONDITION  # noqa: F401 - the paper's figures' label, for the pages
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -62,7 +62,7 @@ def subsystems_at_prior(cal) -> list[dict]:
 
 def prior_banner(cal) -> list[str]:
     """One line per subsystem left at its priors, naming the parameters and why (empty when all were fitted)."""
-    from calib.fit.driver import SUBSYSTEM_PARAMS
+    from calib.fit import SUBSYSTEM_PARAMS
 
     return [f"{s['subsystem']} parameters ({', '.join(SUBSYSTEM_PARAMS.get(s['subsystem'], []))}) left at their "
             f"priors: {s['reason']}" for s in subsystems_at_prior(cal)]
@@ -74,7 +74,7 @@ def channel_scores(metrics: dict, log) -> list[dict]:
     log does not carry is "not scored": the replay takes the measured fuel rate as zero where the engine is
     stopped, so a log without fuel rate would otherwise show RMSE 0 over the engine-off seconds. ``log``: the
     DriveLog (None: every channel with a metric counts as scored)."""
-    from calib.fit.validate import CHANNEL_METRICS
+    from calib.fit import CHANNEL_METRICS
 
     rows = []
     for key, (canonical, unit) in CHANNEL_METRICS.items():
@@ -107,7 +107,7 @@ def scores_text(metrics: dict, log) -> str:
 # ---------------------------------------------------------------------------------------------------
 def converged_grids():
     """The grids ``iptm optimize`` and ``iptm run`` solve on by default (each formulation's converged grid)."""
-    from optimize.formulations.scenario import DEFAULT_GRIDS
+    from optimize.formulations import DEFAULT_GRIDS
 
     return DEFAULT_GRIDS
 
@@ -117,7 +117,7 @@ def preview_grids():
     work; its error against the converged result is measured, not assumed: :func:`preview_difference`)."""
     from dataclasses import asdict
 
-    from optimize.formulations.scenario import FORMULATIONS, DPGrids, FormulationGrids
+    from optimize.formulations import FORMULATIONS, DPGrids, FormulationGrids
 
     g = converged_grids()
     return FormulationGrids(*(DPGrids(**{k: 2 * v for k, v in asdict(g.of(f)).items()}) for f in FORMULATIONS))
@@ -127,7 +127,7 @@ def coarser_than_converged(grids) -> list[str]:
     """The formulations whose grid has a step coarser than its converged default."""
     from dataclasses import asdict
 
-    from optimize.formulations.scenario import FORMULATIONS, GRID_AXES, FormulationGrids
+    from optimize.formulations import FORMULATIONS, GRID_AXES, FormulationGrids
 
     g, ref = FormulationGrids.coerce(grids), converged_grids()
     return [f for f in FORMULATIONS
@@ -149,7 +149,7 @@ def preview_difference(preview_cs, converged_cs) -> dict:
 
 def difference_text(diff: dict) -> str:
     """``Thermal-DP +0.41 %, Thermal-Cabin-DP -0.12 %`` (corrected fuel, preview minus converged)."""
-    from optimize.labels import LABELS
+    from optimize import LABELS
 
     return ", ".join(f"{LABELS[k].split(' on ')[0]} {v['diff_pct']:+.2f} %" for k, v in diff.items()
                      if math.isfinite(v["diff_pct"]))
@@ -159,7 +159,7 @@ def ordering_advice(cs, settable=("grids", "terminal")) -> str:
     """What to try when the paper's ordering does not hold, naming only settings not already in use that the
     caller can set (``settable``): converged grids when a grid is coarser, the valued terminal condition when
     another is used; otherwise that the ordering fails on the settings that judge it."""
-    from optimize.formulations.scenario import DPScenario
+    from optimize.formulations import DPScenario
 
     tips = []
     coarse = coarser_than_converged(cs.grids)

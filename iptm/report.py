@@ -14,15 +14,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from calib._version import __version__
-from calib.fileio import write_json, write_text
+from calib import __version__, write_json, write_text
 
 from html import escape as html_escape
 
 from iptm.html import Section, render
 from iptm.present import counts_text, parameter_counts, prior_banner
-from optimize.formulations.scenario import FORMULATIONS
-from optimize.labels import PAPER_CONDITION
+from optimize.formulations import FORMULATIONS
+from optimize import PAPER_CONDITION
 
 FIG_SERIES = {  # what the paper-style figures plot, per strategy
     "soc": "soc", "T_cl_degC": "T_cl", "T_cab_degC": "T_cab",
@@ -150,8 +149,8 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
     logs_info, reports = [], {}
     data = Section("data", "Data used")
     rows = []
-    from calib.ingest.drives import same_drive
-    from calib.economy import format_economy, log_fuel_distance
+    from calib.ingest import same_drive
+    from calib import format_economy, log_fuel_distance
     from calib.ingest import display_report
 
     for path, lg, rep in ingested:
@@ -216,7 +215,7 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
         cal.table(pd.DataFrame(vrows), "validation on held-out logs: the calibrated model replayed from the "
                                        "logged inputs")
     if truth is not None:
-        from calib.fit.validate import truth_comparison
+        from calib.fit import truth_comparison
 
         tfile, tps = truth
         trows = truth_comparison(params, tps)
@@ -260,7 +259,7 @@ def _build(out, run_id, ingested, fit_logs, val_logs, params, calib_info, calib_
     if hasattr(cs, "format_value_check") and cs.outcomes:
         opt.pre(cs.format_value_check())
     if getattr(cs, "convergence", None) is not None:
-        from optimize.convergence import CABIN_TOL_K, FUEL_TOL_PCT, format_case_study_convergence
+        from optimize import CABIN_TOL_K, FUEL_TOL_PCT, format_case_study_convergence
 
         opt.p(f"Grid convergence: each DP solved again with every grid step halved; converged when the corrected "
               f"fuel changes by less than {FUEL_TOL_PCT:g} % and the mean cabin by less than {CABIN_TOL_K:g} K.")

@@ -25,8 +25,11 @@ from .formulations import (FORMULATIONS, DPGrids, DPOutcome, DPScenario, parse_g
                            solve_formulation, solve_thermal, solve_thermal_cabin)
 from .tuning import TunedRule, tune_rule_based, tune_rule_on_drives
 from .casestudy import CaseStudy, run_case_study
-from .convergence import convergence_study, format_convergence
-from .sweep import Study, load_study, run_study
+from .convergence import (CABIN_TOL_K, FUEL_TOL_PCT, ROUTINE_HALVING, case_study_halving, convergence_study,
+                          format_case_study_convergence, format_convergence, halving_row)
+from .labels import LABELS, PAPER_CONDITION
+from .sweep import (ParamSpec, Study, format_failures, load_study, local_client, plot_study, run_case, run_study,
+                    summary_pivot, write_table)
 
 __all__ = [
     "DPProblem", "DPResult", "ValueFunctions", "cartesian", "solve", "backward_pass", "forward_pass",
@@ -34,4 +37,8 @@ __all__ = [
     "solve_baseline", "solve_thermal", "solve_thermal_cabin", "solve_formulation",
     "TunedRule", "tune_rule_based", "tune_rule_on_drives", "CaseStudy", "run_case_study", "convergence_study", "format_convergence",
     "Study", "load_study", "run_study",
+    # for the application layer: strategy labels, convergence checks of a case study, the sweep's parts
+    "LABELS", "PAPER_CONDITION", "CABIN_TOL_K", "FUEL_TOL_PCT", "ROUTINE_HALVING", "case_study_halving",
+    "format_case_study_convergence", "halving_row",
+    "ParamSpec", "run_case", "local_client", "write_table", "plot_study", "summary_pivot", "format_failures",
 ]

@@ -625,6 +625,7 @@ def summary_pivot(df: pd.DataFrame, metric: str = "saving_pct") -> pd.DataFrame:
 
 
 def format_failures(df: pd.DataFrame) -> str:
+    """One line per failed case of a study's table: its case, scenario, parameters, strategy and error."""
     bad = df[df["status"] == "failed"]
     return "\n".join(f"case {r.case_id} ({r.cycle}, {r.T_amb:g} degC, {r.params}) {r.strategy}: {r.error}"
                      for r in bad.itertuples())

@@ -4,7 +4,7 @@ measured-vs-simulated plots, and download the calibration file."""
 import matplotlib.pyplot as plt
 import streamlit as st
 
-from calib.store import content_key
+from calib import content_key
 from iptm import dashboard as dash
 from iptm import present
 
@@ -17,7 +17,7 @@ PROGRESS = st.container()
 @st.cache_resource(show_spinner=False, max_entries=8)
 def _calibrate(key, _fit_logs, _val_logs, _base, fit, fix):
     """Cached by ``key`` (the logs' SHA-256, truncation, base parameters and options), never by session."""
-    from calib.fit.driver import calibrate
+    from calib.fit import calibrate
 
     return calibrate(_fit_logs, base=_base, fit=list(fit) if fit is not None else None, fix=list(fix),
                      validate=_val_logs or None, progress=False)
@@ -25,7 +25,7 @@ def _calibrate(key, _fit_logs, _val_logs, _base, fit, fix):
 
 @st.cache_resource(show_spinner=False, max_entries=32)
 def _replay(key, _log, _params):
-    from calib.fit.validate import replay
+    from calib.fit import replay
 
     return replay(_log, _params)
 
@@ -85,7 +85,7 @@ def _page():
     base = None
     base_ok = True
     if base_file is not None:
-        from calib.model.params import ParameterSet
+        from calib.model import ParameterSet
 
         try:
             p = dash.save_upload(state, base_file.name, base_file.getvalue(), subdir="params")
@@ -97,7 +97,7 @@ def _page():
 
     run = st.button("Run calibration", type="primary", disabled=not fit_names or not base_ok, key="cal_run")
     if run:
-        from calib.model.params import default_parameters
+        from calib.model import default_parameters
 
         state.pop(dash.CALIB, None)  # a failed run leaves no earlier result that reads as this one's
         with PROGRESS:
@@ -175,7 +175,7 @@ def _page():
             if chart is not None:
                 st.altair_chart(chart, width="stretch")
     with tabs[-1]:
-        from calib.fit.validate import plot_residual_comparison  # noqa: E402
+        from calib.fit import plot_residual_comparison  # noqa: E402
 
         fig = plot_residual_comparison([(f"{lbl} ({'held out' if h else 'fitted'})", rep) for lbl, rep, h in cal["plots"]])
         st.pyplot(fig, clear_figure=True)

@@ -92,7 +92,7 @@ def _page():
         return
 
     st.subheader("Loaded logs")
-    from calib.economy import format_economy, log_fuel_distance
+    from calib import format_economy, log_fuel_distance
 
     overview = []
     for e in session_logs.values():

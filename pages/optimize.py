@@ -7,7 +7,7 @@ import time
 
 import streamlit as st
 
-from calib.store import content_key
+from calib import content_key
 from iptm import dashboard as dash
 
 state = st.session_state
@@ -24,7 +24,7 @@ STRATS = {"rule": "Rule-based (tuned)", "baseline": "Baseline-DP", "thermal": "T
 def _solve(key, _params, _scenario, _grids, strategy, _steps=None):
     """One strategy of the case study, cached by content (parameters, scenario incl. cycle file hash, grids).
     ``_steps(done, total)``: the DP's backward pass, where the solver reports it."""
-    from optimize.casestudy import run_case_study
+    from optimize import run_case_study
 
     return run_case_study(_params, _scenario, strategies=(strategy,), progress=False, grids=_grids,
                           step_progress=_steps)
@@ -60,9 +60,8 @@ def _estimate(key, _params, _scenario, _grids, strategy):
         return None, dash.error_message(exc)
 
 
-from calib.model.cycles import available_cycles  # noqa: E402
-from calib.model.params import ParameterSet, default_parameters  # noqa: E402
-from optimize.formulations.scenario import FORMULATIONS, TERMINALS, DPGrids, DPScenario  # noqa: E402
+from calib.model import ParameterSet, available_cycles, default_parameters  # noqa: E402
+from optimize.formulations import FORMULATIONS, TERMINALS, DPGrids, DPScenario  # noqa: E402
 from iptm import present  # noqa: E402
 
 
@@ -71,7 +70,7 @@ from iptm import present  # noqa: E402
 def _run_sweep(key, _study, _bar):
     # The same call as `iptm sweep`: a local dask cluster of 2 worker processes, started and closed here,
     # and the shared content-keyed store, so cases computed before (by any session) are reused.
-    from optimize.sweep import run_study
+    from optimize import run_study
 
     return run_study(_study, client=None, store_dir=dash.cache_dir() / "sweep", n_workers=2,
                      progress_callback=lambda done, total, rec: _bar.progress(
@@ -91,7 +90,7 @@ def _sweep_section(params, scenario, grids, strategies):
             res = None
             bar = st.progress(0.0, text="sweep")
             try:
-                from optimize.sweep import ParamSpec, Study, plot_study
+                from optimize import ParamSpec, Study, plot_study
 
                 try:
                     temps = [float(x) for x in txt.replace(";", ",").split(",") if x.strip()]
@@ -115,7 +114,7 @@ def _sweep_section(params, scenario, grids, strategies):
                 bar.empty()
                 st.error(dash.plain(f"Sweep failed: {dash.error_message(exc)}"))
         if res is not None:
-            from optimize.sweep import summary_pivot
+            from optimize import summary_pivot
 
             try:
                 st.dataframe(summary_pivot(res["df"]), width="stretch")
@@ -192,7 +191,7 @@ def _page():
             cycle_ok = False
         else:
             try:
-                from calib.model.cycles import load_cycle
+                from calib.model import load_cycle
 
                 p = dash.save_upload(state, cf.name, cf.getvalue(), subdir="cycles")
                 c = load_cycle(str(p))
@@ -357,7 +356,7 @@ def _page():
     st.caption("Interactive: drag to pan, mouse wheel to zoom the time axis (every panel follows), hover to "
                "compare the strategies point by point; double-click resets.")
     from iptm.charts import trajectories_chart
-    from optimize.casestudy import LABELS
+    from optimize import LABELS
 
     chart = trajectories_chart(cs.sims, LABELS)
     if chart is not None:

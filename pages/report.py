@@ -23,7 +23,7 @@ def _page():
         st.page_link("pages/logs.py", label="Go to Logs")
         return
 
-    from optimize.formulations.scenario import DPScenario  # noqa: E402
+    from optimize.formulations import DPScenario  # noqa: E402
 
     names = list(session_logs)
     sel = st.multiselect("Logs (the last one is held out for validation)", names, default=names,

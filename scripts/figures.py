@@ -36,7 +36,7 @@ SUITES = ("sim", "epa")
 MUTATION_JSON = ROOT / "reports" / "mutation.json"
 #: ``iptm bench causal --drives SET --valuation V --json reports/causal-SET-V.json`` (each run takes minutes:
 #: ``run`` does not re-run them)
-CAUSAL_SETS = ("held-out", "fresh", "reserve", "third", "fourth")
+CAUSAL_SETS = ("test-cycles", "cmap-trip1", "cmap-trip2", "cmap-trip3", "wltc-high-cmap-trip4")
 CAUSAL_VALUATIONS = ("corrected", "continuation")
 
 
@@ -45,7 +45,7 @@ def causal_json(drives: str, valuation: str) -> Path:
 
 
 def hindsight_json(valuation: str) -> Path:
-    """``python scripts/ecms_hindsight.py --valuation V --out reports/ecms-hindsight-V.json`` (not re-run)."""
+    """``python studies/ecms_hindsight/ecms_hindsight.py --valuation V --out reports/ecms-hindsight-V.json`` (not re-run)."""
     return ROOT / "reports" / f"ecms-hindsight-{valuation}.json"
 
 
@@ -126,7 +126,7 @@ def _causal_rule_train(d: dict) -> str:
     return "\n".join(out[1:])
 
 
-def _causal_per_drive(d: dict, drives: str = "fourth") -> str:
+def _causal_per_drive(d: dict, drives: str = "wltc-high-cmap-trip4") -> str:
     """Per drive of one set, both valuations: Thermal-DP, the rule tuned on the drive, the SDP and the ECMS
     (docs/studies/causal_controllers.md, per drive)."""
     out = []
@@ -152,7 +152,7 @@ def _causal_per_drive(d: dict, drives: str = "fourth") -> str:
 
 
 def _ecms_hindsight(d: dict) -> str:
-    """Per valuation, the causal ECMS against the ECMS tuned on each drive (scripts/ecms_hindsight.py)."""
+    """Per valuation, the causal ECMS against the ECMS tuned on each drive (studies/ecms_hindsight/ecms_hindsight.py)."""
     from optimize.causal.hindsight import summarize
 
     rows = ["| valuation | runs | within 3 % of Thermal-DP: causal ECMS | ECMS tuned on the drive | constant co-states "
@@ -271,7 +271,7 @@ FILES = {
     "docs/testing.md": {"mutation": _mutation},
     "docs/studies/causal.md": {"causal": _causal, "ecms-hindsight": _ecms_hindsight},
     "docs/studies/causal_controllers.md": {"causal-rule-train": _causal_rule_train, "ecms-hindsight": _ecms_hindsight,
-                                           "causal-fourth": _causal_per_drive},
+                                           "causal-wltc-high-cmap-trip4": _causal_per_drive},
 }
 RENDER = FILES["README.md"]
 
@@ -316,7 +316,7 @@ SOURCE_OF = {"sim": "reports/figures/bench-sim.json (`make figures`)",
              "calib_selections": "reports/figures/calib-selections.json "
                                  "(`python -m iptm.benchmarks.calib --selections --json FILE`)",
              "causal": "reports/causal-SET-VALUATION.json (`iptm bench causal`)",
-             "ecms_hindsight": "reports/ecms-hindsight-VALUATION.json (scripts/ecms_hindsight.py)"}
+             "ecms_hindsight": "reports/ecms-hindsight-VALUATION.json (studies/ecms_hindsight/ecms_hindsight.py)"}
 
 
 class MissingData(Exception):

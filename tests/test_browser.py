@@ -287,7 +287,7 @@ def _mcap_bomb(path: Path) -> tuple[Path, Path, int]:
     """A known 300-s drive as MCAP (written with the mcap package) with one more zstd chunk after its header
     record: 33 kB that inflate to 1 GiB of zeros while the chunk declares 4096 bytes. Returns the bomb, the
     intact drive and the byte where the bomb chunk starts."""
-    from calib.ingest.fabricate import fabricate_streams
+    from testcars.fabricate import fabricate_streams
     from calib.ingest.writers import write_streams
     from test_ingest_bombs import chunk_record, zstd_rle_frame
 

@@ -1,4 +1,4 @@
-"""Calibration on logs from a plant whose structure the fitter does not share (calib.synth_perturbed).
+"""Calibration on logs from a plant whose structure the fitter does not share (testcars.synth_perturbed).
 
 What must hold despite the mismatch: the fit runs, the parameters the data determine land near the
 plant's comparable values, and no reported uncertainty is overconfident beyond a tolerance that
@@ -12,7 +12,7 @@ import pytest
 
 from calib.fit.driver import calibrate
 from calib.ingest import to_drivelog
-from calib.synth_perturbed import CALIBRATION, HELD_OUT, Drive, draw_plant, perturbed_logs, score, synthesise_perturbed
+from testcars.synth_perturbed import CALIBRATION, HELD_OUT, Drive, draw_plant, perturbed_logs, score, synthesise_perturbed
 
 #: Relative tolerance per scored parameter: what the structure mismatch leaves (blower stages vs one
 #: flow for eps_hc; the lagged sensor and thermostat range for the coolant; R_int at T_ref rests on

@@ -1,5 +1,5 @@
 """The drives the causal controllers are chosen on and tested on, the rule that chooses the SDP's settings, and
-the script that cut the fresh and reserve test trips out of FASTSim's CMAP subset."""
+the study that cut the CMAP test trips out of FASTSim's CMAP subset."""
 import importlib.util
 import shutil
 import subprocess
@@ -10,38 +10,41 @@ import pytest
 
 from calib.model.cycles import load_cycle
 from calib.errors import IptmError
-from optimize.causal.compare import (DRIVE_SETS, FOURTH_TEST, FRESH_TEST, HELD_OUT, RESERVE_TEST, THIRD_TEST,
-                                     TRAIN_CYCLES, compare_causal)
+from optimize.causal.compare import (CMAP_TRIP1, CMAP_TRIP2, CMAP_TRIP3, DRIVE_SETS, TEST_CYCLES, TRAIN_CYCLES,
+                                     WLTC_HIGH_CMAP_TRIP4, compare_causal)
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def _script(name):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
+    spec = importlib.util.spec_from_file_location(name, ROOT / "studies" / name / f"{name}.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
 
 
-def test_training_held_out_fresh_and_reserve_drives_are_disjoint_and_bundled():
-    assert not set(TRAIN_CYCLES) & set(HELD_OUT)
-    assert not set(FRESH_TEST) & (set(TRAIN_CYCLES) | set(HELD_OUT))
-    assert not set(RESERVE_TEST) & (set(TRAIN_CYCLES) | set(HELD_OUT) | set(FRESH_TEST))
-    assert not set(THIRD_TEST) & (set(TRAIN_CYCLES) | set(HELD_OUT) | set(FRESH_TEST) | set(RESERVE_TEST))
-    assert not set(FOURTH_TEST) & (set(TRAIN_CYCLES) | set(HELD_OUT) | set(FRESH_TEST) | set(RESERVE_TEST)
-                                   | set(THIRD_TEST))
-    assert DRIVE_SETS == {"held-out": HELD_OUT, "fresh": FRESH_TEST, "reserve": RESERVE_TEST, "third": THIRD_TEST,
-                          "fourth": FOURTH_TEST}
-    # each reserve trip is a later trip of a car of the fresh set, each third trip later than its car's reserve one
-    first = {n.split("_")[1] + "_" + n.split("_")[2]: (n.split("_")[3], "") for n in FRESH_TEST}
-    second = {n.split("_")[1] + "_" + n.split("_")[2]: tuple(n.split("_")[3:]) for n in RESERVE_TEST}
-    for later, earlier in ((RESERVE_TEST, first), (THIRD_TEST, second)):
+def test_training_and_test_drive_sets_are_disjoint_and_bundled():
+    assert not set(TRAIN_CYCLES) & set(TEST_CYCLES)
+    assert not set(CMAP_TRIP1) & (set(TRAIN_CYCLES) | set(TEST_CYCLES))
+    assert not set(CMAP_TRIP2) & (set(TRAIN_CYCLES) | set(TEST_CYCLES) | set(CMAP_TRIP1))
+    assert not set(CMAP_TRIP3) & (set(TRAIN_CYCLES) | set(TEST_CYCLES) | set(CMAP_TRIP1) | set(CMAP_TRIP2))
+    assert not set(WLTC_HIGH_CMAP_TRIP4) & (set(TRAIN_CYCLES) | set(TEST_CYCLES) | set(CMAP_TRIP1) | set(CMAP_TRIP2)
+                                   | set(CMAP_TRIP3))
+    assert DRIVE_SETS == {"test-cycles": TEST_CYCLES, "cmap-trip1": CMAP_TRIP1, "cmap-trip2": CMAP_TRIP2,
+                          "cmap-trip3": CMAP_TRIP3, "wltc-high-cmap-trip4": WLTC_HIGH_CMAP_TRIP4}
+    from iptm.commands.bench import DRIVE_SET_NAMES
+
+    assert DRIVE_SET_NAMES == tuple(DRIVE_SETS)  # the CLI's choices
+    # each second trip is a later trip of a car of the first-trip set, each third trip later than its car's second
+    first = {n.split("_")[1] + "_" + n.split("_")[2]: (n.split("_")[3], "") for n in CMAP_TRIP1}
+    second = {n.split("_")[1] + "_" + n.split("_")[2]: tuple(n.split("_")[3:]) for n in CMAP_TRIP2}
+    for later, earlier in ((CMAP_TRIP2, first), (CMAP_TRIP3, second)):
         for n in later:
             _, veh, no, day, hhmm = n.split("_")
             assert (day, hhmm) > earlier[f"{veh}_{no}"] and len(hhmm) == 4, n
-    cmap = [n for n in FOURTH_TEST if n.startswith("cmap_")]
-    assert cmap == ["cmap_4108468_1_20070625_1220"] and cmap[0] > THIRD_TEST[0]  # the fourth trip of that car
-    for name in FRESH_TEST + RESERVE_TEST + THIRD_TEST + FOURTH_TEST:
+    cmap = [n for n in WLTC_HIGH_CMAP_TRIP4 if n.startswith("cmap_")]
+    assert cmap == ["cmap_4108468_1_20070625_1220"] and cmap[0] > CMAP_TRIP3[0]  # the fourth trip of that car
+    for name in CMAP_TRIP1 + CMAP_TRIP2 + CMAP_TRIP3 + WLTC_HIGH_CMAP_TRIP4:
         c = load_cycle(name)
         if name.startswith("cmap_"):
             assert 300.0 <= c.t[-1] <= 1800.0, name  # the rule's 5-30 min
@@ -162,7 +165,7 @@ def test_goals_count_the_runs_that_meet_each_goal():
 
 def test_a_drive_the_chain_learns_from_cannot_also_test_it():
     with pytest.raises(IptmError, match="held-out drives must not be training drives"):
-        compare_causal(None, held_out=RESERVE_TEST[:1], learn_from=RESERVE_TEST[:2], progress=False)
+        compare_causal(None, held_out=CMAP_TRIP2[:1], learn_from=CMAP_TRIP2[:2], progress=False)
 
 
 def test_own_chain_takes_the_chosen_settings():
@@ -195,10 +198,10 @@ def test_own_settings_must_be_a_chosen_selection(tmp_path, capsys):
 
     none = tmp_path / "none.json"
     none.write_text(json.dumps({"rows": [], "chosen": None}))
-    cases = [(["--learn-from", "fresh", "--own-settings", str(none)], "no chosen setting"),
-             (["--learn-from", "fresh", "--own-settings", str(tmp_path / "missing.json")], "cannot read it"),
+    cases = [(["--learn-from", "cmap-trip1", "--own-settings", str(none)], "no chosen setting"),
+             (["--learn-from", "cmap-trip1", "--own-settings", str(tmp_path / "missing.json")], "cannot read it"),
              (["--own-settings", str(none)], "needs --learn-from"),
-             (["--learn-from", "nope"], "choose among held-out, fresh, reserve, third")]
+             (["--learn-from", "nope"], "choose among test-cycles, cmap-trip1, cmap-trip2, cmap-trip3")]
     for extra, why in cases:
-        assert main(["bench", "causal", "--drives", "third"] + extra) == 2, extra
+        assert main(["bench", "causal", "--drives", "cmap-trip3"] + extra) == 2, extra
         assert why in capsys.readouterr().err, extra

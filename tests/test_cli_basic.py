@@ -33,5 +33,5 @@ def test_unknown_cycle(capsys):
 
 
 def test_bench_causal_refuses_to_learn_from_its_test_set(capsys):
-    assert main(["bench", "causal", "--drives", "fresh", "--learn-from", "fresh"]) == 2
+    assert main(["bench", "causal", "--drives", "cmap-trip1", "--learn-from", "cmap-trip1"]) == 2
     assert "learn from another set than --drives" in capsys.readouterr().err

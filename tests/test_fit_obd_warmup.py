@@ -20,7 +20,7 @@ from calib.ingest import to_drivelog
 from test_fit_sparse import binned_only  # the tests folder is on the path (rootdir import mode)
 from calib.model.equations import IDLE, OFF, ON
 from calib.model.params import default_parameters
-from calib.synth_perturbed import OBD_PIDS, PARKED_WARMUP, draw_plant, synthesise_perturbed_obd
+from testcars.synth_perturbed import OBD_PIDS, PARKED_WARMUP, draw_plant, synthesise_perturbed_obd
 
 POLLED = [c for c, _, _ in OBD_PIDS if c != "maf_g_per_s"] + ["fuel_rate_g_per_s"]
 

@@ -12,7 +12,7 @@ from calib.fit.fuel import fit_fuel
 from calib.fit.thermal import fit_thermal
 from calib.ingest import read_log
 from calib.model.params import default_parameters
-from calib.synth_fastsim import fastsim_available
+from testcars.synth_fastsim import fastsim_available
 
 SAMPLE_CSV = Path(__file__).parent / "data" / "fastsim" / "SYNTHETIC_fastsim_sonata_cold_udds_300s.csv"
 
@@ -104,7 +104,7 @@ def test_thermal_fit_on_power_only_logs_takes_few_evaluations(monkeypatch):
     """A cold soak and a warm restart of the FASTSim car (drives 1 and 4 of the selection pool): with the
     bounds transformed, Levenberg-Marquardt ran into its limit of 16000 evaluations here."""
     from calib.ingest import to_drivelog
-    from calib.synth_fastsim import synthesise_fastsim
+    from testcars.synth_fastsim import synthesise_fastsim
     from iptm.benchmarks.calib import SELECTION_SEED, selection_pool
 
     pool = selection_pool()

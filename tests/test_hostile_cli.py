@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from calib.ingest.fabricate import fabricate_streams
+from testcars.fabricate import fabricate_streams
 from calib.ingest.writers import write_streams
 from iptm.benchmarks.fuzz import _blf_container, _blf_objects, _mcap_records, _zlib_zeros, _zstd_zeros
 

@@ -23,7 +23,7 @@ from mcap.writer import CompressionType, Writer
 from calib.errors import LogFormatError
 from calib.ingest import read_streams
 from calib.ingest.canreaders import Bad, RecoveringBLFReader
-from calib.ingest.fabricate import fabricate_streams
+from testcars.fabricate import fabricate_streams
 from calib.ingest.limits import MAX_INFLATE_MB, RAISE_HINT, json_too_deep, size_text
 from calib.ingest.writers import write_streams
 

@@ -8,7 +8,7 @@ import pytest
 
 from calib.errors import LogFormatError
 from calib.ingest import PRIUS_DBC, channel_report, decode_can_signals, format_report, read_log, read_streams
-from calib.ingest.fabricate import fabricate_streams
+from testcars.fabricate import fabricate_streams
 from calib.ingest.writers import can_frames, write_streams
 
 DATA = Path(__file__).parent / "data" / "can"

@@ -8,7 +8,7 @@ import pytest
 from calib.errors import LogFormatError
 from calib.ingest import read_log, read_streams
 from calib.ingest.canlog import read_can_streams
-from calib.ingest.fabricate import fabricate_streams
+from testcars.fabricate import fabricate_streams
 from calib.ingest.writers import can_frames
 
 ROOT = Path(__file__).resolve().parents[1]

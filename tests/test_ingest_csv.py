@@ -4,7 +4,7 @@ import pytest
 
 from calib.errors import LogFormatError
 from calib.ingest import read_log, read_streams
-from calib.ingest.fabricate import fabricate_streams
+from testcars.fabricate import fabricate_streams
 from calib.ingest.writers import write_streams
 
 

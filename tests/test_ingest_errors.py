@@ -3,7 +3,7 @@ import pytest
 
 from calib.errors import IptmError, LogFormatError
 from calib.ingest import read_log, read_streams
-from calib.ingest.fabricate import fabricate_streams
+from testcars.fabricate import fabricate_streams
 from calib.ingest.writers import write_streams
 
 

@@ -7,7 +7,7 @@ from mcap.writer import CompressionType, Writer
 
 from calib.errors import LogFormatError
 from calib.ingest import DEFAULT_TOPIC_MAP, read_streams
-from calib.ingest.fabricate import fabricate_streams
+from testcars.fabricate import fabricate_streams
 from calib.ingest.writers import write_streams
 
 

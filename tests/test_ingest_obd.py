@@ -12,7 +12,7 @@ import pytest
 from calib.errors import LogFormatError
 from calib.ingest import read_log, read_streams
 from calib.ingest.common import AFR_STOICH
-from calib.ingest.fabricate import fabricate_streams
+from testcars.fabricate import fabricate_streams
 from calib.ingest.obd import OBD2_DBC, PIDS, classify, decode_obd
 from calib.ingest.writers import can_frames
 from calib.units import GASOLINE_DENSITY_KG_PER_L

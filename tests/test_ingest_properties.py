@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from calib.drivelog import DriveLog
 from calib.errors import IptmError
 from calib.ingest import read_log
-from calib.ingest.fabricate import fabricate_streams
+from testcars.fabricate import fabricate_streams
 from calib.ingest.writers import write_streams
 
 FORMATS = {"csv": "csv", "mcap": "mcap", "candump": "log", "blf": "blf", "asc": "asc"}

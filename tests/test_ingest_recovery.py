@@ -368,7 +368,7 @@ def _one_group_mf4(path):
     asammdf = pytest.importorskip("asammdf")
     from calib.drivelog import CHANNELS
     from calib.ingest.common import HUMAN_NAME
-    from calib.ingest.fabricate import fabricate_streams
+    from testcars.fabricate import fabricate_streams
 
     streams, _ = fabricate_streams(120.0, dropout=None, rates={c: 10.0 for c in (
         "speed_mps", "bat_current_A", "bat_voltage_V", "engine_speed_rpm", "fuel_rate_g_per_s")})

@@ -7,7 +7,7 @@ import pytest
 
 from calib.ingest import (channel_report, format_report, read_canonical, read_log, read_streams, to_drivelog,
                           write_canonical)
-from calib.ingest.fabricate import QUANTUM, fabricate_streams
+from testcars.fabricate import QUANTUM, fabricate_streams
 from calib.ingest.writers import write_streams
 from iptm.cli import main
 

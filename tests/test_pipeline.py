@@ -99,7 +99,7 @@ def test_bad_log_stops_before_heavy_work(small_logs, tmp_path, monkeypatch):
     def boom(*a, **k):
         raise AssertionError("calibration must not start")
 
-    monkeypatch.setattr("calib.fit.driver.calibrate", boom)
+    monkeypatch.setattr("calib.fit.calibrate", boom)  # the pipeline calibrates through calib.fit
     cfg = pipeline.RunConfig(logs=[small_logs[0], bad, small_logs[1]], scenario=SCEN, grids=GRIDS,
                              reports_dir=tmp_path / "reports", cache_dir=None, progress=False)
     with pytest.raises(IptmError, match="broken.mcap"):
@@ -146,10 +146,10 @@ def test_source_edit_recomputes_what_depends_on_it(first_run, monkeypatch):
     real = pipeline.code_version
     monkeypatch.setattr(pipeline, "code_version", lambda *pk: real(*pk) + "-edited" if "calib" in pk else real(*pk))
     calls = []
-    import calib.fit.driver as driver
+    import calib.fit as fit  # the pipeline calibrates through this front door
 
-    orig = driver.calibrate
-    monkeypatch.setattr(driver, "calibrate", lambda *a, **k: calls.append(1) or orig(*a, **k))
+    orig = fit.calibrate
+    monkeypatch.setattr(fit, "calibrate", lambda *a, **k: calls.append(1) or orig(*a, **k))
     pipeline.run(cfg)
     assert calls, "calibration was served from the cache after a source change"
     assert {p.name for p in (cache / "calib").iterdir()} - before

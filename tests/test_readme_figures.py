@@ -72,10 +72,10 @@ def test_check_catches_an_edited_mutation_score():
 
 def test_check_catches_an_edited_causal_count():
     data = figures.load()
-    assert ("fresh", "continuation") in data["causal"], "reports/causal-fresh-continuation.json missing"
+    assert ("cmap-trip1", "continuation") in data["causal"], "reports/causal-cmap-trip1-continuation.json missing"
     text, render = _rendered("docs/studies/causal.md", data)
-    g = data["causal"][("fresh", "continuation")]["goals"]["ecms"]
-    old = f"| fresh | continuation | ECMS | {g['within_3pct']}/{g['runs']} |"
+    g = data["causal"][("cmap-trip1", "continuation")]["goals"]["ecms"]
+    old = f"| cmap-trip1 | continuation | ECMS | {g['within_3pct']}/{g['runs']} |"
     assert old in figures.blocks(text)["causal"]
-    edited = text.replace(old, f"| fresh | continuation | ECMS | {g['runs']}/{g['runs']} |")
+    edited = text.replace(old, f"| cmap-trip1 | continuation | ECMS | {g['runs']}/{g['runs']} |")
     assert [b[0] for b in figures.check(edited, data, render)] == ["causal"]

@@ -178,7 +178,7 @@ def test_sweep_prints_the_corrected_saving_first(monkeypatch, tmp_path, capsys):
 
     import pandas as pd
 
-    import optimize.sweep as sw
+    import optimize as sw  # the command uses the sweep through optimize's front door
     from iptm.commands import sweep as cmd
 
     study = SimpleNamespace(name="s", strategies=("rule", "thermal"), reference="rule", grids={}, source="s.toml",

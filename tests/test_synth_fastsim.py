@@ -41,7 +41,7 @@ def test_calibration_runs_on_the_sample():
     assert res.fits["cabin"].logs  # cabin temperature, ambient and heater power are logged
 
 
-from calib.synth_fastsim import fastsim_available  # noqa: E402
+from testcars.synth_fastsim import fastsim_available  # noqa: E402
 
 needs_fastsim = pytest.mark.skipif(not fastsim_available(),
                                    reason="optional package fastsim (extra 'fastsim') not installed")
@@ -49,7 +49,7 @@ needs_fastsim = pytest.mark.skipif(not fastsim_available(),
 
 @needs_fastsim
 def test_generator_reproduces_the_committed_sample(tmp_path):
-    from calib.synth_fastsim import SAMPLE, write_fastsim_log
+    from testcars.synth_fastsim import SAMPLE, write_fastsim_log
 
     out = tmp_path / SAMPLE_CSV.name
     write_fastsim_log(SAMPLE, out, seed=0)
@@ -58,7 +58,7 @@ def test_generator_reproduces_the_committed_sample(tmp_path):
 
 @needs_fastsim
 def test_ambient_and_initial_temperatures_reach_fastsim():
-    from calib.synth_fastsim import FastsimScenario, run_fastsim
+    from testcars.synth_fastsim import FastsimScenario, run_fastsim
 
     sc = FastsimScenario("t", "udds", -7.0, 60.0, 10.0, 0.0, duration_s=120.0)
     r = run_fastsim(sc)
@@ -74,7 +74,7 @@ def test_ambient_and_initial_temperatures_reach_fastsim():
 
 @needs_fastsim
 def test_cold_start_costs_fuel_and_highway_overheats():
-    from calib.synth_fastsim import FastsimScenario, run_fastsim, udds_cold_warm_ratio
+    from testcars.synth_fastsim import FastsimScenario, run_fastsim, udds_cold_warm_ratio
 
     ratio = udds_cold_warm_ratio()
     assert 1.2 < ratio["ratio"] < 1.6
@@ -98,7 +98,7 @@ def test_battery_energy_from_fastsim_power_and_soc():
     from calib.fit.battery import fit_battery
     from calib.ingest import to_drivelog
     from calib.model.params import default_parameters
-    from calib.synth_fastsim import SONATA, pack_energy_J, synthesise_fastsim
+    from testcars.synth_fastsim import SONATA, pack_energy_J, synthesise_fastsim
 
     E_true = pack_energy_J()
     assert E_true > 1e6
@@ -122,7 +122,7 @@ def test_hysteresis_carries_fastsims_proportional_battery_loss_to_a_warm_drive()
     from calib.fit.validate import replay
     from calib.ingest import to_drivelog
     from calib.model.params import default_parameters
-    from calib.synth_fastsim import SONATA, synthesise_fastsim
+    from testcars.synth_fastsim import SONATA, synthesise_fastsim
 
     logs = [to_drivelog(*synthesise_fastsim(sc, seed=7 + i)[1:]) for i, sc in enumerate(SONATA)]
     base = default_parameters()

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from calib.synth_perturbed import (
+from testcars.synth_perturbed import (
     ENGINE_CHANNELS,
     HEATER_CHANNELS,
     Drive,

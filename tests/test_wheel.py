@@ -22,7 +22,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("calib", "optimize", "iptm")
+PACKAGES = ("calib", "optimize", "iptm", "testcars")
 
 
 def _package_dirs() -> list[str]:
@@ -96,11 +96,12 @@ def test_the_wheel_ships_every_package_and_the_data(wheel):
 
 
 def test_the_installed_package_is_the_wheel_not_the_checkout(venv):
-    out = _run(venv, "python", "-c", "import calib, optimize, iptm, iptm.bundled as b; "
-                                     "print(calib.__file__, optimize.__file__, iptm.__file__, b.bundled_logs_dir())")
+    out = _run(venv, "python", "-c", "import calib, optimize, iptm, testcars, iptm.bundled as b; "
+                                     "print(calib.__file__, optimize.__file__, iptm.__file__, testcars.__file__, "
+                                     "b.bundled_logs_dir())")
     env_dir = venv[0].parent.parent
     paths = out.split()
-    assert len(paths) == 4 and all(Path(p).is_relative_to(env_dir) for p in paths), out
+    assert len(paths) == 5 and all(Path(p).is_relative_to(env_dir) for p in paths), out
 
 
 def test_simulate_with_ecms_from_outside_the_checkout(venv):

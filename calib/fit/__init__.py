@@ -8,7 +8,12 @@ Modules: :mod:`~calib.fit.toolkit` (result types, lmfit wrapper, uncertainty, id
 """
 from calib.fit.toolkit import ParamEstimate, SubsystemFit
 from calib.fit.driver import SUBSYSTEM_PARAMS, CalibrationResult, calibrate
-from calib.fit.validate import Replay, diagnostics, plot_residuals, plot_validation, replay, validate
+from calib.fit.validate import (CHANNEL_METRICS, Replay, diagnostics, plot_residual_comparison, plot_residuals,
+                                plot_validation, replay, truth_comparison, validate)
+from calib.fit.replay import fuel_replay, log_arrays
+from calib.fit.battery import current_from_power_table, fit_battery
 
 __all__ = ["calibrate", "CalibrationResult", "SUBSYSTEM_PARAMS", "ParamEstimate", "SubsystemFit",
-           "replay", "validate", "Replay", "plot_validation", "diagnostics", "plot_residuals"]
+           "replay", "validate", "Replay", "plot_validation", "diagnostics", "plot_residuals",
+           "plot_residual_comparison", "truth_comparison", "CHANNEL_METRICS",
+           "log_arrays", "fuel_replay", "fit_battery", "current_from_power_table"]

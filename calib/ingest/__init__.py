@@ -30,6 +30,9 @@ from calib.ingest.damage import warn_damage
 from calib.ingest.mcaplog import DEFAULT_TOPIC_MAP, read_mcap_streams
 from calib.ingest.mdflog import read_mdf_streams
 from calib.ingest.resample import to_drivelog
+from calib.ingest.common import HUMAN_NAME, describe_channels
+from calib.ingest.drives import group_drives, same_drive, split_fit_validation
+from calib.ingest.writers import can_frames, mcap_layout, write_can_frames, write_streams
 
 FORMATS = ("csv", "mcap", "candump", "asc", "blf", "trc", "mf4")
 _EXT = {".csv": "csv", ".txt": "csv", ".mcap": "mcap", ".log": "candump", ".candump": "candump",
@@ -40,7 +43,9 @@ __all__ = [
     "FORMATS", "DEFAULT_SIGNAL_MAP", "DEFAULT_TOPIC_MAP", "PRIUS_DBC", "TOYOTA_2017_DBC",
     "detect_format", "read_streams", "to_drivelog", "read_log", "channel_report", "display_report", "format_report",
     "write_canonical", "read_canonical", "load_map", "decode_can_signals", "damage_summary", "channel_losses",
-    "loss_text", "log_warnings", "input_digest",
+    "loss_text", "log_warnings", "input_digest", "warn_damage", "describe_channels", "HUMAN_NAME",
+    "group_drives", "same_drive", "split_fit_validation",
+    "write_streams", "can_frames", "write_can_frames", "mcap_layout",
 ]
 
 

@@ -138,7 +138,7 @@ def _write_csv(streams, meta: LogMeta, path: Path) -> None:
 
 # ---------------------------------------------------------------- MCAP
 
-def _mcap_layout():
+def mcap_layout():
     """channel -> (topic, field, unit) from the default topic map (so reader and writer agree)."""
     from calib.ingest.common import split_spec
     from calib.ingest.mcaplog import DEFAULT_TOPIC_MAP
@@ -154,7 +154,7 @@ def _mcap_layout():
 def _write_mcap(streams, meta: LogMeta, path: Path) -> None:
     from mcap.writer import CompressionType, Writer
 
-    layout = _mcap_layout()
+    layout = mcap_layout()
     t0 = _start_epoch(meta)
     by_topic: dict[str, list[str]] = {}
     for ch in streams:

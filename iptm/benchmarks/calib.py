@@ -2,19 +2,19 @@
 
 Sections (``iptm bench calib``; ``--quick``: one perturbed seed, no repeated timing):
 
-1. **FASTSim 3 Sonata** (:mod:`calib.synth_fastsim`, needs the ``fastsim`` extra): calibrate on the two
+1. **FASTSim 3 Sonata** (:mod:`testcars.synth_fastsim`, needs the ``fastsim`` extra): calibrate on the two
    cold-soaked -7 degC drives, validate on the held-out warm restart and the 22 degC drive: cumulative
    fuel error, cabin and SOC RMSE, coolant RMSE per coolant-temperature regime; then the calibrated
    model's cold (-7 degC soak) over warm (22 degC) UDDS fuel per km (simulated with the rule-based
    controller and a 22 degC climate control) against FASTSim's own ratio.
-2. **Perturbed-structure synthesiser** (:mod:`calib.synth_perturbed`, seeds 1-3): calibrate on the two
+2. **Perturbed-structure synthesiser** (:mod:`testcars.synth_perturbed`, seeds 1-3): calibrate on the two
    cold-start drives, validate on the held-out warm restart; ``f_cl`` at -10 and 0 degC against the
    truth; coverage of the truth by the reported 95 % intervals (value +- 1.96 sd) over the fitter's
    parameters that have a counterpart in the plant.
 3. **Missing channels**: the perturbed seed-1 drives without engine speed/torque, and without heater
    data (vent temperature, blower flow): does calibration run, what each subsystem used, what the
    validation reports.
-4. **OBD-style logs** of the perturbed seed-1 car (:func:`calib.synth_perturbed.synthesise_perturbed_obd`):
+4. **OBD-style logs** of the perturbed seed-1 car (:func:`testcars.synth_perturbed.synthesise_perturbed_obd`):
    the two calibration drives and a parked cold start at idle as an OBD-II tool logs them (PIDs polled in
    turn, each every 5-15 s; fuel from the MAF as a labelled estimate; battery current, voltage and SOC from
    CAN at 10 Hz; no heater, cabin, engine torque or power channel), calibrated with the heater heat
@@ -57,8 +57,8 @@ def _mark(ok) -> str:
 
 def _replay(log, params):
     """The validation replay, or the message of its refusal."""
-    from calib.errors import IptmError
-    from calib.fit.validate import replay
+    from calib import IptmError
+    from calib.fit import replay
 
     try:
         return replay(log, params), None
@@ -99,7 +99,7 @@ def timed_calibrate(case: str, cal, **kw):
     """``calibrate(cal, progress=False, **kw)``, timed: prints the wall time per hour of logs (flagged
     above the target) and the time of each step (subsystem fits, validation, diagnostics), and records the
     case in :data:`CASES`. Returns the result; an exception propagates."""
-    from calib.fit.driver import calibrate
+    from calib.fit import calibrate
 
     hours = sum(lg.duration_s for lg in cal) / 3600.0
     t0 = time.perf_counter()
@@ -123,9 +123,9 @@ def _load() -> float:
 def warm_up() -> float:
     """Compile (or load) the numba kernels once, on 5 minutes of a perturbed drive, so that no case's time
     includes the one-off compilation (its cache is keyed by the sources: any edit compiles afresh)."""
-    from calib.drivelog import DriveLog
-    from calib.fit.driver import calibrate
-    from calib.synth_perturbed import CALIBRATION, perturbed_logs
+    from calib import DriveLog
+    from calib.fit import calibrate
+    from testcars.synth_perturbed import CALIBRATION, perturbed_logs
 
     logs, _ = perturbed_logs(1, drives=CALIBRATION[:1])
     t0 = time.perf_counter()
@@ -157,7 +157,7 @@ def cases_summary() -> dict:
 # ---------------------------------------------------------------------------------------- FASTSim
 def fastsim_section() -> dict:
     from calib.ingest import to_drivelog
-    from calib.synth_fastsim import (SONATA, fastsim_available, pack_energy_J, synthesise_fastsim,
+    from testcars.synth_fastsim import (SONATA, fastsim_available, pack_energy_J, synthesise_fastsim,
                                      udds_cold_warm_ratio)
 
     print("-- FASTSim 3 Sonata thermal HEV (SYNTHETIC): calibrate on 2 cold drives, validate on a warm restart "
@@ -242,17 +242,16 @@ def fastsim_section() -> dict:
           "below 1 above 80 degC, with a prior sd of 1.5 % per 10 K, and is flat beyond 120 degC); its battery "
           "loses a fixed fraction of the power at each C-rate, independent of temperature below 23 degC (ours: "
           "U_hyst |I| + R I^2, R falling with temperature; the hysteresis takes the proportional loss). "
-          "Evidence: scripts/fastsim_structure.py, docs/test_cars.md.")
+          "Evidence: studies/fastsim_structure/fastsim_structure.py, docs/test_cars.md.")
     return fig
 
 
 def model_udds_ratio(params) -> dict:
     """Fuel per km of ``params`` on a cold-soaked -7 degC UDDS over a 22 degC one (rule-based controller,
     climate control at 22 degC without base heat)."""
-    from calib.errors import IptmError
-    from calib.model.rulebased import RuleParams
-    from calib.model.simulate import simulate
-    from calib.synth import HvacController
+    from calib import IptmError
+    from calib.model import RuleParams, simulate
+    from calib import HvacController
 
     out = {}
     try:
@@ -268,7 +267,7 @@ def model_udds_ratio(params) -> dict:
 
 # ---------------------------------------------------------------------------------------- perturbed
 def perturbed_section(seeds) -> dict:
-    from calib.synth_perturbed import CALIBRATION, perturbed_logs, score
+    from testcars.synth_perturbed import CALIBRATION, perturbed_logs, score
 
     print(f"-- perturbed-structure synthesiser (SYNTHETIC), seeds {', '.join(map(str, seeds))}: calibrate on "
           f"{len(CALIBRATION)} cold-start drives, validate on a held-out warm restart")
@@ -317,7 +316,7 @@ def perturbed_section(seeds) -> dict:
 
 # ---------------------------------------------------------------------------------------- missing data
 def missing_section() -> dict:
-    from calib.synth_perturbed import CALIBRATION, ENGINE_CHANNELS, HEATER_CHANNELS, perturbed_logs
+    from testcars.synth_perturbed import CALIBRATION, ENGINE_CHANNELS, HEATER_CHANNELS, perturbed_logs
 
     print("-- logs without engine data / without heater data (perturbed seed 1)")
     out = {}
@@ -351,7 +350,7 @@ OBD_THERMAL = ("C_eng_J_per_K", "gamma_exh", "hA_eng_W_per_K")
 
 def obd_section(seed: int = 1) -> dict:
     from calib.ingest import to_drivelog
-    from calib.synth_perturbed import (CALIBRATION, PARKED_WARMUP, comparable_truth, perturbed_logs,
+    from testcars.synth_perturbed import (CALIBRATION, PARKED_WARMUP, comparable_truth, perturbed_logs,
                                        synthesise_perturbed_obd)
 
     print(f"-- OBD-style logs of the perturbed car (seed {seed}, SYNTHETIC): PIDs polled in turn, each every 5-15 s "
@@ -413,9 +412,9 @@ def obd_section(seed: int = 1) -> dict:
 
 # ---------------------------------------------------------------------------------------- timing
 def timing_section(repeats: int) -> dict:
-    from calib.drivelog import DriveLog
-    from calib.fit.driver import calibrate
-    from calib.synth_perturbed import CALIBRATION, perturbed_logs
+    from calib import DriveLog
+    from calib.fit import calibrate
+    from testcars.synth_perturbed import CALIBRATION, perturbed_logs
 
     logs, _ = perturbed_logs(1, drives=CALIBRATION)
     cut = [DriveLog(lg.data.loc[:1800.0].copy(), lg.meta) for lg in logs]
@@ -442,7 +441,7 @@ SELECTION_CAL = 2  # calibration drives per selection: every 2-of-6 split
 
 
 def selection_pool():
-    from calib.synth_fastsim import SONATA, FastsimScenario
+    from testcars.synth_fastsim import SONATA, FastsimScenario
 
     by = {sc.name: sc for sc in SONATA}
     return [
@@ -474,7 +473,7 @@ def selections_section() -> dict:
     from itertools import combinations
 
     from calib.ingest import to_drivelog
-    from calib.synth_fastsim import fastsim_available, synthesise_fastsim
+    from testcars.synth_fastsim import fastsim_available, synthesise_fastsim
 
     print("-- FASTSim drive selections (SYNTHETIC): every 2-of-6 split into calibration and held-out drives "
           "(rule: docs/calibration_robustness.md)")
@@ -581,7 +580,7 @@ def render_doc(doc_path, data: dict) -> None:
     import re
     from pathlib import Path
 
-    from calib.errors import IptmError
+    from calib import IptmError
 
     p = Path(doc_path)
     text = p.read_text(encoding="utf-8")
@@ -615,8 +614,7 @@ def main(argv=None) -> int:
     import argparse
     import json
 
-    from calib.errors import IptmError
-    from calib.fileio import write_json
+    from calib import IptmError, write_json
 
     ap = argparse.ArgumentParser(prog="python -m iptm.benchmarks.calib",
                                  description="the FASTSim drive selections of docs/calibration_robustness.md")

@@ -40,9 +40,9 @@ def _recovery(params, truth):
 
 
 def run(quick: bool = False) -> dict:
-    from calib.fit.driver import calibrate
+    from calib.fit import calibrate
     from calib.ingest import to_drivelog
-    from calib.synth import BUNDLED, draw_truth, synthesise
+    from calib import BUNDLED, draw_truth, synthesise
 
     seeds = [11] if quick else [11, 12, 13]
     figures = {"seeds": seeds, "runs": []}

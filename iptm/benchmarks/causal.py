@@ -9,18 +9,16 @@ from pathlib import Path
 TRAIN_LOG = Path("logs") / "winter_cold_start.blf"
 
 
-def run(quick: bool = False, valuation: str = "corrected", drives: str = "held-out", learn_from=(),
+def run(quick: bool = False, valuation: str = "corrected", drives: str = "test-cycles", learn_from=(),
         own_settings: dict | None = None) -> dict:
     import numpy as np
     import pandas as pd
 
-    from calib.model.params import default_parameters
-    from optimize.causal.compare import AMBIENTS, DRIVE_SETS, TRAIN_CYCLES, compare_causal, drives_of, step_timing
-    from optimize.causal.controllers import ECMSController, SDPController
-    from optimize.causal.ecms import ECMSParams
+    from calib.model import default_parameters
+    from optimize.causal import AMBIENTS, DRIVE_SETS, TRAIN_CYCLES, ECMSController, ECMSParams, SDPController, compare_causal, drives_of, step_timing
 
     ps = default_parameters()
-    HELD_OUT = DRIVE_SETS[drives]
+    test_drives = DRIVE_SETS[drives]
     logs = []
     if TRAIN_LOG.is_file():
         from calib.ingest import read_log
@@ -29,14 +27,14 @@ def run(quick: bool = False, valuation: str = "corrected", drives: str = "held-o
     more = drives_of(learn_from, "--learn-from")
     learn = learn_from if isinstance(learn_from, str) else ",".join(learn_from)  # drives_of takes either
     print(f"training drives: {', '.join(TRAIN_CYCLES)}" + (f" + log {TRAIN_LOG} (SYNTHETIC)" if logs else "")
-          + f"; held out ({drives}): {', '.join(HELD_OUT)}; ambients {', '.join(f'{a:g}' for a in AMBIENTS)} degC"
+          + f"; held out ({drives}): {', '.join(test_drives)}; ambients {', '.join(f'{a:g}' for a in AMBIENTS)} degC"
           + (f"; sdp_own: the SDP on a chain that also learnt the {learn} drives ({', '.join(more)}), "
              + (f"settings {own_settings}" if own_settings else "the SDP's settings") if more else ""))
     # compile (or load the numba cache) outside the timings: a tiny policy and one ECMS drive
     from optimize.causal import DemandMarkov, SDPConfig, build_policy
 
     build_policy(ps, DemandMarkov.estimate(ps, ["nycc"]), SDPConfig(soc_step=0.1, tcl_step=25.0, max_iter=3))
-    held = HELD_OUT[:1] if quick else HELD_OUT
+    held = test_drives[:1] if quick else test_drives
     amb = AMBIENTS[:1] if quick else AMBIENTS
     cmp = compare_causal(ps, train_logs=logs, held_out=held, ambients=amb, threads=2, valuation=valuation,
                          learn_from=more, own_settings=own_settings)

@@ -17,9 +17,8 @@ def run(quick: bool = False, halve: bool = False) -> dict:
     Thermal-Cabin-DP grid with every step halved (32 times its work) and print the change."""
     import numba
 
-    from calib.model.params import default_parameters
-    from optimize.formulations.scenario import BASELINE_CONVERGED_GRIDS, CABIN_CONVERGED_GRIDS, DPGrids, DPScenario
-    from optimize.formulations.solve import peak_rss_mb, solve_formulation
+    from calib.model import default_parameters
+    from optimize.formulations import BASELINE_CONVERGED_GRIDS, CABIN_CONVERGED_GRIDS, DPGrids, DPScenario, peak_rss_mb, solve_formulation
 
     ps = default_parameters()
     scen = DPScenario(duration_s=120.0) if quick else DPScenario()
@@ -125,7 +124,7 @@ def run(quick: bool = False, halve: bool = False) -> dict:
           f"target 20 s); corrected fuel {r['fuel_corrected_g']:.4f} g (paper grid {paper['fuel_corrected_g']:.4f} g)",
           flush=True)
     if halve:
-        from optimize.convergence import halving_row
+        from optimize import halving_row
 
         h = solve_formulation("thermal_cabin", ps, scen, cg.halved())
         hr = halving_row("thermal_cabin", cg, o.sim, h.sim, o, h)

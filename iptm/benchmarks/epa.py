@@ -15,9 +15,7 @@ import numpy as np
 def run(quick: bool = False) -> dict:
     import pandas as pd
 
-    from calib.model.epa import bag_table, epa_comparison
-    from calib.model.ftp import COLD_FTP, WARM_FTP, run_ftp
-    from calib.model.params import default_parameters
+    from calib.model import COLD_FTP, WARM_FTP, bag_table, default_parameters, epa_comparison, run_ftp
 
     ps = default_parameters()
     bags = bag_table(ps)
@@ -61,7 +59,7 @@ COLD_SOAK_TOML = "studies/cold_soak_scenario.toml"
 
 
 def _strategy_row(sim) -> dict:
-    from calib.model.equations import CAT
+    from calib.model import CAT
 
     s = sim.summary()
     cat = sim.e_mode == CAT
@@ -81,11 +79,11 @@ def case_study(ps) -> dict:
     ``fuel_scale`` in both."""
     from pathlib import Path
 
-    from calib.model.rulebased import RuleParams
+    from calib.model import RuleParams
     from iptm.pipeline import load_scenario
-    from optimize.casestudy import run_case_study
-    from optimize.formulations.scenario import DEFAULT_GRIDS, DPScenario
-    from optimize.tuning import tune_rule_based
+    from optimize import run_case_study
+    from optimize.formulations import DEFAULT_GRIDS, DPScenario
+    from optimize import tune_rule_based
 
     d = RuleParams()
     before_ps, before_rules = ps.with_values(t_cat_s=0.0), RuleParams(soc_warmup=d.soc_target, k_on_W=0.0)
@@ -132,10 +130,8 @@ def _causes(ps):
     """The warm and cold FTP (and US06) with one cause at a time switched off or varied (docs/cold_start.md)."""
     import pandas as pd
 
-    from calib.errors import ScenarioError
-    from calib.model import ftp
-    from calib.model.epa import hot_cycle_bags
-    from calib.model.rulebased import RuleParams
+    from calib import ScenarioError
+    from calib.model import RuleParams, ftp, hot_cycle_bags
 
     d = RuleParams()
     warmup_off = dict(soc_warmup=d.soc_target, k_on_W=0.0)

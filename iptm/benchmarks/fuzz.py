@@ -110,7 +110,7 @@ cycle = ["nycc"]
 
 
 def _small_streams(duration_s=8.0, rate=5.0):
-    from calib.ingest.fabricate import fabricate_streams
+    from testcars.fabricate import fabricate_streams
 
     rates = {c: rate for c in ("speed_mps", "bat_current_A", "bat_voltage_V", "engine_speed_rpm",
                                "engine_torque_Nm", "fuel_rate_g_per_s")}
@@ -129,8 +129,8 @@ def _write_trc(blf: Path, out: Path) -> Path:
 def _write_mf4(streams, out: Path) -> Path:
     import asammdf
 
-    from calib.drivelog import CHANNELS
-    from calib.ingest.common import HUMAN_NAME
+    from calib import CHANNELS
+    from calib.ingest import HUMAN_NAME
 
     mdf = asammdf.MDF(version="4.10")
     sigs = []
@@ -149,8 +149,8 @@ def _write_mf4(streams, out: Path) -> Path:
 
 def make_seed_files(folder, duration_s: float = 8.0, rate: float = 5.0) -> dict[str, Path]:
     """Valid input of every reader in ``folder`` (small by default; larger for the truncation check)."""
-    from calib.model.params import default_parameters
-    from calib.ingest.writers import write_streams
+    from calib.model import default_parameters
+    from calib.ingest import write_streams
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -184,7 +184,7 @@ def reader_fn(name: str):
             return read_log(path, fmt=fmt).meta.damage
         return run
     if name == "params":
-        from calib.model.params import ParameterSet
+        from calib.model import ParameterSet
 
         return lambda path: (ParameterSet.load(path), {})[1]
     if name == "scenario":
@@ -192,7 +192,7 @@ def reader_fn(name: str):
 
         return lambda path: (load_scenario(path), {})[1]
     if name == "study":
-        from optimize.sweep import load_study
+        from optimize import load_study
 
         return lambda path: (load_study(path), {})[1]
     raise KeyError(name)
@@ -276,7 +276,7 @@ def classify(fn, path, names=None) -> tuple[str, str, str]:
     ``error`` is an IptmError whose message is one line naming the file (or one of ``names``, the other files
     the read used: a DBC, a map; a reader marks an error ``names_file = False`` where it is about what was built
     from the file, not the file); any other IptmError is ``unclear``."""
-    from calib.errors import IptmError, IptmWarning
+    from calib import IptmError, IptmWarning
 
     names = [Path(path).name] + [Path(x).name for x in (names or ())]
     out, err = io.StringIO(), io.StringIO()
@@ -376,7 +376,7 @@ def _serve(conn, case):
     import faulthandler
     import resource
 
-    import calib.errors  # noqa: F401 - what classify() needs, imported before any case is timed
+    import calib  # noqa: F401 - its errors, which classify() needs, imported before any case is timed
 
     faulthandler.disable()  # a crash is reported by its exit code and case number (replay it)
     with contextlib.suppress(OSError, AttributeError):  # Linux: end with the benchmark if it is killed
@@ -725,10 +725,9 @@ class _Base:
     """What the generators build on, made once before the workers fork (they share it)."""
 
     def __init__(self, folder: Path):
-        from calib.ingest.canlog import PRIUS_DBC
-        from calib.ingest.writers import _mcap_layout, can_frames
-        from calib.model.params import default_parameters
-        from calib.units import convert
+        from calib.ingest import PRIUS_DBC, can_frames, mcap_layout
+        from calib.model import default_parameters
+        from calib import convert
 
         self.folder = Path(folder)
         self.files = make_seed_files(self.folder / "seeds")
@@ -739,7 +738,7 @@ class _Base:
         self.blf = self.files["blf"].read_bytes()
         self.mcap = self.files["mcap"].read_bytes()
         self.params = default_parameters()
-        layout = _mcap_layout()
+        layout = mcap_layout()
         per_topic: dict[str, dict[float, dict]] = {}
         for ch, s in self.streams.items():
             topic, field, unit = layout[ch]
@@ -762,7 +761,7 @@ class _Base:
 
 
 def _channel_unit(ch: str) -> str:
-    from calib.drivelog import CHANNELS
+    from calib import CHANNELS
 
     return CHANNELS[ch][0]
 
@@ -776,7 +775,7 @@ def _log_reader(fmt: str, **kw):
 
 
 def _params_reader(path):
-    from calib.model.params import ParameterSet
+    from calib.model import ParameterSet
 
     ParameterSet.load(path).model_params()
     return {}
@@ -785,10 +784,10 @@ def _params_reader(path):
 def _scenario_reader(path):
     """Load a scenario file and build the DP problem of each DP strategy it asks for (the size checks run
     where the problem is built; nothing is solved)."""
-    from calib.errors import IptmError
-    from calib.model.params import default_parameters
+    from calib import IptmError
+    from calib.model import default_parameters
     from iptm.pipeline import load_scenario
-    from optimize.formulations.solve import build_problem
+    from optimize.formulations import build_problem
 
     scen, grids, strategies, cycle_log = load_scenario(path)
     if cycle_log is None:
@@ -805,7 +804,7 @@ def _scenario_reader(path):
 
 def _study_reader(path):
     """Load a study file and expand its cases (what ``iptm sweep`` does before it submits anything)."""
-    from optimize.sweep import load_study
+    from optimize import load_study
 
     load_study(path).expand()
     return {}
@@ -1464,7 +1463,7 @@ _FLOAT_EXTREMES = (1e308, -1e308, np.inf, -np.inf, np.nan, -0.0, 0.0, 5e-324, -5
 def _numbers_mf4(rng, base, folder):
     import asammdf
 
-    from calib.ingest.common import HUMAN_NAME
+    from calib.ingest import HUMAN_NAME
 
     mdf = asammdf.MDF(version="4.10")
     share = _log_uniform(rng, 1e-3, 1.0)
@@ -1513,7 +1512,7 @@ def _numbers_params(rng, base, folder):
 def _scenario_numeric_fields():
     from dataclasses import fields
 
-    from optimize.formulations.scenario import DPScenario
+    from optimize.formulations import DPScenario
 
     return [f.name for f in fields(DPScenario) if f.name not in ("cycle", "terminal", "cont_cycle")]
 
@@ -1582,7 +1581,7 @@ _PATHS = ('"/dev/null"', '"/"', '"."', '"nope.csv"', '"../../etc/passwd"', '"' +
 
 
 def _fields_params(rng, base, folder):
-    from calib.model.params import ENTRY_FIELDS
+    from calib.model import ENTRY_FIELDS
 
     if rng.random() < 0.1:
         text = _pick(rng, ISSUE_PARAMS)
@@ -1620,7 +1619,7 @@ def _grid_step(rng) -> str:
 def _fields_scenario(rng, base, folder):
     from dataclasses import fields
 
-    from optimize.formulations.scenario import DPScenario
+    from optimize.formulations import DPScenario
 
     if rng.random() < 0.1:
         text = _pick(rng, ISSUE_SCENARIOS)
@@ -1894,7 +1893,7 @@ def mcap_message_positions(data: bytes) -> tuple[np.ndarray, np.ndarray]:
 @_in_folder
 def truncation_check(n: int = 200, seed: int = 0, readers=LOG_READERS, folder=None, log=print) -> dict:
     """Random cuts of a valid 120-s log per format: read or recovered, nothing before the cut lost."""
-    from calib.errors import IptmError
+    from calib import IptmError
     from calib.ingest import read_streams
 
     seeds = make_seed_files(folder / "seeds", duration_s=120.0, rate=10.0)
@@ -2017,7 +2016,7 @@ def run(quick: bool = False, n: int | None = None, seed: int = 0, readers=READER
         mutations: bool = True, truncation: bool = True, timeout: float | None = None, json_path=None) -> dict:
     """Entry point of ``iptm bench fuzz``: raises an IptmError after the table when an input escapes or hangs
     (``json_path``: the figures are written there first, failing or not)."""
-    from calib.errors import IptmError
+    from calib import IptmError
 
     n = n or (300 if quick else 10_000)
     timeout = CASE_TIMEOUT_S if timeout is None else timeout
@@ -2039,7 +2038,7 @@ def run(quick: bool = False, n: int | None = None, seed: int = 0, readers=READER
     print(f"\nsummary ({res['wall_s']:.0f} s in all):")
     failures = _summary(res)
     if json_path:
-        from calib.fileio import write_json
+        from calib import write_json
 
         write_json(json_path, res)
     if failures:
@@ -2072,11 +2071,12 @@ def main(argv=None):
     pick = lambda s, known: tuple(x for x in s.split(",") if x) if s else ()  # noqa: E731
     gens = pick(a.generators, GENERATORS)
     bad = [g for g in gens if g.partition("/")[0] not in GENERATORS
-           or (g.partition("/")[2] and g.partition("/")[2] not in GENERATORS[g.partition("/")[0]])] + [r for r in pick(a.readers, READERS) if r not in READERS]
+           or (g.partition("/")[2] and g.partition("/")[2] not in GENERATORS[g.partition("/")[0]])]
+    bad += [r for r in pick(a.readers, READERS) if r not in READERS]
     if bad:
         ap.error(f"unknown generator or reader {bad[0]!r}: generators {', '.join(GENERATORS)}; readers "
                  f"{', '.join(READERS)}")
-    from calib.errors import IptmError
+    from calib import IptmError
 
     try:
         run(n=a.n, seed=a.seed, readers=pick(a.readers, READERS), generators=gens, mutations=not a.no_mutations,

@@ -55,9 +55,9 @@ print(json.dumps({"wall_s": wall, "peak_rss_mb": peak / 1024, "rise_mb": (peak -
 
 def build_dump(path, duration_s: float = 1800.0, seed: int = 0) -> int:
     """Write the synthetic dump; returns the number of frames."""
-    from calib.drivelog import LogMeta
-    from calib.ingest.fabricate import fabricate_streams
-    from calib.ingest.writers import can_frames, write_can_frames
+    from calib import LogMeta
+    from testcars.fabricate import fabricate_streams
+    from calib.ingest import can_frames, write_can_frames
 
     streams, meta = fabricate_streams(duration_s, seed=seed, rates=RATES, dropout=None)
     fr = can_frames(streams, synthetic=True)

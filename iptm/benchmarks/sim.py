@@ -5,9 +5,7 @@ import time
 
 
 def run(quick: bool = False) -> dict:
-    from calib.model.epa import epa_comparison
-    from calib.model.params import default_parameters
-    from calib.model.simulate import simulate
+    from calib.model import default_parameters, epa_comparison, simulate
 
     ps = default_parameters()
     simulate(ps, "artemis_urban")  # compile / load the numba cache outside the timing

@@ -21,7 +21,7 @@ import time
 
 
 def _study(quick: bool):
-    from optimize.sweep import Study
+    from optimize import Study
 
     scen = {"duration_s": 200.0} if quick else {}
     grids = {"soc": 0.02, "tcl": 2.0, "pbat": 1000.0} if quick else {}  # full: the paper's Table II
@@ -47,7 +47,7 @@ def _report_failures(out: dict, failures: list[str]) -> dict:
 def run(quick: bool = False) -> dict:
     import numba
 
-    from optimize.sweep import Study, local_client, run_case, run_study
+    from optimize import Study, local_client, run_case, run_study
 
     st = _study(quick)
     cases = st.expand()
@@ -85,7 +85,7 @@ def run(quick: bool = False) -> dict:
             t0 = time.perf_counter()
             df = run_study(st, client=client, store_dir=store)
             t_par = time.perf_counter() - t0
-            from calib.store import Store
+            from calib import Store
 
             recs_par = [Store(store).get_json("sweep", c["key"]) or {"key": c["key"], "error": "no result stored"}
                         for c in cases]

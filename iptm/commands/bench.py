@@ -20,6 +20,9 @@ SUITES = {
     "fuzz": "iptm.benchmarks.fuzz",
     "causal": "iptm.benchmarks.causal",
 }
+#: The keys of ``optimize.causal.compare.DRIVE_SETS`` (spelt here so that ``--help`` loads no numerics;
+#: tests/test_causal_drives.py checks they agree).
+DRIVE_SET_NAMES = ("test-cycles", "cmap-trip1", "cmap-trip2", "cmap-trip3", "wltc-high-cmap-trip4")
 
 
 def register(sub):
@@ -42,17 +45,18 @@ def register(sub):
                    help="causal: how final states are valued: corrected (fuel equivalents of the stored energy, "
                         "default) or continuation (the rule-based controller's fuel over UDDS six times from the final "
                         "state; Thermal-DP with the 'continued' terminal)")
-    p.add_argument("--drives", choices=("held-out", "fresh", "reserve", "third", "fourth"), default="held-out",
-                   help="causal: the drives compared on: held-out (six drives, looked at while the settings were "
-                        "developed), fresh (eight real trips first simulated after the SDP's settings were last "
-                        "chosen), reserve (the later trip of seven of the fresh trips' cars), third (the third trip "
-                        "of four) or fourth (the WLTC high and extra-high phases and a fourth CMAP trip, driven by "
-                        "no controller before the study of the ECMS tuned on each drive)")
+    p.add_argument("--drives", choices=DRIVE_SET_NAMES, default="test-cycles",
+                   help="causal: the drives compared on: test-cycles (six published drives, looked at while the "
+                        "settings were developed), cmap-trip1 (the first qualifying CMAP trip of eight cars, first "
+                        "simulated after the SDP's settings were last chosen), cmap-trip2 (the second trip of seven "
+                        "of those cars), cmap-trip3 (the third trip of four) or wltc-high-cmap-trip4 (the WLTC high "
+                        "and extra-high phases and a fourth CMAP trip, driven by no controller before the study of "
+                        "the ECMS tuned on each drive)")
     p.add_argument("--learn-from", metavar="SET[,SET]",
                    help="causal: also run the SDP on a demand chain that learnt these drive sets too (rows sdp_own), "
-                        "e.g. --drives reserve --learn-from fresh: each car's earlier trip")
+                        "e.g. --drives cmap-trip2 --learn-from cmap-trip1: each car's earlier trip")
     p.add_argument("--own-settings", metavar="FILE",
-                   help="causal: the settings of sdp_own, the 'chosen' row of a scripts/causal_select.py report "
+                   help="causal: the settings of sdp_own, the 'chosen' row of a studies/causal_select/causal_select.py report "
                         "(default: the SDP's own)")
     p.add_argument("--halve", action="store_true",
                    help="dp: also solve the converged Thermal-Cabin-DP grid with every step halved (about 32 times "
@@ -61,8 +65,7 @@ def register(sub):
 
 
 def run(args) -> int:
-    from calib.errors import IptmError
-    from calib.fileio import write_json
+    from calib import IptmError, write_json
 
     names = list(SUITES) if "all" in args.suite else args.suite
     for n in names:
@@ -80,7 +83,7 @@ def run(args) -> int:
         print(f"== {n}")
         extra = {"n": args.n, "seed": args.seed} if n == "fuzz" else {}
         if n == "causal":
-            from optimize.causal.compare import drives_of
+            from optimize.causal import drives_of
 
             sets = [x for x in (args.learn_from or "").split(",") if x]
             drives_of(sets, "bench causal: --learn-from")
@@ -134,19 +137,19 @@ def suite_failures(result) -> list[str]:
 
 
 def _chosen_settings(path: str) -> dict:
-    """The ``chosen`` row of a ``scripts/causal_select.py`` report, or a clear error."""
+    """The ``chosen`` row of a ``studies/causal_select/causal_select.py`` report, or a clear error."""
     import json
 
-    from calib.errors import IptmError
-    from optimize.causal.compare import SELECTED
+    from calib import IptmError
+    from optimize.causal import SELECTED
 
     try:
         row = json.loads(open(path, encoding="utf-8").read()).get("chosen")
     except (OSError, ValueError) as exc:
         raise IptmError(f"--own-settings {path}: cannot read it as JSON ({exc}); give a report of "
-                        "scripts/causal_select.py") from None
+                        "studies/causal_select/causal_select.py") from None
     missing = [k for k in SELECTED if not isinstance(row, dict) or k not in row]
     if missing:
         raise IptmError(f"--own-settings {path}: no chosen setting with {', '.join(missing)}; the selection chose "
-                        "none, or this is not a report of scripts/causal_select.py")
+                        "none, or this is not a report of studies/causal_select/causal_select.py")
     return {k: row[k] for k in SELECTED}

@@ -51,7 +51,7 @@ def is_canonical(p) -> bool:
 def check_log_format(path, option: str | None):
     """The format of a log the command reads, or a LogFormatError whose fix this command offers: ``option``
     (e.g. "--format") where it has one, else a matching extension."""
-    from calib.errors import LogFormatError
+    from calib import LogFormatError
     from calib.ingest import detect_format
 
     try:
@@ -82,12 +82,10 @@ def run(args) -> int:
 
     from tqdm.auto import tqdm
 
-    from calib.fit.driver import calibrate
-    from calib.drivelog import file_sha256
-    from calib.fileio import write_json
-    from calib.errors import ParameterError
-    from calib.model.params import ParameterSet, default_parameters
-    from calib.fit.validate import plot_residuals, plot_validation, replay
+    from calib.fit import calibrate
+    from calib import ParameterError, file_sha256, write_json
+    from calib.model import ParameterSet, default_parameters
+    from calib.fit import plot_residuals, plot_validation, replay
 
     ref = ParameterSet.load(args.params) if args.params else None
     known = ref or default_parameters()

@@ -3,8 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from calib.errors import IptmError
-from calib.fileio import write_json
+from calib import IptmError, write_json
 from calib.ingest import (
     FORMATS,
     channel_report,
@@ -72,7 +71,7 @@ def _out_path(src: Path, out: str | None, n_inputs: int) -> Path:
 def run(args) -> int:
     import sys
 
-    from calib.ingest.common import describe_channels
+    from calib.ingest import describe_channels
 
     if args.list_channels:
         print(describe_channels())

@@ -51,15 +51,15 @@ def _scenario(args):
     them (None otherwise): a scenario file of ``iptm run`` means the same here."""
     from pathlib import Path
 
-    from calib.errors import ScenarioError
-    from optimize.formulations.scenario import DPScenario
+    from calib import ScenarioError
+    from optimize.formulations import DPScenario
 
     d, grids, strategies = {}, None, None
     if args.scenario:
         path = Path(args.scenario)
         if not path.is_file():
             raise ScenarioError(f"scenario file {path} not found")
-        from calib.fileio import read_config
+        from calib import read_config
 
         d = read_config(path, ScenarioError, "scenario file")
         if "scenario" in d:
@@ -100,7 +100,7 @@ def check_initial_state(scen, formulations, given=None, source=None) -> None:
     """Each initial state a chosen DP formulation starts on lies on its grid, checked before anything is solved:
     a ScenarioError naming the field, where it was given (an option, ``source`` or the default) and the fix.
     ``given``: field -> the option that set it."""
-    from calib.errors import ScenarioError
+    from calib import ScenarioError
 
     given = given or {}
     for name, lo, hi, opt, forms in _INITIAL:
@@ -115,10 +115,9 @@ def check_initial_state(scen, formulations, given=None, source=None) -> None:
 
 
 def run(args) -> int:
-    from calib.errors import ScenarioError
-    from calib.fileio import write_json
+    from calib import ScenarioError, write_json
     from iptm.commands.simulate import load_params
-    from optimize.formulations.scenario import DEFAULT_GRIDS, FORMULATIONS, parse_grid_spec
+    from optimize.formulations import DEFAULT_GRIDS, FORMULATIONS, parse_grid_spec
 
     ps = load_params(args.params)
     scen, file_grids, file_strategies = _scenario(args)
@@ -132,7 +131,7 @@ def run(args) -> int:
     if bad:
         raise ScenarioError(f"unknown formulation {bad[0]!r}; choose from {', '.join(allf)} or all")
     if args.convergence:
-        from optimize.convergence import convergence_study, format_convergence
+        from optimize import convergence_study, format_convergence
 
         # "all": Baseline and Thermal (a halved Thermal-Cabin grid is 16x the work; ask for it explicitly)
         forms = ["baseline", "thermal"] if args.formulation == "all" else [c for c in chosen if c != "rule"]
@@ -143,9 +142,9 @@ def run(args) -> int:
         return 0
     from pathlib import Path
 
-    from calib.store import Store
+    from calib import Store
     from iptm.pipeline import optimize_cached
-    from optimize.formulations.scenario import check_grid_axes
+    from optimize.formulations import check_grid_axes
 
     check_grid_axes(scen, grids, ps, chosen)  # before any progress bar: a bad grid is one message
     check_initial_state(scen, chosen, {name: "--" + opt for opt, name in _OPTIONS if getattr(args, opt) is not None},

@@ -15,12 +15,12 @@ def register(sub):
 
 
 def run(args) -> int:
-    from calib.fileio import write_json
-    from calib.model.params import ParameterSet, default_parameters
+    from calib import write_json
+    from calib.model import ParameterSet, default_parameters
 
     ps = ParameterSet.load(args.params) if args.params else default_parameters()
     if args.fuel_map:
-        from calib.model.fuelmap import apply_fuel_map
+        from calib.model import apply_fuel_map
 
         ps = apply_fuel_map(ps, args.fuel_map)
     ps.save(args.out)

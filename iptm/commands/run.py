@@ -7,7 +7,7 @@ def register(sub):
                        description="Ingest the logs, calibrate the model (holding out the last log for "
                                    "validation when there are several), optimise rule-based, Baseline-DP, "
                                    "Thermal-DP and Thermal-Cabin-DP on the scenario, and write a report to "
-                                   "reports/<run-id>/. Without logs, uses the bundled SYNTHETIC logs/*.blf.")
+                                   "reports/<run-id>/. Without logs, uses the bundled SYNTHETIC .blf logs of logs/.")
     p.add_argument("logs", nargs="*", metavar="LOG", help="drive logs (CSV, MCAP, candump, ASC, BLF, MF4)")
     p.add_argument("--scenario", metavar="FILE", help="scenario TOML (default: the paper's case study)")
     p.add_argument("--validate", action="append", default=[], metavar="LOG",
@@ -32,7 +32,7 @@ def run(args) -> int:
     import sys
     from pathlib import Path
 
-    from calib.fileio import write_json
+    from calib import write_json
     from iptm import pipeline
 
     from iptm.commands.calibrate import check_log_format

@@ -26,23 +26,22 @@ def register(sub):
 
 
 def load_params(path):
-    from calib.model.params import ParameterSet, default_parameters
+    from calib.model import ParameterSet, default_parameters
 
     return ParameterSet.load(path) if path else default_parameters()
 
 
 def run(args) -> int:
-    from calib.fileio import atomic_path, write_json
-    from calib.model.simulate import simulate
+    from calib import atomic_path, write_json
+    from calib.model import simulate
 
     ps = load_params(args.params)
     ctrl = None
     if args.controller != "rule" or args.policy:
-        from optimize.causal import DemandMarkov, SDPPolicy, make_controller
-        from optimize.causal.compare import TRAIN_CYCLES
+        from optimize.causal import TRAIN_CYCLES, DemandMarkov, SDPPolicy, make_controller
 
         if args.policy and args.controller != "sdp":
-            from calib.errors import IptmError
+            from calib import IptmError
 
             raise IptmError("--policy is for --controller sdp")
         pol = SDPPolicy.load(args.policy) if args.policy else None

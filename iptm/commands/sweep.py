@@ -34,9 +34,8 @@ def run(args) -> int:
 
     import numpy as np
 
-    from calib.errors import IptmError
-    from calib.fileio import write_json
-    from optimize.sweep import format_failures, load_study, plot_study, run_study, summary_pivot, write_table
+    from calib import IptmError, write_json
+    from optimize import format_failures, load_study, plot_study, run_study, summary_pivot, write_table
 
     if args.workers < 1:
         raise IptmError("--workers must be at least 1")

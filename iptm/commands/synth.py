@@ -31,11 +31,10 @@ def register(sub):
 def run(args) -> int:
     from pathlib import Path
 
-    from calib.errors import IptmError
-    from calib.fileio import write_json
-    from calib.model.params import ParameterSet
-    from calib.synth import BUNDLED, draw_truth, synthesise
-    from calib.ingest.writers import write_streams
+    from calib import IptmError, write_json
+    from calib.model import ParameterSet
+    from calib import BUNDLED, draw_truth, synthesise
+    from calib.ingest import write_streams
 
     if args.simulator == "fastsim" or args.perturbed:
         return _run_other(args)
@@ -73,8 +72,7 @@ def run(args) -> int:
 
 def _run_other(args) -> int:
     """The test cars that are not our model: FASTSim 3 or the perturbed-structure plant (CSV logs)."""
-    from calib.errors import IptmError
-    from calib.fileio import write_json
+    from calib import IptmError, write_json
 
     if args.formats and [f.strip() for f in args.formats.split(",") if f.strip()] != ["csv"]:
         raise IptmError("--simulator fastsim and --perturbed write CSV logs only (engine and battery power "
@@ -84,11 +82,11 @@ def _run_other(args) -> int:
     if args.truth or args.scenario:
         raise IptmError("--truth and --scenario apply to --simulator model only")
     if args.perturbed:
-        from calib.synth_perturbed import write_perturbed_logs
+        from testcars.synth_perturbed import write_perturbed_logs
 
         info = write_perturbed_logs(args.out, seed=args.seed)
     else:
-        from calib.synth_fastsim import write_fastsim_logs
+        from testcars.synth_fastsim import write_fastsim_logs
 
         info = write_fastsim_logs(args.out, seed=args.seed)
     if args.json:

@@ -17,7 +17,13 @@ from optimize.causal.hindsight import tune_ecms_on_drive
 from optimize.causal.markov import DemandMarkov
 from optimize.causal.route import Route, RouteECMSController, RouteECMSParams, load_route, make_route_controller
 from optimize.causal.sdp import SDPConfig, SDPPolicy, build_policy
+from optimize.causal.compare import (AMBIENTS, DRIVE_SETS, SELECTED, TRAIN_CYCLES, compare_causal, drives_of, step_timing,
+                                     valuation_scenario, valued_fuel)
+from optimize.causal.hindsight import drive_ecms, summarize
+from optimize.causal.onestep import fit_stop_regen
 
 __all__ = ["DemandMarkov", "SDPConfig", "SDPPolicy", "build_policy", "ECMSParams", "ECMSController",
            "SDPController", "make_controller", "CONTROLLERS", "tune_ecms_on_drive", "Route", "RouteECMSController",
-           "RouteECMSParams", "load_route", "make_route_controller"]
+           "RouteECMSParams", "load_route", "make_route_controller",
+           "compare_causal", "DRIVE_SETS", "drives_of", "TRAIN_CYCLES", "AMBIENTS", "SELECTED", "step_timing",
+           "valuation_scenario", "valued_fuel", "drive_ecms", "summarize", "fit_stop_regen"]

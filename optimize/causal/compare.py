@@ -2,7 +2,7 @@
 
 For every ambient: the demand Markov chain is estimated from the training drives only
 (:data:`TRAIN_CYCLES` plus any training logs), the SDP policy is built for that ambient, and on each
-held-out cycle (:data:`HELD_OUT`) the table compares, in corrected fuel
+held-out cycle (by default :data:`TEST_CYCLES`) the table compares, in corrected fuel
 (:meth:`calib.model.simulate.SimResult.summary`, ``fuel_corrected_g``: fuel minus the fuel equivalent of
 the changes of SOC, coolant and cabin heat), the SDP and ECMS controllers with Thermal-DP
 (:func:`optimize.solve_thermal`, which knows the whole drive) and the rule-based controller tuned for
@@ -32,33 +32,32 @@ from optimize.causal.sdp import SDPConfig, build_policy
 
 #: Drives the statistics are built from (and the only ones used to choose the controllers' settings).
 TRAIN_CYCLES = ("udds", "hwfet", "us06")
-#: Drives never used to build or tune anything: three urban cycles, the urban half of WLTC and two
-#: real-world GPS-logged drives (a 5-min suburban trip, an 18-min highway commute).
-HELD_OUT = ("artemis_urban", "nycc", "manhattan", "wltc_city_3b", "tsdc_trip_42648", "cmap_chicago_commute")
-#: A second held-out set, first simulated after the SDP's settings were last chosen (the settings were
-#: revised after results on :data:`HELD_OUT` had been seen, so those are no longer a clean test of them):
-#: eight real GPS-logged trips of eight other vehicles of the CMAP survey, picked by a rule fixed in
-#: advance (scripts/extract_cmap_trips.py; calib/data/cycles/README.md).
-FRESH_TEST = ("cmap_4107032_1_20070522", "cmap_4108468_1_20070624", "cmap_4108468_2_20070621",
+#: Published drives, never used to build or tune anything: three urban cycles, the urban half of WLTC and
+#: two real-world GPS-logged drives (a 5-min suburban trip, an 18-min highway commute).
+TEST_CYCLES = ("artemis_urban", "nycc", "manhattan", "wltc_city_3b", "tsdc_trip_42648", "cmap_chicago_commute")
+#: Real GPS-logged trips of the CMAP survey, cut by a rule fixed in advance (studies/extract_cmap_trips;
+#: calib/data/cycles/README.md): the first qualifying trip of eight vehicles other than the commute's.
+#: They were first simulated after the SDP's settings were last chosen (those settings were revised after
+#: results on :data:`TEST_CYCLES` had been seen, so those are no longer a clean test of them).
+CMAP_TRIP1 = ("cmap_4107032_1_20070522", "cmap_4108468_1_20070624", "cmap_4108468_2_20070621",
               "cmap_4109114_1_20070517", "cmap_4111928_1_20070519", "cmap_4112082_1_20070703",
               "cmap_4115957_1_20070409", "cmap_4116813_2_20070405")
-#: A third set, simulated only after everything above was fixed: the later trip of seven of the
-#: :data:`FRESH_TEST` vehicles that made a second trip meeting the same rule (``extract_cmap_trips.py --nth 2``).
-#: With ``learn_from=FRESH_TEST`` it tests a chain that has also seen each car's earlier trip.
-RESERVE_TEST = ("cmap_4107032_1_20070526_2131", "cmap_4108468_1_20070624_2007", "cmap_4108468_2_20070621_1833",
-                "cmap_4109114_1_20070519_1252", "cmap_4111928_1_20070519_1723", "cmap_4112082_1_20070705_0717",
-                "cmap_4115957_1_20070409_2006")
-#: A fourth set: the third qualifying trip of the four cars that made one (``extract_cmap_trips.py --nth 3``),
-#: for a chain that learnt each car's two earlier trips (fresh and reserve) with settings chosen again for it.
-THIRD_TEST = ("cmap_4108468_1_20070625_0810", "cmap_4108468_2_20070627_1507", "cmap_4111928_1_20070522_1636",
+#: The second qualifying trip of the seven :data:`CMAP_TRIP1` vehicles that made one (``--nth 2``).
+#: With ``learn_from=CMAP_TRIP1`` it tests a chain that has also seen each car's earlier trip.
+CMAP_TRIP2 = ("cmap_4107032_1_20070526_2131", "cmap_4108468_1_20070624_2007", "cmap_4108468_2_20070621_1833",
+              "cmap_4109114_1_20070519_1252", "cmap_4111928_1_20070519_1723", "cmap_4112082_1_20070705_0717",
+              "cmap_4115957_1_20070409_2006")
+#: The third qualifying trip of the four vehicles that made one (``--nth 3``), for a chain that learnt each
+#: car's two earlier trips with settings chosen again for it.
+CMAP_TRIP3 = ("cmap_4108468_1_20070625_0810", "cmap_4108468_2_20070627_1507", "cmap_4111928_1_20070522_1636",
               "cmap_4112082_1_20070705_1419")
-#: A fifth set, driven by no controller before the study of the ECMS tuned on each drive
-#: (:mod:`optimize.causal.hindsight`): the WLTC high and extra-high phases and the one CMAP trip left that
-#: meets the rule (the fourth of vehicle 4108468_1, ``extract_cmap_trips.py --nth 4``).
-FOURTH_TEST = ("wltc_high_3b", "wltc_extrahigh_3", "cmap_4108468_1_20070625_1220")
-#: The drive sets ``iptm bench causal --drives`` compares on.
-DRIVE_SETS = {"held-out": HELD_OUT, "fresh": FRESH_TEST, "reserve": RESERVE_TEST, "third": THIRD_TEST,
-              "fourth": FOURTH_TEST}
+#: The WLTC high and extra-high phases and the one CMAP trip left that meets the rule (the fourth of
+#: vehicle 4108468_1, ``--nth 4``), driven by no controller before the study of the ECMS tuned on each
+#: drive (:mod:`optimize.causal.hindsight`).
+WLTC_HIGH_CMAP_TRIP4 = ("wltc_high_3b", "wltc_extrahigh_3", "cmap_4108468_1_20070625_1220")
+#: The drive sets ``iptm bench causal --drives`` compares on, named by source and content.
+DRIVE_SETS = {"test-cycles": TEST_CYCLES, "cmap-trip1": CMAP_TRIP1, "cmap-trip2": CMAP_TRIP2,
+              "cmap-trip3": CMAP_TRIP3, "wltc-high-cmap-trip4": WLTC_HIGH_CMAP_TRIP4}
 
 
 def drives_of(sets, what: str = "drive set") -> tuple:
@@ -72,7 +71,7 @@ def drives_of(sets, what: str = "drive set") -> tuple:
     return tuple(c for x in names for c in DRIVE_SETS[x])
 
 
-#: The settings ``scripts/causal_select.py`` chooses (the chain's ``alpha``, the rest :class:`SDPConfig` fields).
+#: The settings ``studies/causal_select/causal_select.py`` chooses (the chain's ``alpha``, the rest :class:`SDPConfig` fields).
 SELECTED = ("alpha", "w_soc_g_per_s", "soc_bias", "regen_fraction", "regen_slope_per_mps")
 #: The causal strategies of a comparison (``sdp_own``: the SDP on a chain that also learnt ``learn_from``;
 #: ``rule_train``: the rule-based controller tuned on the training cycles).
@@ -183,7 +182,7 @@ def own_chain(params, sources, settings: dict | None = None) -> tuple[DemandMark
     return DemandMarkov.estimate(params, sources, **({} if alpha is None else {"alpha": alpha})), cfg
 
 
-def compare_causal(params, *, train=TRAIN_CYCLES, train_logs=(), held_out=HELD_OUT, ambients=AMBIENTS,
+def compare_causal(params, *, train=TRAIN_CYCLES, train_logs=(), held_out=TEST_CYCLES, ambients=AMBIENTS,
                    sdp_config: SDPConfig | None = None, ecms: ECMSParams | None = None, grids=None,
                    scenario=None, threads: int | None = 2, progress: bool = True,
                    valuation: str = "corrected", soc_band: float | None = None,
@@ -192,7 +191,7 @@ def compare_causal(params, *, train=TRAIN_CYCLES, train_logs=(), held_out=HELD_O
 
     ``learn_from``: more drives (e.g. the same cars' earlier trips) for a second demand chain, whose
     policy drives every held-out drive as ``sdp_own`` beside the ``sdp`` of ``train`` alone. ``own_settings``:
-    the settings ``sdp_own`` uses (a row of ``scripts/causal_select.py``'s report: ``alpha``,
+    the settings ``sdp_own`` uses (a row of ``studies/causal_select/causal_select.py``'s report: ``alpha``,
     ``w_soc_g_per_s``, ``soc_bias``, ``regen_fraction``, ``regen_slope_per_mps``); None: the same as ``sdp``.
 
     ``valuation``: ``"corrected"`` (fuel minus the fuel equivalents of the stored-energy changes; Thermal-DP

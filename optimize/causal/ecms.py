@@ -32,7 +32,7 @@ from optimize.causal.onestep import coolant_g_per_K, electric_g_per_soc, eval_co
 class ECMSParams:
     """Co-states and their adaptation gains. Defaults chosen on the training cycles (UDDS, HWFET, US06 at
     -10 degC) by a small grid search for corrected fuel close to Thermal-DP and SOC close to the start; the
-    held-out cycles of :mod:`optimize.causal.compare` played no part. ``scripts/ecms_select.py`` maps the
+    held-out cycles of :mod:`optimize.causal.compare` played no part. ``studies/ecms_select/ecms_select.py`` maps the
     trade-off behind them on the training cycles: gentler SOC feedback saves fuel but lets the SOC at the
     stops, where a drive may end, stray further from the start."""
 

@@ -48,7 +48,7 @@ class HindsightECMS:
 
 
 def summarize(runs: list, goal_pct: float = 3.0) -> dict:
-    """Counts over runs of ``scripts/ecms_hindsight.py`` (each with ``dp_g``, ``rule_g``, ``ecms_g`` and the
+    """Counts over runs of ``studies/ecms_hindsight/ecms_hindsight.py`` (each with ``dp_g``, ``rule_g``, ``ecms_g`` and the
     ``adaptive`` and ``constant`` searches' ``best``): per strategy (``causal``, the committed ECMS; the two
     searches; ``rule``, the rule tuned on the drive) the runs within ``goal_pct`` of Thermal-DP, better
     than the rule tuned on the drive, with no setting in the band, and the largest gap (%)."""

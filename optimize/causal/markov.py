@@ -29,7 +29,7 @@ DEFAULT_EDGES_W = np.array([-20e3, -12e3, -8e3, -5e3, -3e3, -1.5e3, -0.3e3, 0.3e
 #: Ambient bands (degC): upper edges of all bands but the last.
 DEFAULT_BANDS_DEGC = (-5.0,)
 #: Additive prior on the transition counts, chosen with the SDP's settings on the training drives
-#: (``scripts/causal_select.py``).
+#: (``studies/causal_select/causal_select.py``).
 DEFAULT_ALPHA = 0.1
 
 
@@ -103,7 +103,7 @@ class DemandMarkov:
     def estimate(cls, params, sources, *, edges_W=None, bands_degC=DEFAULT_BANDS_DEGC, alpha: float = DEFAULT_ALPHA,
                  Ts: float = 1.0) -> DemandMarkov:
         """Count transitions of every source (cycle names, CSV paths, Cycles, DriveLogs). The default
-        ``alpha`` was chosen with the SDP's settings on the training drives (``scripts/causal_select.py``)."""
+        ``alpha`` was chosen with the SDP's settings on the training drives (``studies/causal_select/causal_select.py``)."""
         edges = np.asarray(DEFAULT_EDGES_W if edges_W is None else edges_W, float)
         if np.any(np.diff(edges) <= 0):
             raise IptmError("Markov demand bins: edges must increase strictly")

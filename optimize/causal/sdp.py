@@ -71,7 +71,7 @@ class SDPConfig:
     pbat_step: float = 500.0
     soc_target: float = 0.6
     # w_soc, soc_bias and the kinetic share (regen_*) were chosen with the Markov chain's prior on the training
-    # drives (UDDS, HWFET, US06 at -10 and 0 degC; scripts/causal_select.py): final SOC within 0.0075 of the
+    # drives (UDDS, HWFET, US06 at -10 and 0 degC; studies/causal_select/causal_select.py): final SOC within 0.0075 of the
     # start on each (the 0.01 band less a margin), then the least mean corrected fuel. The share is the line that
     # optimize.causal.onestep.fit_stop_regen fits to the training cycles' stops (tests/test_causal_controllers.py).
     w_soc_g_per_s: float = 100.0  # g/s per unit SOC^2 of deviation from the target

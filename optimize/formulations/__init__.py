@@ -75,11 +75,19 @@ Common choices
       covers terminal sets only). Re-simulated results are checked to stay inside the boxes.
 """
 from optimize.formulations.scenario import (BASELINE_CONVERGED_GRIDS, CABIN_CONVERGED_GRIDS, DEFAULT_GRIDS, FORMULATIONS,
-                                            TERMINALS, DPGrids, DPScenario, FormulationGrids, parse_grid_spec)
+                                            GRID_AXES, TERMINALS, DPGrids, DPScenario, FormulationGrids, check_grid_axes,
+                                            parse_grid_spec, parse_grid_steps)
 from optimize.formulations.solve import (DPOutcome, dp_objective, estimate_problem, peak_rss_mb, resimulate, solve_baseline, solve_formulation,
                     solve_thermal, solve_thermal_cabin)
+from optimize.formulations.solve import (CABIN_INTERP, CABIN_STATE, CABIN_STATES, INTERP, SOC_STATE, SOC_STATES,
+                                         build_problem)
+from optimize.formulations.fused import backward_pass_fused
 
 __all__ = ["DPScenario", "DPGrids", "FormulationGrids", "DEFAULT_GRIDS", "BASELINE_CONVERGED_GRIDS", "CABIN_CONVERGED_GRIDS",
            "DPOutcome", "parse_grid_spec", "solve_baseline", "solve_thermal",
            "solve_thermal_cabin", "solve_formulation", "FORMULATIONS", "TERMINALS", "resimulate", "peak_rss_mb",
-           "dp_objective", "estimate_problem"]
+           "dp_objective", "estimate_problem",
+           # grid axes and checks, the states' coordinates and interpolation, and the problem and its fused
+           # backward pass, for studies that look inside a solution
+           "GRID_AXES", "check_grid_axes", "parse_grid_steps", "INTERP", "CABIN_INTERP", "CABIN_STATE", "CABIN_STATES",
+           "SOC_STATE", "SOC_STATES", "build_problem", "backward_pass_fused"]
