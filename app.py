@@ -1,6 +1,6 @@
 """The workbench dashboard: ``streamlit run app.py``.
 
-Four pages (one file each under ``pages/``): Logs, Calibrate, Optimize, Report. The pages call the same
+Five pages (one file each under ``pages/``): Logs, Calibrate, Optimize, Report, Plan. The pages call the same
 library functions as the command line (``calib.*``, ``optimize.*``, ``iptm.pipeline``) and hold no
 physics; session state and upload handling are in :mod:`iptm.dashboard`.
 """
@@ -29,6 +29,7 @@ pages = [
     st.Page("pages/calibrate.py", title="Calibrate", icon=":material/tune:"),
     st.Page("pages/optimize.py", title="Optimize", icon=":material/speed:"),
     st.Page("pages/report.py", title="Report", icon=":material/description:"),
+    st.Page("pages/plan.py", title="Plan", icon=":material/route:"),
 ]
 nav = st.navigation(pages)
 

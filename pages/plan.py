@@ -4,7 +4,7 @@ figure, and download the plan CSV."""
 import matplotlib.pyplot as plt
 import streamlit as st
 
-from calib.fileio import atomic_path
+from calib import atomic_path
 from iptm import dashboard as dash
 
 state = st.session_state
@@ -29,8 +29,8 @@ def _artifact_bytes():
 
 def _page():
     from calib.design import ArtifactPrior, make_plan, plot_plan
-    from calib.design.drive import header_lines, plan_frame
-    from calib.design.prior import DESIGNABLE
+    from calib.design import header_lines, plan_frame
+    from calib.design import DESIGNABLE
 
     data, suffix = _artifact_bytes()
     if data is None:

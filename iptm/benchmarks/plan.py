@@ -1,7 +1,7 @@
 """Drive plans in closed loop on cars that are not our model (``python -m iptm.benchmarks.plan``).
 
-For each foreign car (FASTSim 3's thermal Sonata, :mod:`calib.synth_fastsim`; the perturbed-structure
-plant, :mod:`calib.synth_perturbed`): calibrate on its usual calibration drives, let :func:`calib.design.make_plan`
+For each foreign car (FASTSim 3's thermal Sonata, :mod:`testcars.synth_fastsim`; the perturbed-structure
+plant, :mod:`testcars.synth_perturbed`): calibrate on its usual calibration drives, let :func:`calib.design.make_plan`
 design a drive for the parameters the logs left weakest (a cold start at the first calibration drive's
 ambient; the heater schedule is left to the car's own climate control: neither car takes a heater command),
 drive the plan with the foreign car, and calibrate again with it. The same is done with an equally long
@@ -28,7 +28,7 @@ REGIMES = [("below 40", -100.0, 40.0), ("40-80", 40.0, 80.0), ("80 and above", 8
 
 
 def _calibrate(logs):
-    from calib.fit.driver import calibrate
+    from calib import calibrate
 
     t0 = time.perf_counter()
     res = calibrate(logs, progress=False, diagnose=False)
@@ -45,8 +45,8 @@ def _prior(res, tmp):
 
 def held_out_errors(params, logs) -> dict:
     """Coolant RMSE per :data:`REGIMES` and cabin RMSE (degC) of the validation replay over ``logs`` pooled."""
-    from calib.errors import IptmError
-    from calib.fit.validate import replay
+    from calib import IptmError
+    from calib import replay
 
     err = {label: [] for label, _, _ in REGIMES}
     err["cabin"] = []
@@ -89,7 +89,7 @@ def drive_vs_model(log, sim) -> dict:
 
 def standard_cut(name: str, seconds: int):
     """A standard cycle repeated back to back and cut to ``seconds`` (1 s steps)."""
-    from calib.model.cycles import Cycle, load_cycle
+    from calib import Cycle, load_cycle
 
     v = load_cycle(name).v
     reps = int(math.ceil((seconds + 1) / v.size))
@@ -102,7 +102,7 @@ class FastsimCar:
 
     def __init__(self):
         from calib.ingest import to_drivelog
-        from calib.synth_fastsim import SONATA, synthesise_fastsim
+        from testcars.synth_fastsim import SONATA, synthesise_fastsim
 
         logs = [to_drivelog(*synthesise_fastsim(sc, seed=7 + i)[1:]) for i, sc in enumerate(SONATA)]
         self.cal, self.held = logs[:2], logs[2:]
@@ -110,7 +110,7 @@ class FastsimCar:
 
     def drive(self, cycle, T_amb, T_cl0, seed, label):
         from calib.ingest import to_drivelog
-        from calib.synth_fastsim import FastsimScenario, synthesise_fastsim
+        from testcars.synth_fastsim import FastsimScenario, synthesise_fastsim
 
         sc = FastsimScenario(f"plan_{label}", cycle, T_amb, T_cl0, T_amb, T_amb, f"{label} ({cycle.name})")
         return to_drivelog(*synthesise_fastsim(sc, seed=seed)[1:])
@@ -122,7 +122,7 @@ class FastsimCar:
 def _highway_held_out():
     """A held-out drive of this benchmark that takes the coolant above the thermostat (the perturbed plant's
     own held-out warm restart stays below 80 degC)."""
-    from calib.synth_perturbed import Drive
+    from testcars.synth_perturbed import Drive
 
     return Drive("perturbed_held_out_highway", "hwfet+us06", -5.0, 20.0, 5.0, 0.0, 0.58,
                  description="held out: restart at -5 degC (coolant 20 degC, cabin 5 degC), HWFET + US06 (23 min)")
@@ -130,7 +130,7 @@ def _highway_held_out():
 
 class PerturbedCar:
     def __init__(self, seed: int):
-        from calib.synth_perturbed import CALIBRATION, HELD_OUT, comparable_truth, perturbed_logs
+        from testcars.synth_perturbed import CALIBRATION, HELD_OUT, comparable_truth, perturbed_logs
 
         self.seed = seed
         self.name = f"perturbed plant, seed {seed} (SYNTHETIC)"
@@ -141,7 +141,7 @@ class PerturbedCar:
 
     def drive(self, cycle, T_amb, T_cl0, seed, label):
         from calib.ingest import to_drivelog
-        from calib.synth_perturbed import Drive, synthesise_perturbed
+        from testcars.synth_perturbed import Drive, synthesise_perturbed
 
         d = Drive(f"perturbed_plan_{label}", cycle, T_amb, T_cl0, T_amb, T_amb, 0.58,
                   description=f"{label} ({cycle.name})")
@@ -155,7 +155,7 @@ class PerturbedCar:
 def closed_loop(car, minutes: float = 20.0, tmp=None, log=print) -> dict:
     """The closed loop on one car (module docstring); returns the figures."""
     from calib.design import make_plan
-    from calib.design.drive import Planner, log_inputs, simulate_cycle
+    from calib.design import Planner, log_inputs, simulate_cycle
 
     tmp = tmp or tempfile.mkdtemp(prefix="iptm-plan-")
     res0, w0 = _calibrate(car.cal)
@@ -170,7 +170,7 @@ def closed_loop(car, minutes: float = 20.0, tmp=None, log=print) -> dict:
     n = int(round(plan.sim.t[-1]))
     drives = {"plan": plan_cycle(plan), "UDDS": standard_cut("udds", n), "HWFET": standard_cut("hwfet", n)}
     out = {"car": car.name, "targets": targets, "design": plan.design.describe(), "arms": {}}
-    from calib.design.prior import subsystem_of
+    from calib.design import subsystem_of
 
     subs = sorted({subsystem_of(t) for t in targets})
 
@@ -199,7 +199,7 @@ def closed_loop(car, minutes: float = 20.0, tmp=None, log=print) -> dict:
 
 def plan_cycle(plan):
     """The plan's speed trace as a cycle (what the driver follows)."""
-    from calib.model.cycles import Cycle
+    from calib import Cycle
 
     return Cycle("drive plan", plan.sim.t.copy(), plan.sim.v.copy())
 
@@ -240,7 +240,7 @@ def run(quick: bool = False, seeds=(1, 2, 3), minutes: float = 20.0, cars=None) 
     """The closed loop on each car (the perturbed plant once per seed; ``quick``: the perturbed plant, first
     seed, only), tables printed; a car whose loop raises is reported in ``failures`` and the others still
     run."""
-    from calib.synth_fastsim import fastsim_available
+    from testcars.synth_fastsim import fastsim_available
 
     cars = list(cars or (["perturbed"] if quick else ["perturbed", "fastsim"]))
     seeds = list(seeds)[:1] if quick else list(seeds)
@@ -273,8 +273,8 @@ def render_doc(doc_path, text: str) -> None:
     """Rewrite the ``<!-- figures:plan-bench -->`` block of ``doc_path`` with ``text`` (a code block)."""
     import re
 
-    from calib.errors import IptmError
-    from calib.fileio import write_text
+    from calib import IptmError
+    from calib import write_text
 
     p = Path(doc_path)
     old = p.read_text(encoding="utf-8")
@@ -296,7 +296,7 @@ def main(argv=None) -> int:
     res = run(seeds=args.seeds, minutes=args.minutes, cars=args.cars)
     figs = res["cars"]
     if args.json:
-        from calib.fileio import write_json
+        from calib import write_json
 
         write_json(args.json, figs)
     if args.doc and not res["failures"]:

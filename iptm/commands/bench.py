@@ -19,6 +19,7 @@ SUITES = {
     "sweep": "iptm.benchmarks.sweep",
     "fuzz": "iptm.benchmarks.fuzz",
     "causal": "iptm.benchmarks.causal",
+    "plan": "iptm.benchmarks.plan",
 }
 #: The keys of ``optimize.causal.compare.DRIVE_SETS`` (spelt here so that ``--help`` loads no numerics;
 #: tests/test_causal_drives.py checks they agree).
@@ -34,7 +35,8 @@ def register(sub):
                                    "formulations on paper grids), sweep (distributed study speed-up), fuzz (mutated "
                                    "inputs to every reader: read / recovered / clean error / escape counts, and "
                                    "random truncations of valid logs), causal (SDP and ECMS on held-out drives vs DP and "
-                                   "rule-based; policy build and step time).")
+                                   "rule-based; policy build and step time), plan (drive plans in closed loop on FASTSim and the "
+                                   "perturbed plant).")
     p.add_argument("suite", nargs="*", default=["sim", "dp"], help=f"any of {', '.join(SUITES)} or 'all' "
                                                                     "(default: sim dp)")
     p.add_argument("--quick", action="store_true", help="smaller sizes, for a smoke check")

@@ -37,8 +37,8 @@ def run(args) -> int:
     from tqdm.auto import tqdm
 
     from calib.design import ArtifactPrior, make_plan, plot_plan, write_plan_csv
-    from calib.design.drive import header_lines
-    from calib.fileio import write_json
+    from calib.design import header_lines
+    from calib import write_json
 
     prior = ArtifactPrior.load(args.artifact)
     targets = args.target or prior.weakest()
