@@ -97,6 +97,25 @@ class DPOutcome:
                 "n_states": self.n_states, "n_controls": self.n_controls, "peak_rss_mb": self.peak_rss_mb,
                 "grids": self.grids, **self.extra}
 
+    def to_pandas(self):
+        """The re-simulated drive, one row per step (:meth:`SimResult.to_pandas`), the DP figures in ``attrs``."""
+        df = self.sim.to_pandas()
+        df.attrs.update({k: v for k, v in self.describe().items() if not isinstance(v, np.ndarray)})
+        return df
+
+    def save(self, path, value_functions: bool = False):
+        """Save as a result folder of kind ``dp-outcome`` (:mod:`optimize.formulations.outcome_io`)."""
+        from optimize.formulations.outcome_io import save_outcome
+
+        return save_outcome(self, path, value_functions)
+
+    @classmethod
+    def load(cls, path) -> "DPOutcome":
+        """Read a folder written by :meth:`save`."""
+        from optimize.formulations.outcome_io import load_outcome
+
+        return load_outcome(path)
+
 
 class _Replay:
     """Open-loop controller replaying a control sequence (for :func:`calib.model.simulate.simulate`)."""
