@@ -18,6 +18,7 @@ import json
 import os
 import secrets
 import shutil
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -63,6 +64,9 @@ def write_parts(folder: Path, kind: str, meta: dict, arrays: dict | None = None,
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
+    clash = {"format", "version", "kind"} & set(meta)
+    if clash:
+        raise ValueError(f"write_parts: {sorted(clash)} name the file format itself; call them otherwise")
     doc = {"format": FORMAT, "version": VERSION, "kind": kind, **meta}
     (folder / META).write_text(json.dumps(doc, indent=1, default=_default, allow_nan=True) + "\n")
     if arrays:
@@ -92,7 +96,7 @@ def read_parts(path, kind: str) -> tuple[dict, dict, Path]:
         try:
             with np.load(path / ARRAYS, allow_pickle=False) as z:
                 arrays = {k: z[k] for k in z.files}
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
             raise ResultFileError(f"{path / ARRAYS}: unreadable ({str(exc)[:120]})") from None
     return doc, arrays, path
 

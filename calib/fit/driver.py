@@ -201,7 +201,7 @@ class CalibrationResult:
 
         meta = {"params_meta": dict(self.params.meta), "validation": _clean(self.validation), "logs": _clean(self.logs),
                 "validation_logs": _clean(self.validation_logs), "wall_s": self.wall_s, "date": self.date,
-                "version": self.version, "advice": _clean(self.advice), "diagnostics": _clean(self.diagnostics),
+                "software_version": self.version, "advice": _clean(self.advice), "diagnostics": _clean(self.diagnostics),
                 "data_warnings": _clean(self.data_warnings), "timings": _clean(self.timings),
                 "fits": {k: _clean(dataclasses.asdict(f)) for k, f in self.fits.items()}}
         write_parts(folder, "calibration", meta,
@@ -229,8 +229,8 @@ class CalibrationResult:
                 fits[name] = SubsystemFit(**d)
             except (KeyError, TypeError) as exc:
                 raise ResultFileError(f"{path}: fit {name!r} is damaged ({exc})") from None
-        return cls(params=params, fits=fits, **{k: need(doc, k, path) for k in (
-            "validation", "logs", "validation_logs", "wall_s", "date", "version")},
+        return cls(params=params, fits=fits, version=need(doc, "software_version", path), **{k: need(doc, k, path) for k in (
+            "validation", "logs", "validation_logs", "wall_s", "date")},
             **{k: doc.get(k) for k in ("advice", "diagnostics", "data_warnings", "timings")})
 
     def report(self) -> str:

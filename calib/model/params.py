@@ -340,7 +340,7 @@ def prior_sd_of(p: "Parameter"):
 #: One field of the compiled form: its ``name`` (the kernels' attribute), the ``param`` it is read from, how it
 #: is read (``read``: "value", "x" the table's breakpoints, a number the value is multiplied by (a unit
 #: conversion), or a function of the set for a quantity derived from several), whether it is an ``array``, and
-#: the other parameters a derived field reads (``also``).
+#: the other parameters whose values a derived field reads (``also``).
 CompiledField = namedtuple("CompiledField", ["name", "param", "read", "array", "also"], defaults=[()])
 
 
@@ -367,7 +367,7 @@ COMPILED = (
     _tab("eta_ool", "eta_ool"),
     # the engine speed on the optimal operating line at the efficiency table's breakpoints (rad/s)
     CompiledField("w_ool", "n_ool_rpm", lambda ps: np.interp(_x(ps, "eta_ool"), _x(ps, "n_ool_rpm"),
-                                                             _a(ps, "n_ool_rpm")) * RPM, True, ("eta_ool",)),
+                                                             _a(ps, "n_ool_rpm")) * RPM, True),
     _val("fuel_scale", "fuel_scale"), _val("W_idle", "W_idle_g_per_s"), _tab("T_fcl", "f_cl", "x"),
     _tab("f_cl", "f_cl"), _val("LHV", "LHV_J_per_g"), _val("C_eng", "C_eng_J_per_K"), _val("gamma_exh", "gamma_exh"),
     _val("hA_eng", "hA_eng_W_per_K"), _val("kappa", "kappa"), _val("T_open", "T_open_degC"),
@@ -410,14 +410,16 @@ def compiled_with(mp: ModelParams, values: dict, names=None) -> ModelParams:
     ``names`` where given; other keys, such as a fit's nuisance parameters, are then ignored) to new values.
 
     The fitters' objective functions change a few parameters thousands of times; this rebuilds only their
-    fields, through :data:`COMPILED`. A parameter whose field is derived from others or from the table's
-    breakpoints cannot be replaced this way (a ParameterError): build it with :meth:`ParameterSet.with_values`."""
+    fields, through :data:`COMPILED`; a table's breakpoints stay. A parameter a derived field reads cannot be
+    replaced this way (a ParameterError): build it with :meth:`ParameterSet.with_values`."""
     new = {}
     for n in (values if names is None else [n for n in names if n in values]):
         if n not in FIELDS_OF:
             raise ParameterError(f"parameter {n!r} is not read by the compiled model")
         for f in FIELDS_OF[n]:
-            if callable(f.read) or f.read == "x":
+            if f.read == "x":
+                continue  # a table's breakpoints are not its values
+            if callable(f.read):
                 raise ParameterError(f"{f.name} is derived from {n}: replace {n} with ParameterSet.with_values")
             v = values[n]
             if f.array:
