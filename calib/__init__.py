@@ -23,7 +23,7 @@ from calib._numba_cache import CACHE_DIR as _NUMBA_CACHE_DIR  # noqa: F401
 from calib._version import __version__
 
 from calib.errors import (IptmError, LogFormatError, MissingChannelsError, ParameterError,
-                          ScenarioError)
+                          ResultFileError, ScenarioError)
 from calib.drivelog import DriveLog, LogMeta
 from calib.model import (Cycle, ParameterSet, RuleBasedController, RuleParams, SimResult,
                          available_cycles, default_parameters, load_cycle, simulate)
@@ -33,7 +33,7 @@ from calib.synth import synthesise
 
 __all__ = [
     "__version__",
-    "IptmError", "LogFormatError", "MissingChannelsError", "ParameterError", "ScenarioError",
+    "IptmError", "LogFormatError", "MissingChannelsError", "ParameterError", "ResultFileError", "ScenarioError",
     "DriveLog", "LogMeta",
     "ParameterSet", "default_parameters", "Cycle", "load_cycle", "available_cycles",
     "simulate", "SimResult", "RuleBasedController", "RuleParams",

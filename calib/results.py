@@ -60,7 +60,7 @@ def save_result(path, fill) -> Path:
 
 def write_parts(folder: Path, kind: str, meta: dict, arrays: dict | None = None, texts: dict | None = None) -> None:
     """Fill ``folder`` (inside :func:`save_result`'s ``fill``): ``result.json``, ``arrays.npz``, text files."""
-    from calib.fileio import _default
+    from calib.fileio import write_json
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -68,7 +68,7 @@ def write_parts(folder: Path, kind: str, meta: dict, arrays: dict | None = None,
     if clash:
         raise ValueError(f"write_parts: {sorted(clash)} name the file format itself; call them otherwise")
     doc = {"format": FORMAT, "version": VERSION, "kind": kind, **meta}
-    (folder / META).write_text(json.dumps(doc, indent=1, default=_default, allow_nan=True) + "\n")
+    write_json(folder / META, doc)
     if arrays:
         with open(folder / ARRAYS, "wb") as fh:
             np.savez_compressed(fh, **{k: np.asarray(v) for k, v in arrays.items()})
