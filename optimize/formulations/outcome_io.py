@@ -46,11 +46,11 @@ def save_outcome(o, path, value_functions: bool = False):
     return save_result(path, fill)
 
 
-def load_outcome(path):
-    """Read a folder written by :func:`save_outcome` (a ResultFileError where it is not one)."""
+def load_outcome(path, outcome_cls):
+    """Read a folder written by :func:`save_outcome` as an ``outcome_cls`` (:class:`DPOutcome`, passed in: this
+    module is imported by solve.py); a ResultFileError where it is not one."""
     from calib.model.simulate import SimResult
     from optimize.dp.engine import DPResult
-    from optimize.formulations.solve import DPOutcome
 
     doc, arrays, path = read_parts(path, KIND)
     try:
@@ -63,6 +63,6 @@ def load_outcome(path):
         extra = {k: extra[k] for k in order + [k for k in extra if k not in order]}
     except KeyError as exc:
         raise ResultFileError(f"{path}: {exc.args[0]!r} is missing") from None
-    return DPOutcome(**{k: need(doc, k, path) for k in _FIGURES}, sim=SimResult.load(path / "sim"), dp=dp,
+    return outcome_cls(**{k: need(doc, k, path) for k in _FIGURES}, sim=SimResult.load(path / "sim"), dp=dp,
                      on_thermal=SimResult.load(path / "on_thermal") if doc.get("on_thermal") else None, extra=extra,
                      T_cab_lb=arrays.get("T_cab_lb"))

@@ -114,7 +114,7 @@ class DPOutcome:
         """Read a folder written by :meth:`save`."""
         from optimize.formulations.outcome_io import load_outcome
 
-        return load_outcome(path)
+        return load_outcome(path, cls)
 
 
 class _Replay:
