@@ -22,10 +22,10 @@ from calib._numba_cache import CACHE_DIR as _NUMBA_CACHE_DIR  # noqa: F401
 from calib._version import __version__
 
 from calib.errors import (ChannelLossWarning, IptmError, IptmWarning, LogFormatError, MissingChannelsError,
-                          ParameterError, ScenarioError)
+                          ParameterError, ResultFileError, ScenarioError)
 from calib.drivelog import CHANNELS, DriveLog, LogMeta, file_sha256
 from calib.fileio import atomic_path, read_config, save_figure, write_json, write_text
-from calib.store import Store, code_version, content_key
+from calib.store import Store, code_version, content_key, default_root, result_key
 from calib.economy import format_economy, log_fuel_distance
 from calib.units import RPM, convert
 from calib.model import (Cycle, ParameterSet, RuleBasedController, RuleParams, SimResult,
@@ -36,7 +36,7 @@ from calib.synth import BUNDLED, HvacController, draw_truth, synthesise
 
 __all__ = [
     "__version__",
-    "IptmError", "LogFormatError", "MissingChannelsError", "ParameterError", "ScenarioError",
+    "IptmError", "LogFormatError", "MissingChannelsError", "ParameterError", "ResultFileError", "ScenarioError",
     "IptmWarning", "ChannelLossWarning",
     "DriveLog", "LogMeta", "CHANNELS", "file_sha256",
     "ParameterSet", "default_parameters", "Cycle", "load_cycle", "available_cycles",
@@ -46,6 +46,6 @@ __all__ = [
     "synthesise", "draw_truth", "BUNDLED", "HvacController",
     # files, the content-keyed cache, units and economy, for the application layer
     "write_json", "write_text", "read_config", "atomic_path", "save_figure",
-    "Store", "content_key", "code_version",
+    "Store", "content_key", "code_version", "result_key", "default_root",
     "convert", "RPM", "format_economy", "log_fuel_distance",
 ]

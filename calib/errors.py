@@ -61,6 +61,11 @@ class ScenarioError(IptmError):
     """A scenario is invalid or infeasible."""
 
 
+class ResultFileError(IptmError):
+    """A saved result (simulation, calibration, DP outcome) cannot be read or written: not one, of another
+    kind or a newer format version, damaged."""
+
+
 class IptmWarning(UserWarning):
     """Base class: something the user should know that does not stop the work."""
 

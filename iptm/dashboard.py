@@ -10,12 +10,14 @@ Per session
     created for the session, where uploads are written (original file name kept, so the format is
     detected from the extension) before being read. Two sessions never share either.
 Shared between sessions (content-keyed, so a session only ever hits entries of content it has itself)
-    the ingest cache (:class:`calib.store.Store` under :func:`cache_dir`, keyed by the file's SHA-256 and
-    the DBC), and the Streamlit caches of calibrations / optimisations in the pages.
+    the one content-keyed cache (:class:`calib.store.Store` under :func:`cache_dir`, shared with ``iptm run``,
+    ``iptm optimize`` and ``iptm sweep``): ingested logs (keyed by the file's SHA-256 and the DBC),
+    calibrations, optimisations and sweep cases.
 
 Configuration (environment)
     ``IPTM_MAX_UPLOAD_MB`` (default 200): larger uploads are refused with a message.
-    ``IPTM_CACHE_DIR`` (default ``.iptm-cache``): the shared content-keyed cache.
+    ``IPTM_CACHE_DIR`` (default ``.iptm-cache``): the shared content-keyed cache; ``IPTM_CACHE_MAX_MB``
+    (default 4096): its size cap, the least recently used entries removed past it.
     ``IPTM_SESSION_ROOT`` (default: the system temporary folder): where session folders are made.
 """
 from __future__ import annotations
@@ -79,9 +81,11 @@ def max_upload_bytes() -> int:
 
 
 def cache_dir() -> Path:
-    """The shared content-keyed cache (``IPTM_CACHE_DIR``, default ``.iptm-cache`` in the working folder,
-    the same as ``iptm run``)."""
-    return Path(os.environ.get("IPTM_CACHE_DIR") or ".iptm-cache")
+    """The one content-keyed cache (:func:`calib.store.default_root`: ``IPTM_CACHE_DIR``, default
+    ``.iptm-cache`` in the working folder, the same as ``iptm run``)."""
+    from calib import default_root
+
+    return default_root()
 
 
 def _human(n: float) -> str:

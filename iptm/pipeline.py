@@ -2,11 +2,11 @@
 
 Used by ``iptm run`` and by the dashboard; it orchestrates library calls and holds no physics.
 
-Caching (``.iptm-cache/`` next to the reports, content-keyed, :class:`calib.store.Store`): ingested logs
-are keyed by file hash and reader options; calibrations by the logs' hashes, the base parameters and the
-options; each strategy's optimisation by the parameter values, the scenario, the grids and the software
-version. Re-running on the same inputs reuses all of it; after a small change only what depends on it is
-recomputed.
+Caching (the one content-keyed cache, :class:`calib.store.Store`: ``--cache``, ``IPTM_CACHE_DIR`` or
+``.iptm-cache/``): ingested logs are keyed by file hash and reader options; calibrations by the logs' hashes,
+the base parameters and the software version; each strategy's optimisation by :func:`calib.store.result_key`
+(the parameter values, the scenario, the grids, the strategy and the software version). Re-running on the
+same inputs reuses all of it; after a small change only what depends on it is recomputed.
 
 A report is assembled in ``reports/.partial-<run-id>/`` and renamed to ``reports/<run-id>/`` only when
 complete, so an interrupted run leaves no half-written report behind (and never touches earlier ones).
@@ -15,16 +15,15 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
-import os
 import secrets
-import shutil
 import sys
 import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from calib import ChannelLossWarning, IptmError, ScenarioError, Store, code_version, content_key
+from calib import ChannelLossWarning, IptmError, ScenarioError
+from calib import Store, code_version, content_key, result_key
 
 DEFAULT_LOG_GLOB = "*.blf"
 STRATEGIES = ("rule", "baseline", "thermal", "thermal_cabin")
@@ -65,7 +64,8 @@ def load_scenario(path=None):
     -------
     (DPScenario, FormulationGrids, strategies, cycle_log or None)
     """
-    from optimize.formulations import DEFAULT_GRIDS, DPScenario, parse_grid_steps
+    from optimize.formulations import DEFAULT_GRIDS, parse_grid_steps
+    from optimize import DPScenario
 
     if path is None:
         return DPScenario(), DEFAULT_GRIDS, STRATEGIES, None
@@ -185,7 +185,8 @@ def ingest_all(paths, store: Store | None, dbc=None, progress=True, strict=False
     """
     from tqdm import tqdm
 
-    from calib.ingest import channel_report, input_digest, loss_text, read_canonical, read_log, warn_damage, write_canonical
+    from calib.ingest import channel_report, input_digest, loss_text, read_canonical, read_log, write_canonical
+    from calib.ingest import warn_damage
 
     logs = []
     paths = list(paths)
@@ -197,6 +198,7 @@ def ingest_all(paths, store: Store | None, dbc=None, progress=True, strict=False
         cached = store.path("ingest", key, "parquet") if store else None
         log = None
         if cached is not None and cached.is_file():
+            store.touch(cached)
             try:
                 log = read_canonical(cached)
             except IptmError:
@@ -212,6 +214,7 @@ def ingest_all(paths, store: Store | None, dbc=None, progress=True, strict=False
             log = read_log(p, dbc=dbc, strict=strict)
             if store is not None:
                 write_canonical(log, cached)
+                store.written(cached)
         logs.append((p, log, channel_report(log)))
         if on_log is not None:
             on_log(len(logs), len(paths), p)
@@ -221,57 +224,60 @@ def ingest_all(paths, store: Store | None, dbc=None, progress=True, strict=False
 def calibrate_cached(fit_logs, val_logs, base, store: Store | None, progress=True):
     """Calibrate (or reuse a cached calibration of the same logs and base parameters).
 
-    Returns (ParameterSet, calibration dict, text report, validation-plot PNG paths in the cache).
-    """
+    Returns (ParameterSet, calibration dict, text report, validation-plot PNG paths in the cache, artifact).
+    The cache entry (kind ``calib``) also holds the saved :class:`calib.fit.driver.CalibrationResult`
+    (``result/``, docs/results.md)."""
     from calib.fit import calibrate
-    from calib.model import ParameterSet
-    from calib.fit import plot_residual_comparison, plot_validation, replay
 
-    # "figures-2": measured-vs-simulated on every log (fitted and held out) and the residuals figure
-    key = content_key([lg.content_digest() for lg in fit_logs], [lg.content_digest() for lg in val_logs],
-                      base.to_dict()["parameters"], code_version("calib", "iptm"))
-    folder = store.root / "calib" / key if store else None
-    if folder is not None and (folder / "done").is_file():
+    # "figures-2": measured-vs-simulated on every log (fitted and held out) and the residuals figure; the whole
+    # parameter entries (bounds and priors too) enter the key: they shape the fit
+    key = result_key("calibration", params=base.to_dict()["parameters"], code=("calib", "iptm"),
+                     inputs=[[lg.content_digest() for lg in fit_logs], [lg.content_digest() for lg in val_logs]])
+    folder = store.get_dir("calib", key) if store else None
+    if folder is not None:
         try:
-            ps = ParameterSet.load(folder / "calibration.toml")
-            info = json.loads((folder / "calibration.json").read_text())
-            text = (folder / "report.txt").read_text()
-            return ps, info, text, _figures(folder), folder / "calibration.toml"
+            return _calibration_entry(folder)
         except (OSError, ValueError, IptmError):
             pass  # damaged cache entry: recompute
     res = calibrate(fit_logs, base=base, validate=val_logs or None, progress=progress)
-    # a folder of this process's own: two runs calibrating the same logs at once must not share one
-    tag = f".partial-{os.getpid()}-{secrets.token_hex(3)}"
-    tmp = Path(str(folder) + tag) if folder else Path(".iptm-calib" + tag)
-    tmp.mkdir(parents=True)
-    res.to_artifact(tmp / "calibration.toml")
-    from calib import write_json, write_text
+    fill = lambda d: _write_calibration(d, res, fit_logs, val_logs)  # noqa: E731
+    if store is not None:
+        folder = store.put_dir("calib", key, fill)
+    else:  # no cache: a temporary folder of this process's own for the figures the report copies, removed at exit
+        import atexit
+        import shutil
+        import tempfile
 
-    write_json(tmp / "calibration.json", res.to_dict())
-    write_text(tmp / "report.txt", res.report())
+        folder = Path(tempfile.mkdtemp(prefix="iptm-calib-"))
+        atexit.register(shutil.rmtree, folder, True)
+        fill(folder)
+    return _calibration_entry(folder)
+
+
+def _write_calibration(folder: Path, res, fit_logs, val_logs) -> None:
+    from calib import write_json, write_text
+    from calib.fit import plot_residual_comparison, plot_validation
+    from calib import replay
+
+    res.to_artifact(folder / "calibration.toml")
+    res.save(folder / "result")
+    write_json(folder / "calibration.json", res.to_dict())
+    write_text(folder / "report.txt", res.report())
     reps = []
     for role, logs_ in (("fit", fit_logs), ("validation", val_logs)):
         for i, lg in enumerate(logs_):
             rep = replay(lg, res.params)
             what = "held out" if role == "validation" else "fitted"
             reps.append((f"{lg.label()} ({what})", rep))
-            plot_validation(rep, tmp / f"{role}_{i}_{Path(lg.name).stem}.png",
+            plot_validation(rep, folder / f"{role}_{i}_{Path(lg.name).stem}.png",
                             title=f"{lg.label()} ({what}): measured vs simulated")
-    plot_residual_comparison(reps, tmp / "residuals.png", title="residuals (simulated - measured) on the fitted and the "
-                                                      "held-out logs")
-    (tmp / "done").write_text("")
-    if folder is None:
-        folder = tmp
-    else:
-        try:
-            tmp.rename(folder)
-        except OSError:
-            if (folder / "done").is_file():
-                # another run filed the same calibration first (the key is the content: the same result)
-                shutil.rmtree(tmp, ignore_errors=True)
-            else:  # a damaged entry left by an interrupted run
-                shutil.rmtree(folder, ignore_errors=True)
-                tmp.rename(folder)
+    plot_residual_comparison(reps, folder / "residuals.png", title="residuals (simulated - measured) on the fitted "
+                                                                   "and the held-out logs")
+
+
+def _calibration_entry(folder: Path):
+    from calib import ParameterSet
+
     return (ParameterSet.load(folder / "calibration.toml"), json.loads((folder / "calibration.json").read_text()),
             (folder / "report.txt").read_text(), _figures(folder), folder / "calibration.toml")
 
@@ -309,26 +315,32 @@ class _StageBar:
         self.stage.update(self.fraction)
 
 
-class _StoredOutcome:
-    """What the report needs of a DP outcome, restored from the cache."""
+def _save_part(folder: Path, cs, o, strat: str) -> None:
+    """A strategy's cache entry: its simulations, its DP outcome (if it has one), timing and rule thresholds."""
+    from calib import write_json
 
-    cached = True
+    for name, sim in cs.sims.items():
+        sim.write_into(folder / f"sim-{name}")
+    if o is not None:
+        o.save(folder / "outcome")
+    write_json(folder / "entry.json", {"sims": list(cs.sims), "timing": cs.timings.get(strat, 0.0), "rule": cs.rule})
 
-    def __init__(self, d: dict, T_cab_lb=None):
-        self._d = d
-        self.extra = d  # describe() flattens the outcome's extra figures into the dict
-        self.T_cab_lb = T_cab_lb  # the comfort bound at steps 1..N (a list), for the cabin figure
 
-    def describe(self) -> dict:
-        return self._d
+def _load_part(folder: Path):
+    """``(sims, outcome or None, timing, rule)`` of a cache entry written by :func:`_save_part`; None where it
+    cannot be read (it is then solved again and replaced)."""
+    from calib import SimResult
+    from optimize.formulations import DPOutcome
 
-    @property
-    def dp_cost(self) -> float:
-        return self._d["dp_cost_g"]
-
-    @property
-    def predicted_cost(self) -> float:
-        return self._d["predicted_cost_g"]
+    try:
+        entry = json.loads((folder / "entry.json").read_text())
+        sims = {name: SimResult.load(folder / f"sim-{name}") for name in entry["sims"]}
+        o = DPOutcome.load(folder / "outcome") if (folder / "outcome").is_dir() else None
+    except (OSError, ValueError, KeyError, TypeError, IptmError):
+        return None
+    if o is not None:
+        o.cached = True  # the report and the CLI say it came from the cache
+    return sims, o, entry.get("timing", 0.0), entry.get("rule")
 
 
 def _states_text(outcome: dict | None) -> str:
@@ -338,25 +350,28 @@ def _states_text(outcome: dict | None) -> str:
 
 
 def optimize_cached(params, scen, grids, strategies, store: Store | None, progress=True, cycle_log=None,
-                    hold: bool | None = None, stage: StageProgress | None = None):
+                    hold: bool | None = None, stage: StageProgress | None = None, on_steps=None):
     """Run the case study strategy by strategy, reusing cached results keyed by parameter values,
     scenario (with the cycle file's hash), grids, strategy, solver options (``hold``: Thermal-Cabin-DP's
     hold-the-bound heater control; None: its default) and software version. ``grids``: as
     :func:`optimize.casestudy.run_case_study`; each strategy's key holds its own grid. ``stage``: the main
     job's stage line, which then shows the strategies (and a DP's backward pass, where the solver reports
-    it) in place of a bar per strategy."""
+    it) in place of a bar per strategy. ``on_steps(done, total)``: the DP's backward pass (the dashboard's bar).
+
+    A strategy's entry in the cache (kind ``dp``, :func:`calib.store.result_key`) holds its saved results:
+    ``sim-NAME/`` simulations and ``outcome/`` the DP outcome (docs/results.md), loaded as they were solved."""
     from dataclasses import replace
 
     from tqdm import tqdm
 
     from calib import file_sha256
-    from calib.model import sim_from_arrays, sim_to_arrays
     from optimize import LABELS, CaseStudy, run_case_study
-    from optimize.formulations import FORMULATIONS, FormulationGrids
+    from optimize import FORMULATIONS
+    from optimize.formulations import FormulationGrids
 
     grids = FormulationGrids.coerce(grids)
     if cycle_log is not None:
-        from calib.model import load_cycle
+        from calib import load_cycle
         from calib import write_text
 
         cyc = load_cycle(cycle_log)
@@ -367,15 +382,13 @@ def optimize_cached(params, scen, grids, strategies, store: Store | None, progre
     cyc_id = scen.cycle
     if Path(scen.cycle).is_file():
         cyc_id = file_sha256(scen.cycle)
-    pvals = {k: v["value"] for k, v in params.to_dict()["parameters"].items()}
     sims, outcomes, timings, rule = {}, {}, {}, None
     for i, strat in enumerate(strategies):
         opts = {} if hold is None or strat != "thermal_cabin" else {"hold": bool(hold)}
-        key = content_key(pvals, {**scen.to_dict(), "cycle": cyc_id}, grids.of(strat).to_dict() if strat in FORMULATIONS else {},
-                          strat, code_version("calib", "optimize"),
-                          *([opts] if opts else []))
-        entry = store.get_json("dp", key) if store else None
-        arrays = {name: store.get_npz("dp", f"{key}-{name}") for name in (entry or {}).get("sims", [])}
+        key = result_key(strat, params=params, scenario={**scen.to_dict(), "cycle": cyc_id},
+                         grids=grids.of(strat).to_dict() if strat in FORMULATIONS else None, options=opts)
+        folder = store.get_dir("dp", key) if store else None
+        part = _load_part(folder) if folder is not None else None
         # alone (``iptm optimize``): one bar per strategy, named, with its state count (a single bar over all
         # strategies gives a time-left estimate that jumps whenever a strategy of another size starts); in the
         # main job the stage's own line shows the strategy, with no second counter inside it
@@ -384,30 +397,26 @@ def optimize_cached(params, scen, grids, strategies, store: Store | None, progre
             total=1, desc=f"[{i + 1}/{len(strategies)}] {name}", unit="strategy", disable=not progress,
             file=sys.stderr, bar_format="{desc}: {bar:20}| {elapsed} {postfix}")
         with bar:
-            if entry is not None and all(a is not None for a in arrays.values()):
-                for name, a in arrays.items():
-                    sims[name] = sim_from_arrays(a)
-                if entry.get("outcome"):
-                    outcomes[strat] = _StoredOutcome(entry["outcome"], entry.get("T_cab_lb"))
-                timings[strat] = entry.get("timing", 0.0)
-                rule = entry.get("rule") or rule
-                bar.set_postfix_str(_states_text(entry.get("outcome")) + "from the cache")
+            if part is not None:
+                p_sims, o, timing, p_rule = part
+                sims.update(p_sims)
+                if o is not None:
+                    outcomes[strat] = o
+                timings[strat] = timing
+                rule = p_rule or rule
+                bar.set_postfix_str(_states_text(o.describe() if o else None) + "from the cache")
             else:
                 bar.set_postfix_str("solving" if strat != "rule" else "tuning the thresholds")
+                steps = on_steps or (bar.steps if stage is not None else None)
                 cs = run_case_study(params, scen, (strat,), progress=False, grids=grids, hold=hold,
-                                    step_progress=bar.steps if stage is not None else None)
+                                    step_progress=steps)
                 sims.update(cs.sims)
                 outcomes.update(cs.outcomes)
                 timings.update(cs.timings)
                 rule = cs.rule or rule
                 o = cs.outcomes.get(strat)
                 if store is not None:
-                    for name, sim in cs.sims.items():
-                        store.put_npz("dp", f"{key}-{name}", sim_to_arrays(sim))
-                    store.put_json("dp", key, {"sims": list(cs.sims), "timing": cs.timings.get(strat, 0.0),
-                                               "rule": cs.rule, "outcome": o.describe() if o else None,
-                                               "T_cab_lb": None if getattr(o, "T_cab_lb", None) is None
-                                               else [float(x) for x in o.T_cab_lb]})
+                    store.put_dir("dp", key, lambda d, cs=cs, o=o, strat=strat: _save_part(d, cs, o, strat))
                 bar.set_postfix_str(_states_text(o.describe() if o else None) + f"solved in {cs.timings.get(strat, 0.0):.1f} s")
             bar.update(1)
     order = [k for k in ("rule", "baseline", "thermal", "thermal_cabin", "baseline_warm") if k in sims]
@@ -416,7 +425,7 @@ def optimize_cached(params, scen, grids, strategies, store: Store | None, progre
 
 def _truth_for(paths):
     """The truth parameter file written by ``iptm synth`` next to SYNTHETIC logs, when there is one."""
-    from calib.model import ParameterSet
+    from calib import ParameterSet
 
     for folder in dict.fromkeys(Path(p).parent for p in paths):
         f = folder / "truth_params.toml"
@@ -502,8 +511,9 @@ def _run_stages(cfg, stage, t0, scen, grids, store, paths, val_paths, fit_paths,
 
 def run(cfg: RunConfig) -> RunOutcome:
     """The whole chain; returns where the report is and the headline figures."""
-    from calib.model import ParameterSet, default_parameters
-    from optimize.formulations import DPScenario, FormulationGrids
+    from calib import ParameterSet, default_parameters
+    from optimize import DPScenario
+    from optimize.formulations import FormulationGrids
 
     t0 = time.perf_counter()
     scen = cfg.scenario or DPScenario()

@@ -34,8 +34,9 @@ draw that fails validation is redrawn (up to 50 times). Draw ``i`` of a study is
 Cases = parameter sets x ([[case]] entries or one empty entry) x the [vary] cross product. Each case is a
 JSON-able dict; :func:`run_case` is a pure function of it and never raises (a failing strategy is recorded
 with its error). :func:`run_study` submits the cases missing from a content-keyed result store
-(:class:`calib.store.Store`; key = parameter values + scenario + grids + strategies + software version:
-``calib.__version__`` and a digest of the ``calib`` and ``optimize`` sources, :func:`code_version`)
+(:class:`calib.store.Store`, the cache the pipeline and the dashboard use; key :func:`calib.store.result_key`
+= parameter values + scenario + grids + strategies + software version: ``calib.__version__`` and a digest of
+the ``calib`` and ``optimize`` sources)
 to a dask.distributed cluster - a ``LocalCluster`` of 2 single-threaded worker processes by default, or any
 scheduler by address - and writes each result to the store as it arrives, so an interrupted study resumes
 and a finished one is never recomputed. A worker that dies mid-case has its case re-run elsewhere
@@ -59,12 +60,10 @@ import pandas as pd
 from optimize.plotting import plot_study  # noqa: F401 - part of this module's API
 
 __all__ = ["Study", "load_study", "study_from_dict", "run_sequential", "run_case", "run_study", "results_table", "write_table", "plot_study",
-           "montecarlo_draws", "STRATEGIES", "DEFAULT_STORE", "local_client"]
+           "montecarlo_draws", "STRATEGIES", "local_client"]
 
 STRATEGIES = ("rule", "baseline", "thermal", "thermal_cabin")
 #: Names in plots.
-#: Default result store (gitignored).
-DEFAULT_STORE = Path(".iptm-cache") / "sweep"
 _KIND = "sweep"
 _RESULT_FIELDS = ("fuel_g", "fuel_corrected_g", "soc_final", "T_cl_final_degC", "T_cl_mean_degC",
                   "T_cab_final_degC", "T_cab_mean_degC", "engine_starts", "idle_s")
@@ -169,20 +168,18 @@ class Study:
     def expand(self) -> list[dict]:
         """The cases: JSON-able dicts with ``case_id``, ``key`` (content key), ``labels`` and what
         :func:`run_case` needs."""
-        from calib.store import content_key
+        from calib.store import result_key
 
         names = list(self.vary)
         combos = list(itertools.product(*(self.vary[n] for n in names))) or [()]
         out = []
         for ps in self.param_sets:
             pdict = ps.pset.to_dict()
-            fp = _fingerprint(ps.pset)
             for entry in self.cases or [{}]:
                 for combo in combos:
                     scen = self._scenario({**self.scenario, **entry, **dict(zip(names, combo))})
                     sd = _scenario_dict(scen)
-                    key = content_key({"params": fp, "scenario": sd, "grids": self.grids,
-                                       "strategies": sorted(self.strategies), "version": code_version()})
+                    key = result_key(sorted(self.strategies), params=ps.pset, scenario=sd, grids=self.grids)
                     out.append({"case_id": len(out), "key": key, "study": self.name,
                                 "labels": {"params": ps.label, "draw": ps.draw},
                                 "scenario": sd, "grids": dict(self.grids), "strategies": list(self.strategies),
@@ -202,14 +199,6 @@ def _scenario_dict(scen) -> dict:
 
     d = asdict(scen)
     return {k: (float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else v) for k, v in d.items()}
-
-
-def _fingerprint(pset) -> dict:
-    out = {}
-    for n in pset:
-        p = pset.param(n)
-        out[n] = [p.value, p.x] if p.is_table else p.value
-    return out
 
 
 #: Tables that validation requires to be non-increasing; a Monte-Carlo draw is held to that.
@@ -464,7 +453,8 @@ def run_study(study, client=None, store_dir=None, progress_callback=None, *, n_w
         study: a :class:`Study` or a path to a study TOML.
         client: a ``distributed.Client``, a scheduler address (``"tcp://host:8786"``), or None for a
             ``LocalCluster`` of ``n_workers`` processes (started and closed here). Nothing else changes.
-        store_dir: the content-keyed result store (default ``.iptm-cache/sweep``); cases found there are not
+        store_dir: the folder of the content-keyed cache (:class:`calib.store.Store`; default ``IPTM_CACHE_DIR``,
+            else ``.iptm-cache``), cases under its ``sweep/``; cases found there are not
             recomputed; each finished case is stored as soon as it arrives (an interrupted study resumes).
         progress_callback: ``f(done, total, record)`` after each case (cached cases first, record None).
         retries: extra attempts per case on top of dask's rescheduling after a worker death.
@@ -476,7 +466,7 @@ def run_study(study, client=None, store_dir=None, progress_callback=None, *, n_w
     if not isinstance(study, Study):
         study = load_study(study)
     cases = study.expand()
-    store = Store(store_dir or DEFAULT_STORE)
+    store = Store(store_dir)  # None: the one cache's folder (calib.store.default_root)
     records, todo = {}, {}
     for c in cases:
         if c["key"] in records or c["key"] in todo:

@@ -4,7 +4,7 @@ measured-vs-simulated plots, and download the calibration file."""
 import matplotlib.pyplot as plt
 import streamlit as st
 
-from calib import content_key
+from calib import content_key, result_key
 from iptm import dashboard as dash
 from iptm import present
 
@@ -14,18 +14,29 @@ st.title("Calibrate")
 PROGRESS = st.container()
 
 
-@st.cache_resource(show_spinner=False, max_entries=8)
-def _calibrate(key, _fit_logs, _val_logs, _base, fit, fix):
-    """Cached by ``key`` (the logs' SHA-256, truncation, base parameters and options), never by session."""
-    from calib.fit import calibrate
+def _calibrate(key, fit_logs, val_logs, base, fit, fix):
+    """Through the one content-keyed cache (kind ``calibration``: the saved result, docs/results.md), keyed by
+    ``key`` (the logs' SHA-256, truncation, base parameters, options and code version), never by session."""
+    from calib import IptmError
+    from calib import CalibrationResult, calibrate
+    from calib import Store
 
-    return calibrate(_fit_logs, base=_base, fit=list(fit) if fit is not None else None, fix=list(fix),
-                     validate=_val_logs or None, progress=False)
+    store = Store(dash.cache_dir())
+    folder = store.get_dir("calibration", key)
+    if folder is not None:
+        try:
+            return CalibrationResult.load(folder / "result")
+        except IptmError:
+            pass  # a damaged entry: calibrated again and replaced
+    res = calibrate(fit_logs, base=base, fit=list(fit) if fit is not None else None, fix=list(fix),
+                    validate=val_logs or None, progress=False)
+    store.put_dir("calibration", key, lambda d: res.save(d / "result"))
+    return res
 
 
 @st.cache_resource(show_spinner=False, max_entries=32)
 def _replay(key, _log, _params):
-    from calib.fit import replay
+    from calib import replay
 
     return replay(_log, _params)
 
@@ -85,7 +96,7 @@ def _page():
     base = None
     base_ok = True
     if base_file is not None:
-        from calib.model import ParameterSet
+        from calib import ParameterSet
 
         try:
             p = dash.save_upload(state, base_file.name, base_file.getvalue(), subdir="params")
@@ -97,7 +108,7 @@ def _page():
 
     run = st.button("Run calibration", type="primary", disabled=not fit_names or not base_ok, key="cal_run")
     if run:
-        from calib.model import default_parameters
+        from calib import default_parameters
 
         state.pop(dash.CALIB, None)  # a failed run leaves no earlier result that reads as this one's
         with PROGRESS:
@@ -108,8 +119,10 @@ def _page():
             base_ps = base or default_parameters()
             fit = tuple(fit_sel) if set(fit_sel) != set(allp) else None
             fix = tuple(fix_sel)
-            key = content_key([session_logs[n].sha256 for n in fit_names], [session_logs[n].sha256 for n in val_names],
-                              float(trunc), base_ps.to_dict()["parameters"], fit, fix)
+            key = result_key("calibration", params=base_ps.to_dict()["parameters"], code=("calib",),
+                             inputs=[[session_logs[n].sha256 for n in fit_names],
+                                     [session_logs[n].sha256 for n in val_names], float(trunc)],
+                             options={"fit": fit, "fix": fix})
             bar.progress(0.1, text=f"fitting on {len(fit_logs)} log(s) (battery, fuel, thermal, cabin)")
             with st.spinner("calibrating..."):
                 res = _calibrate(key, fit_logs, val_logs, base_ps, fit, fix)
@@ -175,7 +188,7 @@ def _page():
             if chart is not None:
                 st.altair_chart(chart, width="stretch")
     with tabs[-1]:
-        from calib.fit import plot_residual_comparison  # noqa: E402
+        from calib.fit import plot_residual_comparison
 
         fig = plot_residual_comparison([(f"{lbl} ({'held out' if h else 'fitted'})", rep) for lbl, rep, h in cal["plots"]])
         st.pyplot(fig, clear_figure=True)

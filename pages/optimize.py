@@ -20,14 +20,15 @@ STRATS = {"rule": "Rule-based (tuned)", "baseline": "Baseline-DP", "thermal": "T
           "thermal_cabin": "Thermal-Cabin-DP"}
 
 
-@st.cache_resource(show_spinner=False, max_entries=32)
-def _solve(key, _params, _scenario, _grids, strategy, _steps=None):
-    """One strategy of the case study, cached by content (parameters, scenario incl. cycle file hash, grids).
-    ``_steps(done, total)``: the DP's backward pass, where the solver reports it."""
-    from optimize import run_case_study
+def _solve(params, scenario, grids, strategy, steps=None):
+    """One strategy of the case study through the one content-keyed cache (the entries of ``iptm run`` and
+    ``iptm optimize``: solved once for the same parameters, scenario incl. cycle file hash and grids, by any of
+    them). ``steps(done, total)``: the DP's backward pass, where the solver reports it."""
+    from calib import Store
+    from iptm.pipeline import optimize_cached
 
-    return run_case_study(_params, _scenario, strategies=(strategy,), progress=False, grids=_grids,
-                          step_progress=_steps)
+    return optimize_cached(params, scenario, grids, (strategy,), Store(dash.cache_dir()), progress=False,
+                           on_steps=steps)
 
 
 def _solve_all(order, params, scenario, grids, cyc, bars):
@@ -41,7 +42,7 @@ def _solve_all(order, params, scenario, grids, cyc, bars):
         def steps(d, n, s=s):
             bars[s].progress(min(d / max(n, 1), 1.0), text=f"{STRATS[s]}: backward pass, step {d} of {n}")
 
-        part = _solve(content_key(base_key, s), params, scenario, grids, s, steps)
+        part = _solve(params, scenario, grids, s, steps)
         parts.append(part)
         o = part.outcomes.get(s)
         size = f"{o.n_states:,} states x {o.n_controls:,} controls, " if o is not None else ""
@@ -60,19 +61,21 @@ def _estimate(key, _params, _scenario, _grids, strategy):
         return None, dash.error_message(exc)
 
 
-from calib.model import ParameterSet, available_cycles, default_parameters  # noqa: E402
-from optimize.formulations import FORMULATIONS, TERMINALS, DPGrids, DPScenario  # noqa: E402
+from calib import available_cycles  # noqa: E402
+from calib import ParameterSet, default_parameters  # noqa: E402
+from optimize import FORMULATIONS, DPGrids, DPScenario  # noqa: E402
+from optimize.formulations import TERMINALS  # noqa: E402
 from iptm import present  # noqa: E402
 
 
 
-@st.cache_resource(show_spinner=False, max_entries=8)
-def _run_sweep(key, _study, _bar):
-    # The same call as `iptm sweep`: a local dask cluster of 2 worker processes, started and closed here,
-    # and the shared content-keyed store, so cases computed before (by any session) are reused.
+def _run_sweep(_study, _bar):
+    # The same call as `iptm sweep`: a local dask cluster of 2 worker processes, started and closed here
+    # (only when a case is missing), and the one content-keyed cache, so cases computed before (by any
+    # session, or by `iptm sweep`) are reused.
     from optimize import run_study
 
-    return run_study(_study, client=None, store_dir=dash.cache_dir() / "sweep", n_workers=2,
+    return run_study(_study, client=None, store_dir=dash.cache_dir(), n_workers=2,
                      progress_callback=lambda done, total, rec: _bar.progress(
                          done / max(total, 1), text=f"case {done}/{total} (local dask cluster)"))
 
@@ -106,7 +109,7 @@ def _sweep_section(params, scenario, grids, strategies):
                               vary={"T_amb": temps},
                               param_sets=[ParamSpec("session", None, params)])
                 key = content_key([c["key"] for c in study.expand()], dash.scenario_key(scenario))
-                df = _run_sweep(key, study, bar)
+                df = _run_sweep(study, bar)
                 figs = plot_study(df, dash.session_dir(state) / "sweep" / key)
                 res = state["iptm_sweep"] = {"df": df, "figures": figs}
                 bar.progress(1.0, text=f"done: {len(df)} rows")
@@ -191,7 +194,7 @@ def _page():
             cycle_ok = False
         else:
             try:
-                from calib.model import load_cycle
+                from calib import load_cycle
 
                 p = dash.save_upload(state, cf.name, cf.getvalue(), subdir="cycles")
                 c = load_cycle(str(p))

@@ -143,8 +143,10 @@ def test_source_edit_recomputes_what_depends_on_it(first_run, monkeypatch):
     cfg, out = first_run
     cache = Path(cfg.cache_dir)
     before = {p.name for p in (cache / "calib").iterdir()}
-    real = pipeline.code_version
-    monkeypatch.setattr(pipeline, "code_version", lambda *pk: real(*pk) + "-edited" if "calib" in pk else real(*pk))
+    import calib.store
+
+    real = calib.store.code_version  # every key of the cache is made there (calib.store.result_key)
+    monkeypatch.setattr(calib.store, "code_version", lambda *pk: real(*pk) + "-edited" if "calib" in pk else real(*pk))
     calls = []
     import calib.fit as fit  # the pipeline calibrates through this front door
 

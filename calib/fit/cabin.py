@@ -29,7 +29,7 @@ import numpy as np
 
 from calib.fit.toolkit import (T_SENSOR_SD, INPUT_REL_SD, MIN_SAMPLES, SubsystemFit, combine_with_prior, confounded_pairs, inflation,
                                map_fit, not_fitted, output_error_params, posterior_estimate, prior_only, usable_logs)
-from calib.model.params import prior_sd_of
+from calib.model.params import compiled_with, prior_sd_of
 from calib.fit.replay import HEATER_OFF, cabin_replay, fill_short, first_valid_mean, input_segments, log_arrays
 
 NEEDS = ("cabin_temp_degC", "ambient_temp_degC")  # + heater_power_W or vent_temp_degC + blower_flow_kg_per_s
@@ -178,8 +178,7 @@ def fit_cabin(logs, base, *, allowed=None, heater=None) -> SubsystemFit:
 
     def segments(ps, q_scale=1.0, dT=0.0):
         v = ps.valuesdict()
-        mp = mp0._replace(C_cab=float(v.get("C_cab_J_per_K", mp0.C_cab)),
-                          UA_cab=float(v.get("UA_cab_W_per_K", mp0.UA_cab)), Q_sun=float(v.get("Q_sun_W", mp0.Q_sun)))
+        mp = compiled_with(mp0, v, cand)
         return [(cabin_replay(mp, float(v[d["name"]]), d["dt"], d["T_amb"], q_scale * d["Q"]) - d["T"] - dT)[d["ok"]]
                 for d in data]
 

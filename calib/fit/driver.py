@@ -68,6 +68,7 @@ value that, *with that kappa*, reproduces the identified product; its note says 
 from __future__ import annotations
 
 
+import dataclasses
 import datetime as _dt
 from dataclasses import dataclass
 
@@ -174,6 +175,63 @@ class CalibrationResult:
             write_text(path, text + tomli_w.dumps(_strip_none(_clean(d))))
         else:
             raise ParameterError(f"{path}: calibration artifacts are .toml or .json")
+
+    # --- saving -----------------------------------------------------------------------------------
+    def to_pandas(self):
+        """One row per parameter: posterior value and sd, status, prior value and sd, how informed, source."""
+        import pandas as pd
+
+        rows = [{"name": p.name, "value": p.value, "unit": p.unit, "stderr": p.stderr, "status": p.status,
+                 "prior_value": p.prior_value, "prior_sd": p.prior_sd, "informed": p.informed, "source": p.source,
+                 "note": p.note} for p in (self.params.param(n) for n in self.params.names())]
+        return pd.DataFrame(rows).set_index("name")
+
+    def save(self, path):
+        """Save as a result folder of kind ``calibration`` (docs/results.md), atomically; returns its path. Its
+        ``parameters.toml`` is the calibrated parameter set, readable by ``ParameterSet.load``."""
+        from calib.results import save_result
+
+        return save_result(path, self._write_into)
+
+    def _write_into(self, folder) -> None:
+        import tomli_w
+
+        from calib.model.params import _strip_none
+        from calib.results import write_parts
+
+        meta = {"params_meta": dict(self.params.meta), "validation": _clean(self.validation), "logs": _clean(self.logs),
+                "validation_logs": _clean(self.validation_logs), "wall_s": self.wall_s, "date": self.date,
+                "software_version": self.version, "advice": _clean(self.advice), "diagnostics": _clean(self.diagnostics),
+                "data_warnings": _clean(self.data_warnings), "timings": _clean(self.timings),
+                "fits": {k: _clean(dataclasses.asdict(f)) for k, f in self.fits.items()}}
+        write_parts(folder, "calibration", meta,
+                    texts={"parameters.toml": tomli_w.dumps(_strip_none(_clean(self.params.to_dict())))})
+
+    @classmethod
+    def load(cls, path) -> "CalibrationResult":
+        """Read a folder written by :meth:`save` (a ResultFileError where it is not one)."""
+        from calib.errors import IptmError, ResultFileError
+        from calib.fit.toolkit import ParamEstimate
+        from calib.model.params import ParameterSet
+        from calib.results import need, read_parts
+
+        doc, _, path = read_parts(path, "calibration")
+        try:
+            params = ParameterSet.load(path / "parameters.toml")
+        except IptmError as exc:
+            raise ResultFileError(f"{path}: parameters.toml: {exc}") from None
+        params.meta = dict(need(doc, "params_meta", path))
+        fits = {}
+        for name, d in need(doc, "fits", path).items():
+            try:
+                d = dict(d, needs=tuple(d["needs"]), confounded=[tuple(c) for c in d.get("confounded", [])],
+                         estimates={k: ParamEstimate(**e) for k, e in d.get("estimates", {}).items()})
+                fits[name] = SubsystemFit(**d)
+            except (KeyError, TypeError) as exc:
+                raise ResultFileError(f"{path}: fit {name!r} is damaged ({exc})") from None
+        return cls(params=params, fits=fits, version=need(doc, "software_version", path), **{k: need(doc, k, path) for k in (
+            "validation", "logs", "validation_logs", "wall_s", "date")},
+            **{k: doc.get(k) for k in ("advice", "diagnostics", "data_warnings", "timings")})
 
     def report(self) -> str:
         """Text fit report: per parameter posterior value and sd, prior and prior sd, how much the data

@@ -59,7 +59,7 @@ from calib.fit.replay import fill_short, filled_note, fuel_label, fuel_replay, l
 from calib.fit.toolkit import (INPUT_REL_SD, WEAK_INFORMED, ParamEstimate, SubsystemFit, confounded_pairs, map_fit,
                                not_fitted, posterior_estimate)
 from calib.model.equations import IDLE, ON
-from calib.model.params import f_cl_ref_index, prior_sd_of
+from calib.model.params import compiled_with, f_cl_ref_index, prior_sd_of
 from calib.units import RPM
 
 NEEDS = ("fuel_rate_g_per_s", "coolant_temp_degC")  # + an engine operating point (logged or inferred)
@@ -406,7 +406,7 @@ def fit_fuel(logs, base, *, allowed=None) -> SubsystemFit:
     def model_of(ps, sP=1.0, dT=0.0, lag=False):
         v = ps.valuesdict()
         eta, f = tables(v)
-        mp = mp0._replace(eta_ool=eta, W_idle=float(v.get("W_idle_g_per_s", mp0.W_idle)), f_cl=f)
+        mp = compiled_with(mp0, {**v, "eta_ool": eta, "f_cl": f}, ("eta_ool", "f_cl", "W_idle_g_per_s"))
         return fuel_replay(mp, mode, sP * P, (TL if lag else T) + dT)
 
     def extra(ps):

@@ -122,7 +122,7 @@ def fit_thermal(logs, base, *, allowed=None, heater=None) -> SubsystemFit:
     -------
     SubsystemFit
     """
-    from calib.model.params import prior_sd_of
+    from calib.model.params import compiled_with, prior_sd_of
 
     allowed = set(PARAMS) if allowed is None else set(allowed)
     fit = SubsystemFit("thermal", NEEDS)
@@ -253,11 +253,7 @@ def fit_thermal(logs, base, *, allowed=None, heater=None) -> SubsystemFit:
 
     def sims(ps, sW=1.0, sP=1.0, sQ=1.0):
         v = ps.valuesdict()
-        mp = mp0._replace(C_eng=float(v.get("C_eng_J_per_K", mp0.C_eng)),
-                          gamma_exh=float(v.get("gamma_exh", mp0.gamma_exh)),
-                          hA_eng=float(v.get("hA_eng_W_per_K", mp0.hA_eng)),
-                          T_open=float(v.get("T_open_degC", mp0.T_open)),
-                          k_rad=float(v.get("k_rad_W_per_K", mp0.k_rad)))
+        mp = compiled_with(mp0, v, cand)
         out = []
         for d in data:
             if d["q"] is None:

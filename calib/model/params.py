@@ -337,18 +337,96 @@ def prior_sd_of(p: "Parameter"):
     return [float(f(v)) for v in p.value] if p.is_table else float(f(p.value))
 
 
-# The compact form the compiled model reads (numba accepts namedtuples of floats and arrays).
-ModelParams = namedtuple(
-    "ModelParams",
-    [
-        "m", "m_eq", "A", "B", "C", "eta_em", "eta_mech", "P_e_max", "P_regen_max", "w_idle", "P_aux",
-        "P_bat_min", "P_bat_max", "soc_bp", "U_oc", "soc_bp_R", "R_int", "R_tc", "T_bat_ref", "C_bat_As",
-        "P_ool", "eta_ool", "w_ool", "fuel_scale", "W_idle", "T_fcl", "f_cl", "LHV", "C_eng", "gamma_exh",
-        "hA_eng", "kappa", "T_open", "k_rad", "Q_rad_max", "eps_hc", "W_bl", "recirc", "cp_air",
-        "C_cab", "UA_cab", "Q_sun", "U_hyst", "W_cat", "w_cat", "t_cat", "T_cat",
-    ],
+#: One field of the compiled form: its ``name`` (the kernels' attribute), the ``param`` it is read from, how it
+#: is read (``read``: "value", "x" the table's breakpoints, a number the value is multiplied by (a unit
+#: conversion), or a function of the set for a quantity derived from several), whether it is an ``array``, and
+#: the other parameters whose values a derived field reads (``also``).
+CompiledField = namedtuple("CompiledField", ["name", "param", "read", "array", "also"], defaults=[()])
+
+
+def _val(name, param, scale=None):
+    return CompiledField(name, param, "value" if scale is None else scale, False)
+
+
+def _tab(name, param, read="value"):
+    return CompiledField(name, param, read, True)
+
+
+#: The compact form the compiled model reads, one row per field in :class:`ModelParams` order: the one place
+#: where a compiled name is tied to its parameter. :meth:`ParameterSet.model_params`, :func:`compiled_with`
+#: (the fitters) and the DP kernels' flat vector (``optimize.formulations.layout``) are generated from it.
+COMPILED = (
+    _val("m", "m_kg"), CompiledField("m_eq", "m_kg", lambda ps: float(ps["m_kg"]) * float(ps["m_eq_factor"]), False,
+                                      ("m_eq_factor",)),
+    _val("A", "A_N"), _val("B", "B_N_per_mps"), _val("C", "C_N_per_mps2"), _val("eta_em", "eta_em"),
+    _val("eta_mech", "eta_mech"), _val("P_e_max", "P_e_max_W"), _val("P_regen_max", "P_regen_max_W"),
+    _val("w_idle", "n_idle_rpm", RPM), _val("P_aux", "P_aux_W"), _val("P_bat_min", "P_bat_min_W"),
+    _val("P_bat_max", "P_bat_max_W"), _tab("soc_bp", "U_oc_V", "x"), _tab("U_oc", "U_oc_V"),
+    _tab("soc_bp_R", "R_int_ohm", "x"), _tab("R_int", "R_int_ohm"), _val("R_tc", "R_int_tc_per_K"),
+    _val("T_bat_ref", "T_bat_ref_degC"), _val("C_bat_As", "C_bat_Ah", 3600.0), _tab("P_ool", "eta_ool", "x"),
+    _tab("eta_ool", "eta_ool"),
+    # the engine speed on the optimal operating line at the efficiency table's breakpoints (rad/s)
+    CompiledField("w_ool", "n_ool_rpm", lambda ps: np.interp(_x(ps, "eta_ool"), _x(ps, "n_ool_rpm"),
+                                                             _a(ps, "n_ool_rpm")) * RPM, True),
+    _val("fuel_scale", "fuel_scale"), _val("W_idle", "W_idle_g_per_s"), _tab("T_fcl", "f_cl", "x"),
+    _tab("f_cl", "f_cl"), _val("LHV", "LHV_J_per_g"), _val("C_eng", "C_eng_J_per_K"), _val("gamma_exh", "gamma_exh"),
+    _val("hA_eng", "hA_eng_W_per_K"), _val("kappa", "kappa"), _val("T_open", "T_open_degC"),
+    _val("k_rad", "k_rad_W_per_K"), _val("Q_rad_max", "Q_rad_max_W"), _val("eps_hc", "eps_hc"),
+    _val("W_bl", "W_bl_kg_per_s"), _val("recirc", "recirc_frac"), _val("cp_air", "cp_air_J_per_kgK"),
+    _val("C_cab", "C_cab_J_per_K"), _val("UA_cab", "UA_cab_W_per_K"), _val("Q_sun", "Q_sun_W"),
+    _val("U_hyst", "U_hyst_V"), _val("W_cat", "W_cat_g_per_s"), _val("w_cat", "n_cat_rpm", RPM),
+    _val("t_cat", "t_cat_s"), _val("T_cat", "T_cat_degC"),
 )
 
+# The compact form the compiled model reads (numba accepts namedtuples of floats and arrays).
+ModelParams = namedtuple("ModelParams", [f.name for f in COMPILED])
+#: The compiled fields that are numbers (the rest are arrays), in :class:`ModelParams` order.
+SCALAR_FIELDS = tuple(f.name for f in COMPILED if not f.array)
+#: The compiled fields read from each parameter.
+FIELDS_OF = {p: tuple(f for f in COMPILED if p == f.param or p in f.also)
+             for p in dict.fromkeys(n for f in COMPILED for n in (f.param, *f.also))}
+
+
+def _a(ps, n):
+    return np.ascontiguousarray(ps[n], dtype=np.float64)
+
+
+def _x(ps, n):
+    return np.ascontiguousarray(ps.param(n).x, dtype=np.float64)
+
+
+def _read(ps, f: CompiledField):
+    if callable(f.read):
+        return f.read(ps)
+    if f.read == "x":
+        return _x(ps, f.param)
+    if f.array:
+        return _a(ps, f.param)
+    return float(ps[f.param]) if f.read == "value" else float(ps[f.param]) * f.read
+
+
+def compiled_with(mp: ModelParams, values: dict, names=None) -> ModelParams:
+    """``mp`` with the fields read from some parameters replaced: ``values`` maps parameter names (of
+    ``names`` where given; other keys, such as a fit's nuisance parameters, are then ignored) to new values.
+
+    The fitters' objective functions change a few parameters thousands of times; this rebuilds only their
+    fields, through :data:`COMPILED`; a table's breakpoints stay. A parameter a derived field reads cannot be
+    replaced this way (a ParameterError): build it with :meth:`ParameterSet.with_values`."""
+    new = {}
+    for n in (values if names is None else [n for n in names if n in values]):
+        if n not in FIELDS_OF:
+            raise ParameterError(f"parameter {n!r} is not read by the compiled model")
+        for f in FIELDS_OF[n]:
+            if f.read == "x":
+                continue  # a table's breakpoints are not its values
+            if callable(f.read):
+                raise ParameterError(f"{f.name} is derived from {n}: replace {n} with ParameterSet.with_values")
+            v = values[n]
+            if f.array:
+                new[f.name] = np.ascontiguousarray(v, dtype=np.float64)
+            else:
+                new[f.name] = float(v) if f.read == "value" else float(v) * f.read
+    return mp._replace(**new)
 
 
 class ParameterSet:
@@ -433,26 +511,8 @@ class ParameterSet:
 
     # --- compiled form ----------------------------------------------------------------------------
     def model_params(self) -> ModelParams:
-        """The namedtuple of floats and float64 arrays that the compiled model functions take."""
-        a = lambda n: np.ascontiguousarray(self[n], dtype=np.float64)  # noqa: E731
-        x = lambda n: np.ascontiguousarray(self.param(n).x, dtype=np.float64)  # noqa: E731
-        g = lambda n: float(self[n])  # noqa: E731
-        return ModelParams(
-            m=g("m_kg"), m_eq=g("m_kg") * g("m_eq_factor"), A=g("A_N"), B=g("B_N_per_mps"),
-            C=g("C_N_per_mps2"), eta_em=g("eta_em"), eta_mech=g("eta_mech"), P_e_max=g("P_e_max_W"),
-            P_regen_max=g("P_regen_max_W"), w_idle=g("n_idle_rpm") * RPM, P_aux=g("P_aux_W"),
-            P_bat_min=g("P_bat_min_W"), P_bat_max=g("P_bat_max_W"), soc_bp=x("U_oc_V"), U_oc=a("U_oc_V"),
-            soc_bp_R=x("R_int_ohm"), R_int=a("R_int_ohm"), R_tc=g("R_int_tc_per_K"),
-            T_bat_ref=g("T_bat_ref_degC"), C_bat_As=g("C_bat_Ah") * 3600.0, P_ool=x("eta_ool"),
-            eta_ool=a("eta_ool"), w_ool=np.interp(x("eta_ool"), x("n_ool_rpm"), a("n_ool_rpm")) * RPM,
-            fuel_scale=g("fuel_scale"), W_idle=g("W_idle_g_per_s"), T_fcl=x("f_cl"), f_cl=a("f_cl"),
-            LHV=g("LHV_J_per_g"), C_eng=g("C_eng_J_per_K"), gamma_exh=g("gamma_exh"),
-            hA_eng=g("hA_eng_W_per_K"), kappa=g("kappa"), T_open=g("T_open_degC"), k_rad=g("k_rad_W_per_K"),
-            Q_rad_max=g("Q_rad_max_W"), eps_hc=g("eps_hc"), W_bl=g("W_bl_kg_per_s"), recirc=g("recirc_frac"),
-            cp_air=g("cp_air_J_per_kgK"), C_cab=g("C_cab_J_per_K"), UA_cab=g("UA_cab_W_per_K"), Q_sun=g("Q_sun_W"),
-            U_hyst=g("U_hyst_V"), W_cat=g("W_cat_g_per_s"), w_cat=g("n_cat_rpm") * RPM, t_cat=g("t_cat_s"),
-            T_cat=g("T_cat_degC"),
-        )
+        """The namedtuple of floats and float64 arrays that the compiled model functions take (:data:`COMPILED`)."""
+        return ModelParams(*(_read(self, f) for f in COMPILED))
 
     # --- I/O --------------------------------------------------------------------------------------
     def to_dict(self) -> dict:

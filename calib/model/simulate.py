@@ -192,6 +192,40 @@ class SimResult:
 
         return plot_simulation(self, path, title)
 
+    # --- saving -----------------------------------------------------------------------------------
+    def save(self, path):
+        """Save as a result folder of kind ``simulation`` (docs/results.md), atomically; returns its path."""
+        from calib.results import save_result
+
+        return save_result(path, self.write_into)
+
+    def write_into(self, folder) -> None:
+        """The folder's contents (also a part of a DP outcome's folder)."""
+        import json
+
+        from calib.results import write_parts
+
+        arrays = sim_to_arrays(self)
+        arrays.pop("info_json")
+        info = json.loads(json.dumps(self.info, default=str))
+        write_parts(folder, "simulation", {"info": info, "fuel_g": self.fuel_g, "n_steps": int(len(self.e_mode)),
+                                           "flows": list(self.flows)}, arrays)
+
+    @classmethod
+    def load(cls, path) -> "SimResult":
+        """Read a folder written by :meth:`save` (a ResultFileError where it is not one)."""
+        import json
+
+        from calib.errors import ResultFileError
+        from calib.results import need, read_parts
+
+        doc, arrays, path = read_parts(path, "simulation")
+        arrays["info_json"] = np.array(json.dumps(need(doc, "info", path)))
+        try:
+            return sim_from_arrays(arrays)
+        except KeyError as exc:
+            raise ResultFileError(f"{path}: array {exc.args[0]!r} is missing") from None
+
 
 def simulate(params, cycle, controller=None, *, T_amb=-10.0, soc0=0.6, T_cl0=70.0, T_cab0=20.0,
              Q_heat=1500.0, T_bat=None, W_bl=None, rule_params=None, engine_start=True) -> SimResult:
@@ -275,7 +309,7 @@ def sim_to_arrays(res: SimResult) -> dict:
          "P_bat_mg_cmd": res.P_bat_mg_cmd, "Q_heat_cmd": res.Q_heat_cmd, "v": res.v,
          "info_json": np.array(json.dumps(res.info, default=str))}
     d.update({f"flow__{k}": v for k, v in res.flows.items()})
-    for k, v in res.mp._asdict().items():
+    for k, v in (res.mp._asdict().items() if res.mp is not None else ()):
         d[f"mp__{k}"] = np.asarray(v, dtype=np.float64)
     return d
 
@@ -286,6 +320,7 @@ def sim_from_arrays(d: dict) -> SimResult:
 
     from calib.model.params import ModelParams, default_parameters
 
+    has_mp = any(k.startswith("mp__") for k in d)  # a result made without a model (SimResult(mp=None))
     # files written before the hysteresis term existed: that model had none, so 0 V is exact there
     d = {"mp__U_hyst": np.asarray(0.0), **d}
     # files written before catalyst heating was modelled never used that mode: any value reads them exactly
@@ -293,7 +328,7 @@ def sim_from_arrays(d: dict) -> SimResult:
     d = {"mp__W_cat": np.asarray(dmp.W_cat), "mp__w_cat": np.asarray(dmp.w_cat), "mp__t_cat": np.asarray(dmp.t_cat),
          "mp__T_cat": np.asarray(dmp.T_cat), **d}
     mp = ModelParams(**{f: (d[f"mp__{f}"] if d[f"mp__{f}"].ndim else float(d[f"mp__{f}"]))
-                        for f in ModelParams._fields})
+                        for f in ModelParams._fields}) if has_mp else None
     flows = {k[6:]: d[k] for k in d if k.startswith("flow__")}
     return SimResult(d["t"], d["soc"], d["T_cl"], d["T_cab"], d["e_mode"].astype(int), d["P_bat_mg_cmd"],
                      d["Q_heat_cmd"], flows, d["v"], mp, json.loads(str(d["info_json"])))

@@ -6,7 +6,7 @@ the time to build the per-class co-states.
 Thermal-DP and the tuned rule are read from the committed reports ``reports/causal-SET-VALUATION.json``
 (``iptm bench causal --drives SET --valuation VALUATION --json FILE``); the ECMS rows are driven here.
 
-``python -m iptm.benchmarks.causal_route [--drives held-out] [--valuation both] [--json FILE]``
+``python -m iptm.benchmarks.causal_route [--drives test-cycles] [--valuation both] [--json FILE]``
 """
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ def _reference(drives: str, valuation: str) -> dict:
     return {(r["cycle"], float(r["T_amb"]), r["strategy"]): r for r in rows}
 
 
-def run(quick: bool = False, valuation: str = "both", drives: str = "held-out", robustness: bool = True) -> dict:
+def run(quick: bool = False, valuation: str = "both", drives: str = "test-cycles", robustness: bool = True) -> dict:
     from dataclasses import replace
 
     import numpy as np
@@ -153,7 +153,7 @@ def main(argv=None) -> int:
     from calib.errors import IptmError
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--drives", default="held-out")
+    ap.add_argument("--drives", default="test-cycles")
     ap.add_argument("--valuation", default="both")
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--no-robustness", action="store_true")

@@ -34,9 +34,10 @@ def register(sub):
     p.add_argument("--convergence", action="store_true",
                    help="solve each chosen DP formulation on the grid and with every step halved; print the fuel "
                         "change (all = baseline and thermal)")
-    p.add_argument("--cache", default=".iptm-cache", metavar="DIR",
-                   help="content-keyed result cache shared with `iptm run` (default .iptm-cache): a strategy "
-                        "already solved for the same parameters, scenario and grids is reused")
+    p.add_argument("--cache", default=None, metavar="DIR",
+                   help="content-keyed result cache shared with `iptm run` and the dashboard (default "
+                        "$IPTM_CACHE_DIR, else .iptm-cache): a strategy already solved for the same parameters, "
+                        "scenario and grids is reused")
     p.add_argument("--no-cache", action="store_true", help="solve everything again")
     p.add_argument("--plots", metavar="DIR", help="write the paper's figures (PNG) into DIR")
     p.add_argument("--json", metavar="FILE", help="write the table and DP figures as JSON")
@@ -140,7 +141,6 @@ def run(args) -> int:
         if args.json:
             write_json(args.json, {"convergence": rows, "scenario": scen.to_dict()})
         return 0
-    from pathlib import Path
 
     from calib import Store
     from iptm.pipeline import optimize_cached
@@ -151,7 +151,7 @@ def run(args) -> int:
                         args.scenario)
 
     # the same store entries as `iptm run`: the identical problem is solved once
-    store = None if args.no_cache else Store(Path(args.cache))
+    store = None if args.no_cache else Store(args.cache)
     cs = optimize_cached(ps, scen, grids, chosen, store, progress=True, hold=False if args.no_hold else None)
     cyc = scen.load_cycle()
     d = cyc.describe()

@@ -7,7 +7,7 @@ def register(sub):
                        description="Ingest the logs, calibrate the model (holding out the last log for "
                                    "validation when there are several), optimise rule-based, Baseline-DP, "
                                    "Thermal-DP and Thermal-Cabin-DP on the scenario, and write a report to "
-                                   "reports/<run-id>/. Without logs, uses the bundled SYNTHETIC .blf logs of logs/.")
+                                   "reports/<run-id>/. Without logs, uses the bundled SYNTHETIC logs/*.blf.")
     p.add_argument("logs", nargs="*", metavar="LOG", help="drive logs (CSV, MCAP, candump, ASC, BLF, MF4)")
     p.add_argument("--scenario", metavar="FILE", help="scenario TOML (default: the paper's case study)")
     p.add_argument("--validate", action="append", default=[], metavar="LOG",
@@ -15,7 +15,8 @@ def register(sub):
     p.add_argument("--params", metavar="FILE", help="base parameter set (priors); default: the 2017 Prius")
     p.add_argument("--dbc", metavar="FILE", help="DBC for CAN logs (default: the bundled Prius DBC)")
     p.add_argument("--reports", default="reports", metavar="DIR", help="where reports go (default reports/)")
-    p.add_argument("--cache", default=".iptm-cache", metavar="DIR", help="cache folder (default .iptm-cache)")
+    p.add_argument("--cache", default=None, metavar="DIR",
+                   help="cache folder (default $IPTM_CACHE_DIR, else .iptm-cache; size cap $IPTM_CACHE_MAX_MB)")
     p.add_argument("--no-cache", action="store_true", help="recompute everything")
     p.add_argument("--quiet", action="store_true", help="no progress display")
     p.add_argument("--no-convergence", action="store_true",
@@ -33,6 +34,7 @@ def run(args) -> int:
     from pathlib import Path
 
     from calib import write_json
+    from calib import default_root
     from iptm import pipeline
 
     from iptm.commands.calibrate import check_log_format
@@ -49,7 +51,8 @@ def run(args) -> int:
                              cycle_from_log=cycle_log, validate=[Path(p) for p in args.validate],
                              base_params=args.params, dbc=args.dbc, strict=args.strict,
                              reports_dir=Path(args.reports),
-                             cache_dir=None if args.no_cache else Path(args.cache), progress=not args.quiet,
+                             cache_dir=None if args.no_cache else Path(args.cache or default_root()),
+                             progress=not args.quiet,
                              convergence=not args.no_convergence,
                              command_line=" ".join(shlex.quote(a) for a in ["iptm"] + sys.argv[1:]))
     out = pipeline.run(cfg)

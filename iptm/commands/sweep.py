@@ -21,7 +21,8 @@ def register(sub):
     p.add_argument("--metric", choices=("both", "saving_pct", "saving_corrected_pct"), default="both",
                    help="saving plotted: on fuel (saving_pct), on fuel corrected for the final SOC, coolant and "
                         "cabin energy (saving_corrected_pct), or both side by side (default)")
-    p.add_argument("--store", metavar="DIR", default=None, help="result store (default .iptm-cache/sweep)")
+    p.add_argument("--store", metavar="DIR", default=None,
+                   help="the cache folder whose sweep/ holds the cases (default $IPTM_CACHE_DIR, else .iptm-cache)")
     p.add_argument("--retry-failed", action="store_true", help="recompute cases stored with an error")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.add_argument("--json", metavar="FILE", help="write the table and the summary as JSON")

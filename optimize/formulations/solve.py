@@ -21,7 +21,7 @@ from optimize.formulations.artefacts import trajectory_checks
 from optimize.formulations.layout import (HOLD, LEVEL_TOL, PENALTY_G_PER_STEP, _C_CH, _C_CHI, _C_CREL, _C_HOLD, _C_NQ,
                                           _C_NX, _C_PEN, _C_QHI, _C_QLO, _C_SH, _C_SHI,
                      _C_SLO, _C_TAMB, _C_TBAT, _C_TH, _C_THI, _C_TLO, _C_TS, _C_WBL, _MS, _T_SOC0,
-                     pack_params, packed_array)
+                     SLOT, pack_params, packed_array)
 from optimize.formulations.scenario import (FORMULATIONS, DPGrids, DPScenario, FormulationGrids, _grid,
                                             check_table_size)
 from optimize.formulations.transition import delivered_heat, drift_offsets, fill_tables, hev_precompute, hev_transition
@@ -97,6 +97,25 @@ class DPOutcome:
                 "n_evaluations": self.n_evaluations, "evals_per_second": self.evals_per_second,
                 "n_states": self.n_states, "n_controls": self.n_controls, "peak_rss_mb": self.peak_rss_mb,
                 "grids": self.grids, **self.extra}
+
+    def to_pandas(self):
+        """The re-simulated drive, one row per step (:meth:`SimResult.to_pandas`), the DP figures in ``attrs``."""
+        df = self.sim.to_pandas()
+        df.attrs.update({k: v for k, v in self.describe().items() if not isinstance(v, np.ndarray)})
+        return df
+
+    def save(self, path, value_functions: bool = False):
+        """Save as a result folder of kind ``dp-outcome`` (:mod:`optimize.formulations.outcome_io`)."""
+        from optimize.formulations.outcome_io import save_outcome
+
+        return save_outcome(self, path, value_functions)
+
+    @classmethod
+    def load(cls, path) -> "DPOutcome":
+        """Read a folder written by :meth:`save`."""
+        from optimize.formulations.outcome_io import load_outcome
+
+        return load_outcome(path, cls)
 
 
 class _Replay:
@@ -500,7 +519,7 @@ def build_problem(params, scen: DPScenario, grids: DPGrids, nx: int, *, heater: 
     c = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
     p = pack_params(cfg, ms, [socg, fclg, lossg, c(mp.soc_bp), c(mp.U_oc), c(mp.soc_bp_R), c(mp.R_int),
                               c(mp.T_fcl), c(mp.f_cl), tab_shape])
-    fill_tables(packed_array(p, 9, tab_shape), mp, pc, socg, P_trac, float(Ts), float(mp.T_bat_ref), soff)
+    fill_tables(packed_array(p, "big", tab_shape), mp, pc, socg, P_trac, float(Ts), float(mp.T_bat_ref), soff)
     if nx == 3:
         # clipped to the grid's ends, a hold heat beyond them is what a grid control already delivers
         p[_C_QLO], p[_C_QHI], p[_C_HOLD] = q_range[0], q_range[1], 1.0 if hold else 0.0
@@ -679,7 +698,7 @@ def estimate_problem(name: str, params, scenario=None, grids=None) -> dict:
     scen = scenario or DPScenario()
     b = build_problem(params, scen, FormulationGrids.coerce(grids).of(name), nx, warm=nx == 1)
     est = check_problem_size([g.size for g in b.prob.grids], b.prob.controls.shape[0], b.prob.N,
-                             table_cells=int(b.prob.params[17 + 2 * 9]))
+                             table_cells=int(b.prob.params[SLOT["array:big"] + 1]))
     est.update(steps=int(b.prob.N), evaluations=est["pairs_per_step"] * b.prob.N)
     return est
 
