@@ -18,7 +18,7 @@ ROWS = {"none": "no route", "length": "length only", "route": "route"}
 
 
 def _reference(drives: str, valuation: str) -> dict:
-    from calib.errors import IptmError
+    from calib import IptmError
 
     rep = Path("reports") / f"causal-{drives}-{valuation}.json"
     if not rep.is_file():
@@ -33,13 +33,13 @@ def run(quick: bool = False, valuation: str = "both", drives: str = "test-cycles
 
     import numpy as np
 
-    from calib.errors import IptmError
-    from calib.model.params import default_parameters
-    from optimize.causal.compare import (AMBIENTS, DRIVE_SETS, GOAL_GAP_PCT, SOC_TOL, VALUATIONS, step_timing,
-                                         valuation_scenario, valued_fuel)
-    from optimize.causal.route import (ENDS_EARLY_AT, KNOWLEDGE, LENGTH_ERRORS, RouteECMSController,
-                                       RouteECMSParams, class_costates, drive_route, ended_early, route_of_cycle)
-    from optimize.formulations.scenario import DPScenario
+    from calib import IptmError
+    from calib import default_parameters
+    from optimize.causal import AMBIENTS, DRIVE_SETS, step_timing, valuation_scenario, valued_fuel
+    from optimize.causal import GOAL_GAP_PCT, SOC_TOL, VALUATIONS
+    from optimize.causal import ENDS_EARLY_AT, KNOWLEDGE, LENGTH_ERRORS, class_costates, drive_route, ended_early, route_of_cycle
+    from optimize.causal import RouteECMSController, RouteECMSParams
+    from optimize import DPScenario
 
     vals = VALUATIONS if valuation == "both" else (valuation,)
     if any(v not in VALUATIONS for v in vals) or drives not in DRIVE_SETS:
@@ -150,7 +150,7 @@ def run(quick: bool = False, valuation: str = "both", drives: str = "test-cycles
 def main(argv=None) -> int:
     import argparse
 
-    from calib.errors import IptmError
+    from calib import IptmError
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--drives", default="test-cycles")
@@ -165,7 +165,7 @@ def main(argv=None) -> int:
         print(f"causal_route: error: {exc}")
         return 2
     if a.json:
-        from calib.fileio import write_json
+        from calib import write_json
 
         write_json(a.json, res)
     return 0

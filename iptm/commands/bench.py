@@ -20,6 +20,7 @@ SUITES = {
     "fuzz": "iptm.benchmarks.fuzz",
     "causal": "iptm.benchmarks.causal",
     "plan": "iptm.benchmarks.plan",
+    "causal-route": "iptm.benchmarks.causal_route",
 }
 #: The keys of ``optimize.causal.compare.DRIVE_SETS`` (spelt here so that ``--help`` loads no numerics;
 #: tests/test_causal_drives.py checks they agree).
@@ -36,14 +37,15 @@ def register(sub):
                                    "inputs to every reader: read / recovered / clean error / escape counts, and "
                                    "random truncations of valid logs), causal (SDP and ECMS on held-out drives vs DP and "
                                    "rule-based; policy build and step time), plan (drive plans in closed loop on FASTSim and the "
-                                   "perturbed plant).")
+                                   "perturbed plant), causal-route (the ECMS told the route: no route, length only, route; the "
+                                   "trip-length error table).")
     p.add_argument("suite", nargs="*", default=["sim", "dp"], help=f"any of {', '.join(SUITES)} or 'all' "
                                                                     "(default: sim dp)")
     p.add_argument("--quick", action="store_true", help="smaller sizes, for a smoke check")
     p.add_argument("--json", metavar="FILE", help="write all figures as JSON")
     p.add_argument("--n", type=int, metavar="N", help="fuzz: mutated inputs per reader (default 10000, --quick 300)")
     p.add_argument("--seed", type=int, default=0, help="fuzz: seed of the mutations (default 0)")
-    p.add_argument("--valuation", choices=("corrected", "continuation"), default="corrected",
+    p.add_argument("--valuation", choices=("corrected", "continuation", "both"), default="corrected",
                    help="causal: how final states are valued: corrected (fuel equivalents of the stored energy, "
                         "default) or continuation (the rule-based controller's fuel over UDDS six times from the final "
                         "state; Thermal-DP with the 'continued' terminal)")
@@ -100,6 +102,10 @@ def run(args) -> int:
             extra = {"valuation": args.valuation, "drives": args.drives, "learn_from": sets, "own_settings": own}
         if n == "dp":
             extra = {"halve": args.halve}
+        if n == "causal-route":
+            extra = {"valuation": args.valuation, "drives": args.drives}
+        elif n == "causal" and args.valuation == "both":
+            raise IptmError("bench causal: --valuation corrected or continuation (both is for causal-route)")
         try:
             results[n] = mod.run(quick=args.quick, **extra)
         except IptmError:

@@ -15,8 +15,14 @@ def register(sub):
     p.add_argument("--tcl0", type=float, default=70.0, metavar="DEGC", help="initial coolant temperature (70)")
     p.add_argument("--tcab0", type=float, default=20.0, metavar="DEGC", help="initial cabin temperature (20)")
     p.add_argument("--heater", type=float, default=1500.0, metavar="W", help="heater demand (default 1500 W)")
-    p.add_argument("--controller", choices=("rule", "ecms", "sdp"), default="rule",
-                   help="rule (default), ecms (thermal-aware ECMS) or sdp (stochastic-DP policy)")
+    p.add_argument("--controller", choices=("rule", "ecms", "sdp", "ecms-route"), default="rule",
+                   help="rule (default), ecms (thermal-aware ECMS), sdp (stochastic-DP policy) or ecms-route (the "
+                        "ECMS told the route at departure: --route or --route-length-km)")
+    p.add_argument("--route", metavar="FILE", help="planned route for --controller ecms-route (TOML/JSON: length_km, "
+                                                    "optional [[segment]] from_km, to_km, class or speed_limit_kph, "
+                                                    "ambient_degC; docs/route_aware.md)")
+    p.add_argument("--route-length-km", type=float, metavar="KM", help="planned trip length for --controller "
+                                                                        "ecms-route (instead of --route)")
     p.add_argument("--policy", metavar="FILE.npz", help="stored SDP policy for --controller sdp (default: build "
                                                         "one from the bundled training cycles, about a minute)")
     p.add_argument("--plot", metavar="FILE", help="write a time-series plot (PNG/PDF/SVG)")
@@ -37,7 +43,18 @@ def run(args) -> int:
 
     ps = load_params(args.params)
     ctrl = None
-    if args.controller != "rule" or args.policy:
+    from optimize.causal import make_route_controller, route_from_args
+
+    route = route_from_args(args.route, args.route_length_km)
+    if (route is None) == (args.controller == "ecms-route"):
+        from calib import IptmError
+
+        raise IptmError("--controller ecms-route needs --route FILE or --route-length-km KM" if route is None
+                        else "--route / --route-length-km are for --controller ecms-route")
+    if route is not None:
+        ctrl = make_route_controller(ps, route, knowledge="route", T_amb=args.ambient, Q_heat=args.heater,
+                                     soc_target=args.soc0)
+    elif args.controller != "rule" or args.policy:
         from optimize.causal import TRAIN_CYCLES, DemandMarkov, SDPPolicy, make_controller
 
         if args.policy and args.controller != "sdp":

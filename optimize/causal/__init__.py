@@ -15,15 +15,19 @@ from optimize.causal.controllers import CONTROLLERS, ECMSController, SDPControll
 from optimize.causal.ecms import ECMSParams
 from optimize.causal.hindsight import tune_ecms_on_drive
 from optimize.causal.markov import DemandMarkov
-from optimize.causal.route import Route, RouteECMSController, RouteECMSParams, load_route, make_route_controller
+from optimize.causal.route import (ENDS_EARLY_AT, KNOWLEDGE, LENGTH_ERRORS, Route, RouteECMSController, RouteECMSParams,
+                                   class_costates, drive_route, ended_early, load_route, make_route_controller,
+                                   route_from_args, route_of_cycle)
 from optimize.causal.sdp import SDPConfig, SDPPolicy, build_policy
-from optimize.causal.compare import (AMBIENTS, DRIVE_SETS, SELECTED, TRAIN_CYCLES, compare_causal, drives_of, step_timing,
-                                     valuation_scenario, valued_fuel)
+from optimize.causal.compare import (AMBIENTS, DRIVE_SETS, GOAL_GAP_PCT, SELECTED, SOC_TOL, TRAIN_CYCLES, VALUATIONS,
+                                     compare_causal, drives_of, step_timing, valuation_scenario, valued_fuel)
 from optimize.causal.hindsight import drive_ecms, summarize
 from optimize.causal.onestep import fit_stop_regen
 
 __all__ = ["DemandMarkov", "SDPConfig", "SDPPolicy", "build_policy", "ECMSParams", "ECMSController",
            "SDPController", "make_controller", "CONTROLLERS", "tune_ecms_on_drive", "Route", "RouteECMSController",
-           "RouteECMSParams", "load_route", "make_route_controller",
+           "RouteECMSParams", "load_route", "make_route_controller", "route_from_args", "ENDS_EARLY_AT", "KNOWLEDGE",
+           "LENGTH_ERRORS", "class_costates", "drive_route", "ended_early", "route_of_cycle", "GOAL_GAP_PCT", "SOC_TOL",
+           "VALUATIONS",
            "compare_causal", "DRIVE_SETS", "drives_of", "TRAIN_CYCLES", "AMBIENTS", "SELECTED", "step_timing",
            "valuation_scenario", "valued_fuel", "drive_ecms", "summarize", "fit_stop_regen"]
