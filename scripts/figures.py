@@ -34,6 +34,9 @@ RUN_JSON = JSON_DIR / "run.json"
 SELECTIONS_JSON = JSON_DIR / "calib-selections.json"
 SUITES = ("sim", "epa")
 MUTATION_JSON = ROOT / "reports" / "mutation.json"
+#: The 10,000-input runs of every fuzz generator and mutated reader (``python -m iptm.benchmarks.fuzz --n 10000
+#: ...``: hours on 2 cores, so ``run`` does not re-run them; each run names its commit and command)
+FUZZ_JSON = JSON_DIR / "fuzz-10k.json"
 #: ``iptm bench causal --drives SET --valuation V --json reports/causal-SET-V.json`` (each run takes minutes:
 #: ``run`` does not re-run them)
 CAUSAL_SETS = ("test-cycles", "cmap-trip1", "cmap-trip2", "cmap-trip3", "wltc-high-cmap-trip4")
@@ -78,6 +81,24 @@ def _mutation(d: dict) -> str:
             else "every mutant of the configured modules")
     return (f"score {100 * m['score']:.1f} %: {m['killed']} killed, {m['survived']} survived, {m['equivalent']} "
             f"equivalent (excluded, each with its reason in `pyproject.toml`) of {m['run']} mutants, {what}")
+
+
+def _fuzz10k(d: dict) -> str:
+    """Every reader and generated file kind at 10,000 inputs: the outcomes, memory and the slowest case."""
+    rows = ["| reader / file kind | inputs | read | recovered | clean error | unclear | escape | hang | printed | "
+            "peak MB | rise MB | slowest s | run |", "|---|" + "---:|" * 11 + "---|"]
+    for i, run in enumerate(d["fuzz10k"]["runs"]):
+        for kind, t in run["kinds"].items():
+            rows.append(f"| {kind} | {t['n']} | {t['read']} | {t['recovered']} | {t['error']} | {t['unclear']} | "
+                        f"{t['escape']} | {t['hang']} | {t['printed']} | {t['peak_mb']:.0f} | {t['added_mb']:.0f} | "
+                        f"{t['slowest_s']:.2f} | {i + 1} |")
+    rows.append("")
+    for i, run in enumerate(d["fuzz10k"]["runs"]):
+        rows.append(f"{i + 1}. `{run['command']}` at {run['commit']}, load average {run['load']:.1f} at the start")
+    missing = d["fuzz10k"].get("not_run_at_10000") or []
+    if missing:
+        rows += ["", "Not run at 10,000 inputs: " + ", ".join(missing) + "."]
+    return "\n".join(rows)
 
 
 def _causal(d: dict) -> str:
@@ -268,7 +289,7 @@ FILES = {
     "docs/cold_start.md": {"epa": _epa, "sim-speed": _sim_speed, "epa-bags": _epa_bags, "epa-causes": _epa_causes,
                            "case-study-paper": _case_study("paper"), "case-study-cold-soak": _case_study("cold_soak")},
     "docs/calibration_robustness.md": {"calib-selections": _calib_selections},
-    "docs/testing.md": {"mutation": _mutation},
+    "docs/testing.md": {"mutation": _mutation, "fuzz-10k": _fuzz10k},
     "docs/studies/causal.md": {"causal": _causal, "ecms-hindsight": _ecms_hindsight},
     "docs/studies/causal_controllers.md": {"causal-rule-train": _causal_rule_train, "ecms-hindsight": _ecms_hindsight,
                                            "causal-wltc-high-cmap-trip4": _causal_per_drive},
@@ -303,6 +324,8 @@ def load() -> dict:
         d["run"] = json.loads(RUN_JSON.read_text())
     if SELECTIONS_JSON.exists():
         d["calib_selections"] = json.loads(SELECTIONS_JSON.read_text())["selections"]
+    if FUZZ_JSON.exists():
+        d["fuzz10k"] = json.loads(FUZZ_JSON.read_text())
     if MUTATION_JSON.exists():
         m = json.loads(MUTATION_JSON.read_text())
         d["mutation"] = {k: m.get(k) for k in ("score", "killed", "survived", "equivalent", "run", "sample", "seed")}
@@ -313,6 +336,7 @@ def load() -> dict:
 SOURCE_OF = {"sim": "reports/figures/bench-sim.json (`make figures`)",
              "run": "reports/figures/run.json (`make figures`)",
              "mutation": "reports/mutation.json (scripts/mutation.py)",
+             "fuzz10k": "reports/figures/fuzz-10k.json (python -m iptm.benchmarks.fuzz --n 10000 ...)",
              "calib_selections": "reports/figures/calib-selections.json "
                                  "(`python -m iptm.benchmarks.calib --selections --json FILE`)",
              "causal": "reports/causal-SET-VALUATION.json (`iptm bench causal`)",
