@@ -101,6 +101,17 @@ def _fuzz10k(d: dict) -> str:
     return "\n".join(rows)
 
 
+#: the command that writes reports/figures/plan-bench.json and the block (not re-run by ``run``: minutes)
+PLAN_COMMAND = "python -m iptm.benchmarks.plan --json reports/figures/plan-bench.json --doc docs/drive_plans.md"
+
+
+def _plan_bench(d: dict) -> str:
+    """The drive plans' closed loop on the foreign cars, as ``python -m iptm.benchmarks.plan`` prints it."""
+    from iptm.benchmarks.plan import table
+
+    return "```text\n" + f"$ {PLAN_COMMAND}\n" + "\n\n".join(table(f) for f in d["plan_bench"]) + "\n```"
+
+
 def _causal(d: dict) -> str:
     rows = ["| drives | valuation | controller | within 3 % of Thermal-DP | better than the rule tuned on the drive | "
             "better than the rule tuned on the training cycles | ends within 0.01 of SOC_0 | largest gap to DP | "
@@ -290,6 +301,7 @@ FILES = {
                            "case-study-paper": _case_study("paper"), "case-study-cold-soak": _case_study("cold_soak")},
     "docs/calibration_robustness.md": {"calib-selections": _calib_selections},
     "docs/testing.md": {"mutation": _mutation, "fuzz-10k": _fuzz10k},
+    "docs/drive_plans.md": {"plan-bench": _plan_bench},
     "docs/studies/causal.md": {"causal": _causal, "ecms-hindsight": _ecms_hindsight},
     "docs/studies/causal_controllers.md": {"causal-rule-train": _causal_rule_train, "ecms-hindsight": _ecms_hindsight,
                                            "causal-wltc-high-cmap-trip4": _causal_per_drive},
@@ -324,6 +336,8 @@ def load() -> dict:
         d["run"] = json.loads(RUN_JSON.read_text())
     if SELECTIONS_JSON.exists():
         d["calib_selections"] = json.loads(SELECTIONS_JSON.read_text())["selections"]
+    if (JSON_DIR / "plan-bench.json").exists():
+        d["plan_bench"] = json.loads((JSON_DIR / "plan-bench.json").read_text())
     if FUZZ_JSON.exists():
         d["fuzz10k"] = json.loads(FUZZ_JSON.read_text())
     if MUTATION_JSON.exists():
@@ -336,6 +350,7 @@ def load() -> dict:
 SOURCE_OF = {"sim": "reports/figures/bench-sim.json (`make figures`)",
              "run": "reports/figures/run.json (`make figures`)",
              "mutation": "reports/mutation.json (scripts/mutation.py)",
+             "plan_bench": f"reports/figures/plan-bench.json ({PLAN_COMMAND})",
              "fuzz10k": "reports/figures/fuzz-10k.json (python -m iptm.benchmarks.fuzz --n 10000 ...)",
              "calib_selections": "reports/figures/calib-selections.json "
                                  "(`python -m iptm.benchmarks.calib --selections --json FILE`)",
