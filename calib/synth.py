@@ -14,7 +14,7 @@ import pandas as pd
 
 from calib.drivelog import CHANNELS, LogMeta
 from calib.model.params import ParameterSet, default_parameters
-from calib.model.rulebased import RuleBasedController, RuleParams
+from calib.model.rulebased import RuleBasedController, RuleParams, RuleWrapper
 
 
 @dataclass
@@ -47,7 +47,7 @@ SENSORS: dict[str, Sensor] = {
 }
 
 
-class HvacController:
+class HvacController(RuleWrapper):
     """Rule-based powertrain plus a proportional cabin thermostat (automatic climate control)."""
 
     def __init__(self, mp, rp: RuleParams, T_set=21.0, K_W_per_K=400.0, Q_base_W=1000.0, Q_max_W=4000.0,
@@ -59,15 +59,6 @@ class HvacController:
     def reset(self):
         """Reset the rule-based controller's state before a new drive."""
         self.rule.reset()
-
-    @property
-    def T_bat(self) -> float:
-        """Battery temperature, passed to the rule-based controller (the simulator sets it each step)."""
-        return self.rule.T_bat
-
-    @T_bat.setter
-    def T_bat(self, value: float) -> None:
-        self.rule.T_bat = value
 
     def describe(self):
         """One line: the rule-based settings and the thermostat's set point."""

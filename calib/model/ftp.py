@@ -36,6 +36,7 @@ import numpy as np
 from calib.model.cycles import Cycle, load_cycle
 from calib.model.equations import battery_ocv_r, cabin_rate, coolant_flows
 from calib.model.simulate import GASOLINE_KG_PER_L, KM_PER_L_PER_MPG
+from calib.model.rulebased import RuleWrapper
 
 #: Bag 1 / bag 3 length: the UDDS "transient" phase (s).
 BAG1_S = 505
@@ -152,7 +153,7 @@ class FtpResult:
         return r
 
 
-class ColdTestController:
+class ColdTestController(RuleWrapper):
     """The rule-based powertrain with the heater and defroster of the cold test.
 
     Automatic climate control at :data:`T_SET_DEGC`, defrost, outside air: the cabin is far below the set
@@ -169,15 +170,6 @@ class ColdTestController:
 
     def reset(self):
         self.rule.reset()
-
-    @property
-    def T_bat(self) -> float:
-        """Battery temperature, passed to the rule-based controller (the simulator sets it each step)."""
-        return self.rule.T_bat
-
-    @T_bat.setter
-    def T_bat(self, value: float) -> None:
-        self.rule.T_bat = value
 
     def describe(self):
         return f"{self.rule.describe()}; cold-test heater (auto {T_SET_DEGC:g} degC, defrost, outside air)"

@@ -133,3 +133,19 @@ class RuleBasedController:
         """Whether the thermal rules forbid stopping the engine at coolant temperature ``T_cl``."""
         r = self.rp
         return T_cl < r.T_idle_degC or (self.heat_request_W > 0.0 and T_cl < r.T_heat_on_degC)
+
+
+class RuleWrapper:
+    """Base of a controller that wraps the rule-based one as ``self.rule`` (a climate control around it): the
+    battery temperature the simulator sets on the wrapper reaches the rule's cold-battery limit."""
+
+    rule: RuleBasedController
+
+    @property
+    def T_bat(self) -> float:
+        """Battery temperature, passed to the rule-based controller (the simulator sets it each step)."""
+        return self.rule.T_bat
+
+    @T_bat.setter
+    def T_bat(self, value: float) -> None:
+        self.rule.T_bat = value
